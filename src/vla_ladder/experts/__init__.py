@@ -1,0 +1,1 @@
+"""experts stage of vla-ladder."""

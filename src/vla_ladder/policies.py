@@ -1,0 +1,62 @@
+"""One interface for every policy: an observation batch and instructions in, an action batch out.
+
+Experts, reference policies and LeRobot checkpoints all implement `Policy`, so recording and evaluation
+never care which kind they run. `load_policy("kind[:arg]")` builds one from a command-line spec.
+"""
+
+from __future__ import annotations
+
+import importlib
+from abc import ABC, abstractmethod
+from typing import Any, Sequence
+
+import torch
+
+
+class Policy(ABC):
+    """A batched policy for GraspObject-v1 (7-d pd_ee_delta_pose actions in [-1, 1])."""
+
+    obs_mode: str = "state_dict"
+    """The env obs_mode it needs: "state_dict" (privileged experts) or "rgb" (VLAs)."""
+    name: str = "policy"
+
+    def reset(self, seeds: Sequence[int], env_ids: Sequence[int] | None = None) -> None:
+        """Start new episodes in the given envs (all when env_ids is None); seeds make any
+        randomness of the policy reproducible per episode."""
+
+    @abstractmethod
+    def act(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
+        """Return a (num_envs, 7) float tensor of actions."""
+
+    def describe(self) -> dict:
+        """What to record about this policy in result files."""
+        return {"name": self.name}
+
+
+# kind -> "module:factory"; factory(arg: str | None, **kwargs) -> Policy. Imported lazily so that a
+# command pays only for the policy it runs.
+POLICY_KINDS: dict[str, str] = {
+    "scripted": "vla_ladder.experts.scripted:make_policy",
+    "ppo": "vla_ladder.experts.ppo_policy:make_policy",
+    "lerobot": "vla_ladder.evaluation.lerobot_policy:make_policy",
+    "nearest": "vla_ladder.experts.reference:make_nearest",
+    "layout-prior": "vla_ladder.experts.reference:make_layout_prior",
+    "random": "vla_ladder.experts.reference:make_random",
+}
+NEEDS_ARG = {"ppo", "lerobot"}
+
+
+def parse_spec(spec: str) -> tuple[str, str | None]:
+    kind, _, arg = spec.partition(":")
+    if kind not in POLICY_KINDS:
+        raise ValueError(f"unknown policy {spec!r}; allowed: " + ", ".join(
+            f"{k}:PATH" if k in NEEDS_ARG else k for k in POLICY_KINDS))
+    if kind in NEEDS_ARG and not arg:
+        raise ValueError(f"policy {kind!r} needs a path: {kind}:PATH")
+    return kind, (arg or None)
+
+
+def load_policy(spec: str, **kwargs) -> Policy:
+    kind, arg = parse_spec(spec)
+    module, _, fn = POLICY_KINDS[kind].partition(":")
+    return getattr(importlib.import_module(module), fn)(arg, **kwargs)

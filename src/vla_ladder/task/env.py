@@ -1,0 +1,269 @@
+"""GraspObject-v1: "grasp the <object>" with a Franka Panda among up to five YCB objects.
+
+One task class in the ManiSkill style; every tensor is batched over parallel envs, so the same code
+runs one env on the CPU backend and thousands on physx_cuda. Layouts come from the simulator-free
+`layouts` module, seeded per episode: env i reset with seed s + i plays exactly the episode a single
+env plays with seed s + i, on either backend.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+import sapien
+import torch
+
+from mani_skill.agents.robots.panda.panda_wristcam import PandaWristCam
+from mani_skill.envs.sapien_env import BaseEnv
+from mani_skill.sensors.camera import CameraConfig
+from mani_skill.utils import sapien_utils
+from mani_skill.utils.geometry.rotation_conversions import quaternion_apply, quaternion_invert
+from mani_skill.utils.registration import register_env
+from mani_skill.utils.structs.pose import Pose
+from mani_skill.utils.structs.types import GPUMemoryConfig, SimConfig
+
+from vla_ladder.task import assets
+from vla_ladder.task.layouts import WORKSPACE_CENTER, Layout, check_args, sample_layout
+from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, OBJECTS
+
+REACH_THRESHOLD = 0.05  # metres from the TCP to the instructed object's bounding box
+LIFT_HEIGHT = 0.05
+ROBOT_BASE = (-0.615, 0.0, 0.0)
+# Where absent objects wait: a collision-only shelf beside the table, out of both cameras' view and
+# well inside ManiSkill's 5 m spacing between parallel sub-scenes.
+PARK_XY = np.array([[-0.6 + 0.3 * i, 1.8] for i in range(NUM_OBJECTS)])
+CAMERA_SIZE = 256
+WRIST_FOV_DEG, FRONT_FOV_DEG = 58.0, 45.0
+REST_QPOS = np.array([0.0, np.pi / 8, 0, -np.pi * 5 / 8, 0, np.pi * 3 / 4, np.pi / 4, 0.04, 0.04])
+
+
+@register_env("GraspObject-v1", max_episode_steps=50)
+class GraspObjectEnv(BaseEnv):
+    """Grasp the instructed object. Episodes always run 50 steps (2.5 s at 20 Hz); success is the
+    instructed object being held at the final step, as in the paper."""
+
+    SUPPORTED_ROBOTS = ["panda_wristcam"]
+    SUPPORTED_OBS_MODES = ("state", "state_dict", "rgb", "none", "sensor_data", "rgbd")
+    agent: PandaWristCam
+
+    def __init__(self, *args, regime: str = "small_jitter", split: str = "canonical", num_objects: int = 5,
+                 target: str | None = None, object_set: str = "auto", robot_init_qpos_noise: float = 0.02,
+                 robot_uids="panda_wristcam", render_backend: str = "auto", obs_mode: str | None = None,
+                 render_mode: str | None = None, sensor_configs: dict | None = None, **kwargs):
+        check_args(regime, split, num_objects, target)
+        self.regime, self.split, self.num_objects, self.target = regime, split, int(num_objects), target
+        self.object_set = assets.resolve_object_set(object_set)
+        self.robot_init_qpos_noise = robot_init_qpos_noise
+        self.layouts: list[Layout | None] = []
+        self._layout_seeds = np.zeros(0, dtype=np.int64)
+        self._seed_rng = np.random.default_rng()
+        obs_mode = obs_mode or "state"
+        kwargs.setdefault("control_mode", "pd_ee_delta_pose")
+        if render_backend == "auto":
+            needs_render = obs_mode not in ("state", "state_dict", "none") or render_mode is not None
+            render_backend = ("gpu" if torch.cuda.is_available() else "cpu") if needs_render else "none"
+        # The paper's cameras: 58 deg wrist, 256x256; the fixed front one is defined below.
+        cams = {"hand_camera": dict(width=CAMERA_SIZE, height=CAMERA_SIZE, fov=np.deg2rad(WRIST_FOV_DEG))}
+        for k, v in (sensor_configs or {}).items():
+            cams[k] = {**cams.get(k, {}), **v} if isinstance(v, dict) else v
+        super().__init__(*args, robot_uids=robot_uids, render_backend=render_backend, obs_mode=obs_mode,
+                         render_mode=render_mode, sensor_configs=cams, **kwargs)
+        self.metadata = {**self.metadata, "object_set": self.object_set}
+
+    # ------------------------------------------------------------------ configuration
+    @property
+    def _default_sim_config(self):
+        return SimConfig(sim_freq=100, control_freq=20, gpu_memory_config=GPUMemoryConfig(
+            max_rigid_contact_count=2**21, max_rigid_patch_count=2**19, found_lost_pairs_capacity=2**25))
+
+    @property
+    def _default_sensor_configs(self):
+        pose = sapien_utils.look_at(eye=[0.5, 0.0, 0.45], target=[WORKSPACE_CENTER[0] - 0.04, 0.0, 0.02])
+        return [CameraConfig("fixed_camera", pose, CAMERA_SIZE, CAMERA_SIZE, np.deg2rad(FRONT_FOV_DEG), 0.01, 100)]
+
+    @property
+    def _default_human_render_camera_configs(self):
+        pose = sapien_utils.look_at(eye=[0.5, 0.6, 0.6], target=[-0.15, 0.0, 0.05])
+        return CameraConfig("render_camera", pose, 512, 512, 1.0, 0.01, 100)
+
+    def _load_agent(self, options: dict):
+        super()._load_agent(options, sapien.Pose(p=list(ROBOT_BASE)))
+
+    def _load_scene(self, options: dict):
+        render = self.scene.can_render()
+        # Table top at z = 0 (ManiSkill convention); a collision-only shelf parks absent objects.
+        for name, half, p, rgba in (("table", [0.6, 0.8, 0.02], [-0.15, 0, -0.02], (0.55, 0.42, 0.3, 1)),
+                                    ("floor", [3.0, 3.0, 0.01], [0, 0, -0.93], (0.35, 0.35, 0.38, 1)),
+                                    ("shelf", [1.0, 0.3, 0.02], [0.0, PARK_XY[0, 1], -0.02], None)):
+            b = self.scene.create_actor_builder()
+            b.add_box_collision(half_size=half)
+            if render and rgba is not None:
+                b.add_box_visual(half_size=half, material=sapien.render.RenderMaterial(base_color=list(rgba)))
+            b.initial_pose = sapien.Pose(p=p)
+            b.build_static(name=name)
+        self.objs = assets.build_objects(self.scene, self.object_set, render)
+        geo = assets.object_geometry(self.object_set)
+        self._half = torch.tensor(geo["half_extents"], dtype=torch.float32, device=self.device)
+        self._center = torch.tensor(geo["center_offset"], dtype=torch.float32, device=self.device)
+        self._rest_z = torch.tensor(geo["rest_z"], dtype=torch.float32, device=self.device)
+        self._grasp_local = torch.tensor(geo["grasp_point"], dtype=torch.float32, device=self.device)
+        n = self.num_envs
+        self.target_idx = torch.zeros(n, dtype=torch.long, device=self.device)
+        self.present = torch.zeros(n, NUM_OBJECTS, dtype=torch.bool, device=self.device)
+        self._grasp_any = torch.zeros(n, dtype=torch.bool, device=self.device)
+        self.layouts = [None] * n
+
+    # ------------------------------------------------------------------ episodes
+    def reset(self, seed: None | int | Sequence[int] = None, options: dict | None = None):
+        """seed=s (int) gives env i the episode seed s + i; a list gives one seed per reset env."""
+        options = dict(options or {})
+        env_idx = options.get("env_idx")
+        idx = np.arange(self.num_envs) if env_idx is None else np.asarray(
+            env_idx.cpu() if torch.is_tensor(env_idx) else env_idx).reshape(-1)
+        if len(self._layout_seeds) != self.num_envs:
+            self._layout_seeds = np.zeros(self.num_envs, dtype=np.int64)
+        if seed is None:
+            seeds = self._seed_rng.integers(0, 2**31, size=len(idx))
+        elif np.iterable(seed):
+            seeds = np.asarray(list(seed), dtype=np.int64)
+            if len(seeds) != len(idx):
+                raise ValueError(f"got {len(seeds)} seeds for {len(idx)} envs being reset")
+        else:
+            seeds = int(seed) + np.arange(len(idx))
+            self._seed_rng = np.random.default_rng(int(seed))
+        self._layout_seeds[idx] = seeds
+        if "target" in options:
+            check_args(self.regime, self.split, self.num_objects, options["target"])
+        return super().reset(seed=None if seed is None else [int(s) for s in seeds] if env_idx is None
+                             else None, options=options)
+
+    def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
+        target = options.get("target", self.target)
+        ids = env_idx.cpu().numpy()
+        b = len(ids)
+        pos = np.zeros((b, NUM_OBJECTS, 3), dtype=np.float32)
+        quat = np.zeros((b, NUM_OBJECTS, 4), dtype=np.float32)
+        quat[..., 0] = 1
+        pos[:, :, :2] = PARK_XY
+        pos[:, :, 2] = self._rest_z.cpu().numpy()
+        qpos = np.tile(REST_QPOS, (b, 1)).astype(np.float32)
+        present = np.zeros((b, NUM_OBJECTS), dtype=bool)
+        tgt = np.zeros(b, dtype=np.int64)
+        for row, i in enumerate(ids):
+            seed = int(self._layout_seeds[i])
+            lay = sample_layout(self.regime, self.split, self.num_objects, seed, target)
+            self.layouts[i] = lay
+            tgt[row] = lay.target_index
+            for name, xy, yaw in zip(lay.objects, lay.xy, lay.yaw):
+                k = OBJECT_NAMES.index(name)
+                present[row, k] = True
+                # The layout gives the bounding-box centre; the actor origin may sit elsewhere (YCB).
+                c, s = np.cos(yaw), np.sin(yaw)
+                off = self._center[k].cpu().numpy()
+                pos[row, k, :2] = xy - np.array([c * off[0] - s * off[1], s * off[0] + c * off[1]])
+                quat[row, k] = [np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]
+            noise = np.random.default_rng([seed, 7]).normal(0, self.robot_init_qpos_noise, 7)
+            qpos[row, :7] += noise.astype(np.float32)
+        with torch.device(self.device):
+            for k, obj in enumerate(self.objs):
+                obj.set_pose(Pose.create_from_pq(torch.from_numpy(pos[:, k]), torch.from_numpy(quat[:, k])))
+            self.agent.reset(torch.from_numpy(qpos))
+            self.agent.robot.set_pose(Pose.create_from_pq(torch.tensor([ROBOT_BASE] * b)))
+            self.target_idx[env_idx] = torch.from_numpy(tgt).to(self.device)
+            self.present[env_idx] = torch.from_numpy(present).to(self.device)
+            self._grasp_any[env_idx] = False
+
+    @property
+    def instructions(self) -> list[str]:
+        """The instruction of each parallel env's current episode."""
+        return [lay.instruction for lay in self.layouts]
+
+    @property
+    def episode_seeds(self) -> list[int]:
+        return [int(s) for s in self._layout_seeds]
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        # Success is judged at the final step, so grasping early must not end the episode.
+        return obs, reward, torch.zeros_like(terminated), truncated, info
+
+    # ------------------------------------------------------------------ state and metrics
+    def _refresh(self) -> dict[str, torch.Tensor]:
+        """Object poses, gathered once per step: evaluate, observations and reward all reuse them."""
+        p = torch.stack([o.pose.p for o in self.objs], dim=1)  # (N, 5, 3)
+        q = torch.stack([o.pose.q for o in self.objs], dim=1)  # (N, 5, 4) wxyz
+        self._cache = dict(p=p, q=q, tcp=self.agent.tcp_pose.p)
+        return self._cache
+
+    def _target_select(self, x: torch.Tensor) -> torch.Tensor:
+        return x[torch.arange(self.num_envs, device=self.device), self.target_idx]
+
+    def grasp_sites(self) -> torch.Tensor:
+        """(N, 5, 3) world positions where each object is meant to be grasped."""
+        c = self._cache
+        local = (self._center + self._grasp_local).expand(c["q"].shape[0], -1, -1)
+        return c["p"] + quaternion_apply(c["q"], local)
+
+    def _dist_to_boxes(self) -> torch.Tensor:
+        """(N, 5) distance from the TCP to each object's oriented bounding box (0 inside)."""
+        c = self._cache
+        local = quaternion_apply(quaternion_invert(c["q"]), c["tcp"][:, None, :] - c["p"]) - self._center
+        return torch.linalg.norm(torch.clamp(local.abs() - self._half, min=0.0), dim=-1)
+
+    def _grasp_flags(self, min_force: float = 0.5, max_angle_deg: float = 85.0) -> torch.Tensor:
+        """(N, 5) Panda.is_grasping for all objects at once: both fingers push on the object, each
+        roughly along its closing direction (the finger directions are computed once, not per object)."""
+        a = self.agent
+        dirs = torch.stack([a.finger1_link.pose.to_transformation_matrix()[..., :3, 1],
+                            -a.finger2_link.pose.to_transformation_matrix()[..., :3, 1]], dim=1)  # (N, 2, 3)
+        forces = torch.stack([torch.stack([self.scene.get_pairwise_contact_forces(f, o) for f in
+                                           (a.finger1_link, a.finger2_link)], dim=1) for o in self.objs], dim=1)
+        norm = torch.linalg.norm(forces, dim=-1)  # (N, 5, 2)
+        cos = (forces * dirs[:, None]).sum(-1) / norm.clamp(min=1e-9)
+        ok = (norm >= min_force) & (cos >= np.cos(np.deg2rad(max_angle_deg)))
+        return ok.all(dim=-1)
+
+    def proprio(self) -> torch.Tensor:
+        """The 15-d state the VLA sees: 7 arm joint positions, 7 velocities, gripper width."""
+        qpos, qvel = self.agent.robot.get_qpos(), self.agent.robot.get_qvel()
+        return torch.cat([qpos[:, :7], qvel[:, :7], (qpos[:, 7] + qpos[:, 8])[:, None]], dim=1)
+
+    def evaluate(self) -> dict[str, torch.Tensor]:
+        c = self._refresh()
+        grasped = self._grasp_flags() & self.present
+        any_now = grasped.any(dim=1)
+        self._grasp_any |= any_now
+        held = torch.where(any_now, grasped.float().argmax(dim=1), torch.full_like(self.target_idx, -1))
+        dist = self._target_select(self._dist_to_boxes())
+        lift = self._target_select(c["p"][..., 2]) - self._rest_z[self.target_idx]
+        success = self._target_select(grasped)
+        return dict(success=success, grasp_any=self._grasp_any.clone(), reach=dist <= REACH_THRESHOLD,
+                    is_grasped=grasped, held=held, reach_dist=dist, lift=lift,
+                    lifted=success & (lift >= LIFT_HEIGHT), wrong_grasp=any_now & ~success)
+
+    def _get_obs_extra(self, info: dict):
+        obs = dict(proprio=self.proprio())
+        if "state" in self.obs_mode:
+            c = self._cache
+            site = self._target_select(self.grasp_sites())
+            poses = torch.cat([c["p"], c["q"]], dim=-1)
+            obs.update(
+                tcp_pose=self.agent.tcp_pose.raw_pose,
+                obj_pose=poses.reshape(self.num_envs, -1),
+                obj_present=self.present.float(),
+                target_onehot=torch.nn.functional.one_hot(self.target_idx, NUM_OBJECTS).float(),
+                is_grasped=info["is_grasped"].float(),
+                target_site=site,
+                tcp_to_target=site - c["tcp"],
+            )
+        return obs
+
+    def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        d = torch.linalg.norm(self._target_select(self.grasp_sites()) - self._cache["tcp"], dim=1)
+        grasped = info["success"].float()
+        lift = torch.clamp(info["lift"] / LIFT_HEIGHT, 0.0, 1.0) * grasped
+        return (1 - torch.tanh(5 * d)) + grasped + lift - info["wrong_grasp"].float()
+
+    def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        return self.compute_dense_reward(obs, action, info) / 3.0

@@ -1,0 +1,174 @@
+"""The placement ladder: seeded, simulator-free sampling of object layouts.
+
+A layout is a pure function of (regime, split, num_objects, seed[, target]), so the same seed gives the
+same scene, target and instruction on the CPU and GPU backends and for any number of parallel envs.
+
+Frame: world metres, robot base at x = -0.615 facing +x, table top at z = 0 (ManiSkill convention).
+The workspace is 35 cm deep (x) by 50 cm wide (y). Five canonical regions form a quincunx: four
+corners and the workspace centre. In the jitter regimes object i always sits in region i (the
+location shortcut the ladder removes step by step); the pairing splits permute objects over regions.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+
+from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, OBJECTS, instruction_for, object_index
+
+WORKSPACE_CENTER = np.array([-0.12, 0.0])
+WORKSPACE_SIZE = np.array([0.35, 0.50])  # (x depth, y width)
+# Region centres relative to the workspace centre; index 2 is the centre region.
+REGION_OFFSETS = np.array([[0.105, 0.16], [0.105, -0.16], [0.0, 0.0], [-0.105, 0.16], [-0.105, -0.16]])
+REGION_CENTERS = WORKSPACE_CENTER + REGION_OFFSETS
+CENTER_REGION = 2
+
+REGIMES: dict[str, tuple[float, float] | None] = {
+    # (x extent, y extent) of each region in metres; None = the whole workspace.
+    "small_jitter": (0.04, 0.06),
+    "medium_jitter": (0.08, 0.12),
+    "large_jitter": (0.12, 0.16),
+    "full_random": None,
+}
+# Yaw jitter grows with the ladder so that small jitter stays benchmark-like (LIBERO rotates little).
+YAW_RANGE = {"small_jitter": np.pi / 12, "medium_jitter": np.pi / 6, "large_jitter": np.pi / 4, "full_random": np.pi}
+SPLITS = ("canonical", "pairings_id", "pairings_ood")
+# Object i trains in regions i, i+1, i+2 (mod 5) and is held out of i+3, i+4: every object and every
+# region is seen three times in training, yet 10 of the 25 object-region pairs are never shown.
+TRAIN_REGIONS: tuple[frozenset[int], ...] = tuple(
+    frozenset((i + k) % NUM_OBJECTS for k in range(3)) for i in range(NUM_OBJECTS))
+HELD_OUT_REGIONS: tuple[frozenset[int], ...] = tuple(
+    frozenset(range(NUM_OBJECTS)) - TRAIN_REGIONS[i] for i in range(NUM_OBJECTS))
+MIN_GAP = 0.01  # free space kept between object footprints
+MAX_TRIES = 2000
+
+
+@dataclass(frozen=True)
+class Layout:
+    """One episode's scene: which objects, where, and which one is instructed."""
+
+    regime: str
+    split: str
+    seed: int
+    objects: tuple[str, ...]
+    """Present objects; the target is objects[0]."""
+    xy: np.ndarray = field(repr=False)
+    """(k, 2) object positions in metres, world frame."""
+    yaw: np.ndarray = field(repr=False)
+    """(k,) rotations about z in radians."""
+    regions: tuple[int, ...] | None
+    """Region index of each object (None in full_random)."""
+
+    @property
+    def target(self) -> str:
+        return self.objects[0]
+
+    @property
+    def target_index(self) -> int:
+        return object_index(self.target)
+
+    @property
+    def instruction(self) -> str:
+        return instruction_for(self.target)
+
+    def to_dict(self) -> dict:
+        return {
+            "seed": self.seed, "regime": self.regime, "split": self.split, "target": self.target,
+            "instruction": self.instruction,
+            "positions": {n: [round(float(v), 5) for v in p] for n, p in zip(self.objects, self.xy)},
+            "yaw": {n: round(float(a), 5) for n, a in zip(self.objects, self.yaw)},
+            "regions": None if self.regions is None else dict(zip(self.objects, self.regions)),
+        }
+
+
+def check_args(regime: str, split: str = "canonical", num_objects: int = 5, target: str | None = None) -> None:
+    """Raise ValueError naming what is allowed for any bad argument."""
+    if regime not in REGIMES:
+        raise ValueError(f"unknown regime {regime!r}; allowed: {', '.join(REGIMES)}")
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; allowed: {', '.join(SPLITS)}")
+    if split != "canonical" and REGIMES[regime] is None:
+        raise ValueError(f"split {split!r} needs a jitter regime (regions); allowed: "
+                         f"{', '.join(r for r, e in REGIMES.items() if e is not None)}")
+    if isinstance(num_objects, bool) or not isinstance(num_objects, (int, np.integer)) \
+            or not 1 <= num_objects <= NUM_OBJECTS:
+        raise ValueError(f"num_objects must be an integer from 1 to {NUM_OBJECTS}, got {num_objects!r}")
+    if target is not None:
+        object_index(target)
+
+
+@lru_cache(maxsize=None)
+def region_assignments(objects: tuple[int, ...], split: str) -> tuple[tuple[int, ...], ...]:
+    """Every injective object->region map allowed by a split (objects[0] is the target)."""
+    if split == "canonical":
+        return (tuple(objects),)
+    out = []
+    for regions in itertools.permutations(range(NUM_OBJECTS), len(objects)):
+        ok_distractors = all(r in TRAIN_REGIONS[o] for o, r in zip(objects[1:], regions[1:]))
+        target_pool = TRAIN_REGIONS[objects[0]] if split == "pairings_id" else HELD_OUT_REGIONS[objects[0]]
+        if ok_distractors and regions[0] in target_pool:
+            out.append(regions)
+    return tuple(out)
+
+
+def _footprints(objects: tuple[str, ...]) -> np.ndarray:
+    return np.array([OBJECTS[object_index(n)].footprint_radius for n in objects])
+
+
+def _collides(xy: np.ndarray, radii: np.ndarray, i: int) -> bool:
+    if i == 0:
+        return False
+    d = np.linalg.norm(xy[:i] - xy[i], axis=1)
+    return bool(np.any(d < radii[:i] + radii[i] + MIN_GAP))
+
+
+def sample_layout(regime: str, split: str = "canonical", num_objects: int = 5, seed: int = 0,
+                  target: str | None = None) -> Layout:
+    """Sample one layout; a given seed always gives the same layout."""
+    check_args(regime, split, num_objects, target)
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFFFFFFFFFF, 0x1ADDE2]))
+    t = object_index(target) if target is not None else int(rng.integers(NUM_OBJECTS))
+    others = [i for i in range(NUM_OBJECTS) if i != t]
+    distractors = rng.permutation(others)[: num_objects - 1]
+    idx = (t, *map(int, distractors))
+    names = tuple(OBJECT_NAMES[i] for i in idx)
+    radii = _footprints(names)
+    extent = REGIMES[regime]
+    regions: tuple[int, ...] | None = None
+    if extent is not None:
+        choices = region_assignments(idx, split)
+        regions = choices[int(rng.integers(len(choices)))]
+    half_ws = WORKSPACE_SIZE / 2
+    for _ in range(MAX_TRIES):
+        xy = np.zeros((num_objects, 2))
+        ok = True
+        for i in range(num_objects):
+            for _ in range(MAX_TRIES):
+                if regions is None:
+                    # The whole footprint stays on the workspace.
+                    lo, hi = WORKSPACE_CENTER - half_ws + radii[i], WORKSPACE_CENTER + half_ws - radii[i]
+                    xy[i] = rng.uniform(lo, hi)
+                elif regime == "small_jitter" and regions[i] == CENTER_REGION:
+                    xy[i] = REGION_CENTERS[CENTER_REGION]
+                else:
+                    half = np.asarray(extent) / 2
+                    xy[i] = REGION_CENTERS[regions[i]] + rng.uniform(-half, half)
+                if not _collides(xy, radii, i):
+                    break
+            else:
+                ok = False
+                break
+        if ok:
+            break
+    else:  # pragma: no cover - the regions are sized so this cannot happen with the shipped objects
+        raise RuntimeError(f"no collision-free layout after {MAX_TRIES} tries ({regime}, seed {seed})")
+    yaw = rng.uniform(-YAW_RANGE[regime], YAW_RANGE[regime], size=num_objects)
+    return Layout(regime, split, int(seed), names, xy, yaw, regions)
+
+
+def sample_layouts(regime: str, split: str = "canonical", num_objects: int = 5, seeds=(0,),
+                   target: str | None = None) -> list[Layout]:
+    return [sample_layout(regime, split, num_objects, int(s), target) for s in seeds]
