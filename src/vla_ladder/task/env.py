@@ -44,7 +44,6 @@ class GraspObjectEnv(BaseEnv):
     instructed object being held at the final step, as in the paper."""
 
     SUPPORTED_ROBOTS = ["panda_wristcam"]
-    SUPPORTED_OBS_MODES = ("state", "state_dict", "rgb", "none", "sensor_data", "rgbd")
     agent: PandaWristCam
 
     def __init__(self, *args, regime: str = "small_jitter", split: str = "canonical", num_objects: int = 5,
