@@ -1,0 +1,159 @@
+"""Placement ladder properties: pure numpy, no simulator."""
+
+import itertools
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from vla_ladder.task.layouts import (CENTER_REGION, HELD_OUT_REGIONS, MIN_GAP, REGIMES, REGION_CENTERS, SPLITS,
+                                     TRAIN_REGIONS, WORKSPACE_CENTER, WORKSPACE_SIZE, region_assignments,
+                                     sample_layout)
+from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, OBJECTS, object_index
+
+SEEDS = range(300)
+JITTER = [r for r, e in REGIMES.items() if e is not None]
+
+
+def test_paper_region_sizes():
+    assert REGIMES["small_jitter"] == (0.04, 0.06)
+    assert REGIMES["medium_jitter"] == (0.08, 0.12)
+    assert REGIMES["large_jitter"] == (0.12, 0.16)
+    assert REGIMES["full_random"] is None
+    np.testing.assert_allclose(WORKSPACE_SIZE, [0.35, 0.50])
+
+
+@pytest.mark.parametrize("regime", JITTER)
+def test_objects_stay_in_their_region(regime):
+    half = np.asarray(REGIMES[regime]) / 2
+    spread = np.zeros((NUM_OBJECTS, 2))
+    for s in SEEDS:
+        lay = sample_layout(regime, seed=s)
+        for name, xy, region in zip(lay.objects, lay.xy, lay.regions):
+            assert region == object_index(name), "object i always sits in region i"
+            off = np.abs(xy - REGION_CENTERS[region])
+            assert np.all(off <= half + 1e-9), (regime, name, off)
+            spread[region] = np.maximum(spread[region], off)
+    # The jitter really spans the region (not a degenerate sampler).
+    corner = [i for i in range(NUM_OBJECTS) if i != CENTER_REGION or regime != "small_jitter"]
+    assert np.all(spread[corner] > 0.7 * half)
+
+
+def test_small_jitter_centre_object_is_fixed():
+    for s in SEEDS:
+        lay = sample_layout("small_jitter", seed=s)
+        k = lay.regions.index(CENTER_REGION)
+        np.testing.assert_allclose(lay.xy[k], WORKSPACE_CENTER)
+
+
+def test_full_random_covers_workspace_inside_bounds():
+    lo, hi = WORKSPACE_CENTER - WORKSPACE_SIZE / 2, WORKSPACE_CENTER + WORKSPACE_SIZE / 2
+    pts = []
+    for s in SEEDS:
+        lay = sample_layout("full_random", seed=s)
+        assert lay.regions is None
+        for name, xy in zip(lay.objects, lay.xy):
+            r = OBJECTS[object_index(name)].footprint_radius
+            assert np.all(xy - r >= lo - 1e-9) and np.all(xy + r <= hi + 1e-9)
+            pts.append(xy)
+    pts = np.array(pts)
+    # Uniform over the workspace: the four quadrants around the centre are all well populated.
+    q = np.histogram2d(pts[:, 0] < WORKSPACE_CENTER[0], pts[:, 1] < WORKSPACE_CENTER[1], bins=2)[0]
+    assert q.min() > 0.15 * len(pts)
+
+
+@pytest.mark.parametrize("regime", list(REGIMES))
+@pytest.mark.parametrize("k", [2, 5])
+def test_placements_are_collision_free(regime, k):
+    for s in SEEDS:
+        lay = sample_layout(regime, num_objects=k, seed=s)
+        r = np.array([OBJECTS[object_index(n)].footprint_radius for n in lay.objects])
+        for i, j in itertools.combinations(range(k), 2):
+            assert np.linalg.norm(lay.xy[i] - lay.xy[j]) >= r[i] + r[j] + MIN_GAP - 1e-9
+
+
+def test_seed_determines_layout_target_and_instruction():
+    for regime, split in [("small_jitter", "pairings_ood"), ("full_random", "canonical"), ("large_jitter", "pairings_id")]:
+        a = sample_layout(regime, split, 4, seed=123)
+        b = sample_layout(regime, split, 4, seed=123)
+        c = sample_layout(regime, split, 4, seed=124)
+        assert a.to_dict() == b.to_dict()
+        assert a.to_dict() != c.to_dict()
+        assert a.instruction == f"grasp the {OBJECTS[a.target_index].phrase}"
+
+
+def test_target_is_uniform_and_can_be_fixed():
+    counts = np.bincount([sample_layout("medium_jitter", seed=s).target_index for s in range(2000)], minlength=5)
+    assert counts.min() > 300  # 400 expected each
+    assert all(sample_layout("full_random", seed=s, target="mug").target == "mug" for s in range(20))
+
+
+def test_object_count_scenes():
+    for k in range(1, 6):
+        for s in range(50):
+            lay = sample_layout("large_jitter", num_objects=k, seed=s)
+            assert len(lay.objects) == k == len(set(lay.objects)) == len(lay.xy)
+
+
+def test_pairing_splits_disjoint_and_complete():
+    train = {(o, r) for o in range(5) for r in TRAIN_REGIONS[o]}
+    held = {(o, r) for o in range(5) for r in HELD_OUT_REGIONS[o]}
+    assert not train & held and len(train | held) == 25
+    # Every object and every region is seen in training, each three times.
+    assert sorted(o for o, _ in train) == sorted(list(range(5)) * 3)
+    assert sorted(r for _, r in train) == sorted(list(range(5)) * 3)
+    seen_id, seen_ood_target = set(), set()
+    for s in range(3000):
+        k = 1 + s % 5
+        lid = sample_layout("small_jitter", "pairings_id", k, seed=s)
+        pairs = {(object_index(n), r) for n, r in zip(lid.objects, lid.regions)}
+        assert pairs <= train, "no held-out pair ever appears in an ID layout"
+        seen_id |= pairs
+        lood = sample_layout("small_jitter", "pairings_ood", k, seed=s)
+        t = (lood.target_index, lood.regions[0])
+        assert t in held, "the instructed object sits in one of its held-out regions"
+        seen_ood_target.add(t)
+    assert seen_id == train and seen_ood_target == held
+
+
+def test_region_assignments_enumerate_all_valid_maps():
+    assert len(region_assignments((0, 1, 2, 3, 4), "pairings_id")) == 13
+    for t in range(5):
+        objs = (t, *[i for i in range(5) if i != t])
+        assert len(region_assignments(objs, "pairings_ood")) == 6
+
+
+@pytest.mark.parametrize("kwargs, allowed", [
+    (dict(regime="tiny_jitter"), "small_jitter, medium_jitter, large_jitter, full_random"),
+    (dict(regime="small_jitter", split="ood"), ", ".join(SPLITS)),
+    (dict(regime="full_random", split="pairings_ood"), "small_jitter, medium_jitter, large_jitter"),
+    (dict(regime="small_jitter", num_objects=0), "1 to 5"),
+    (dict(regime="small_jitter", num_objects=6), "1 to 5"),
+    (dict(regime="small_jitter", num_objects=2.5), "1 to 5"),
+    (dict(regime="small_jitter", target="banana"), ", ".join(OBJECT_NAMES)),
+])
+def test_bad_arguments_name_what_is_allowed(kwargs, allowed):
+    with pytest.raises(ValueError) as e:
+        sample_layout(**kwargs)
+    assert allowed in str(e.value)
+
+
+def test_placements_command_writes_json_and_figure(tmp_path):
+    js, png = tmp_path / "l.json", tmp_path / "fig.png"
+    subprocess.run([sys.executable, "-m", "vla_ladder.cli", "placements", "--regime", "all", "--n", "20",
+                    "--seed", "7", "--json", str(js), "--plot", str(png)], check=True)
+    data = json.loads(js.read_text())
+    assert len(data["episodes"]) == 80
+    ep = data["episodes"][0]
+    assert ep["seed"] == 7 and ep["target"] in ep["positions"]
+    assert all(len(v) == 2 for v in ep["positions"].values())
+    assert ep == sample_layout(ep["regime"], seed=7).to_dict()
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_placements_command_rejects_bad_input(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "vla_ladder.cli", "placements", "--regime", "nope", "--n", "2",
+                        "--seed", "0"], capture_output=True, text=True)
+    assert r.returncode == 2 and "allowed: small_jitter" in r.stderr and "Traceback" not in r.stderr
