@@ -1,0 +1,151 @@
+"""GraspObject-v1 on the CPU backend: construction, observations, placement, metrics, rendering."""
+
+import numpy as np
+import pytest
+import torch
+
+from vla_ladder.task.layouts import REGIMES, sample_layout
+from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
+
+CASES = [(r, s) for r, e in REGIMES.items() for s in (["canonical", "pairings_id", "pairings_ood"] if e else ["canonical"])]
+
+
+def _seed_with(objects, regime="small_jitter", num_objects=2, target=None):
+    """First seed whose layout holds exactly `objects` (pure numpy search)."""
+    for s in range(10_000):
+        if set(sample_layout(regime, num_objects=num_objects, seed=s, target=target).objects) == set(objects):
+            return s
+    raise AssertionError(objects)
+
+
+@pytest.mark.parametrize("regime, split", CASES)
+def test_reset_and_step_every_regime_split_and_count(make_env, regime, split):
+    for k in (1, 3, 5) if split == "canonical" else (5,):
+        env = make_env(obs_mode="state_dict", regime=regime, split=split, num_objects=k)
+        u = env.unwrapped
+        for seed in (0, 1):
+            obs, info = env.reset(seed=seed)
+            lay = sample_layout(regime, split, k, seed)
+            assert u.layouts[0].to_dict() == lay.to_dict() and u.instructions == [lay.instruction]
+            assert u.present[0].sum().item() == k and OBJECT_NAMES[u.target_idx[0]] == lay.target
+            # Objects stand where the layout says; absent ones wait far from the table.
+            p = obs["extra"]["obj_pose"].reshape(NUM_OBJECTS, 7)[:, :3]
+            for name, xy in zip(lay.objects, lay.xy):
+                np.testing.assert_allclose(p[OBJECT_NAMES.index(name), :2].numpy(), xy, atol=1e-4)
+            absent = [i for i, n in enumerate(OBJECT_NAMES) if n not in lay.objects]
+            assert torch.all(p[absent, 1] > 1.0)
+            for _ in range(3):
+                obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+            assert torch.isfinite(reward).all() and not terminated.any()
+            assert {"success", "grasp_any", "reach", "held", "is_grasped"} <= info.keys()
+
+
+def test_state_observation_shapes_and_dtypes(make_env):
+    env = make_env(obs_mode="state_dict", regime="medium_jitter")
+    obs, _ = env.reset(seed=3)
+    ex = obs["extra"]
+    shapes = dict(proprio=15, tcp_pose=7, obj_pose=35, obj_present=5, target_onehot=5, is_grasped=5,
+                  target_site=3, tcp_to_target=3)
+    for k, d in shapes.items():
+        assert ex[k].shape == (1, d) and ex[k].dtype == torch.float32, k
+    qpos = obs["agent"]["qpos"][0]
+    np.testing.assert_allclose(ex["proprio"][0, :7].numpy(), qpos[:7].numpy())
+    assert ex["proprio"][0, 14].item() == pytest.approx((qpos[7] + qpos[8]).item())  # gripper width
+    assert env.action_space.shape == (7,)
+    flat = make_env(obs_mode="state", regime="medium_jitter")
+    fobs, _ = flat.reset(seed=3)
+    assert fobs.shape == (1, 18 + sum(shapes.values())) and fobs.dtype == torch.float32
+
+
+def _act(env, goal, grip):
+    """P-control of the TCP towards `goal` with the gripper command `grip` (test driver, not an expert)."""
+    tcp = env.unwrapped.agent.tcp_pose.p[0]
+    a = torch.zeros(1, 7)
+    a[0, :3] = torch.clamp((goal - tcp) / 0.1 * 2.0, -1, 1)
+    a[0, 6] = grip
+    return env.step(a)
+
+
+def _grasp(env, name, steps=50):
+    """Reach over `name`, descend, close, lift; returns the info of every step."""
+    u = env.unwrapped
+    k = OBJECT_NAMES.index(name)
+    infos = []
+    centre = u.objs[k].pose.p[0].clone()
+    plan = [(centre + torch.tensor([0, 0, 0.08]), 1.0, 14), (centre, 1.0, 12), (centre, -1.0, 8),
+            (centre + torch.tensor([0, 0, 0.12]), -1.0, steps - 34)]
+    for goal, grip, n in plan:
+        for _ in range(n):
+            infos.append(_act(env, goal, grip)[4])
+    return infos
+
+
+def test_metrics_target_grasped_and_lifted(make_env):
+    env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=1, target="rubiks_cube")
+    env.reset(seed=0)
+    infos = _grasp(env, "rubiks_cube")
+    last = infos[-1]
+    assert last["success"].item() and last["grasp_any"].item() and last["reach"].item()
+    assert last["lifted"].item() and last["held"].item() == OBJECT_NAMES.index("rubiks_cube")
+    assert not any(i["success"].item() for i in infos[:20]), "nothing is grasped before the fingers close"
+    assert infos[-1]["elapsed_steps"].item() == 50
+
+
+def test_metrics_wrong_object_grasped(make_env):
+    seed = _seed_with({"apple", "rubiks_cube"}, target="apple")
+    env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=2, target="apple")
+    env.reset(seed=seed)
+    last = _grasp(env, "rubiks_cube")[-1]
+    assert last["grasp_any"].item() and not last["success"].item() and not last["reach"].item()
+    assert last["held"].item() == OBJECT_NAMES.index("rubiks_cube") and last["wrong_grasp"].item()
+
+
+def test_metrics_hovering_near_target_and_doing_nothing(make_env):
+    env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=5, target="orange")
+    env.reset(seed=4)
+    for _ in range(50):
+        info = env.step(torch.tensor([[0, 0, 0, 0, 0, 0, 1.0]]))[4]
+    assert not (info["success"].item() or info["grasp_any"].item() or info["reach"].item())
+    assert info["held"].item() == -1
+    env.reset(seed=4)
+    site = env.unwrapped.grasp_sites()[0, OBJECT_NAMES.index("orange")]
+    for _ in range(50):
+        info = _act(env, site + torch.tensor([0, 0, 0.07]), 1.0)[4]
+    assert info["reach"].item() and not info["success"].item() and not info["grasp_any"].item()
+    assert 0.0 < info["reach_dist"].item() <= 0.05
+
+
+def test_rendering_both_cameras(make_env):
+    env = make_env(obs_mode="rgb", regime="large_jitter")
+    obs, _ = env.reset(seed=2)
+    imgs = {c: obs["sensor_data"][c]["rgb"][0] for c in ("hand_camera", "fixed_camera")}
+    for cam, img in imgs.items():
+        assert img.shape == (256, 256, 3) and img.dtype == torch.uint8, cam
+        assert img.float().std() > 10, f"{cam} is blank"
+    assert not torch.equal(imgs["hand_camera"], imgs["fixed_camera"])
+    assert obs["extra"]["proprio"].shape == (1, 15)
+    assert env.unwrapped.metadata["object_set"] == env.unwrapped.object_set == "standin"
+
+
+@pytest.mark.parametrize("kwargs, allowed", [
+    (dict(regime="random"), "small_jitter, medium_jitter, large_jitter, full_random"),
+    (dict(split="heldout"), "canonical, pairings_id, pairings_ood"),
+    (dict(num_objects=6), "1 to 5"),
+    (dict(target="banana"), "apple, orange, rubiks_cube, mug, large_marker"),
+    (dict(object_set="shapenet"), "auto, ycb, standin"),
+])
+def test_bad_input_lists_what_is_allowed(kwargs, allowed):
+    import gymnasium as gym
+
+    import vla_ladder.task.env  # noqa: F401
+    with pytest.raises(ValueError) as e:
+        gym.make("GraspObject-v1", **kwargs)
+    assert allowed in str(e.value)
+
+
+def test_target_not_in_scene_rejected(make_env):
+    env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=2)
+    with pytest.raises(ValueError, match="allowed"):
+        env.reset(seed=0, options={"target": "pear"})
+    with pytest.raises(ValueError, match="seeds for"):
+        env.reset(seed=[1, 2])
