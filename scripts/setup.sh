@@ -11,12 +11,17 @@ ROOT=$(pwd)
 log() { printf '[setup] %s\n' "$*" >&2; }
 SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
 
-lavapipe_ok() {
-  local v
+# Debian packages: the renderer (Vulkan loader, lavapipe), FFmpeg for video, Chromium for the HTML report tests.
+APT_PKGS="libvulkan1 vulkan-tools ffmpeg chromium chromium-driver"
+BACKPORTS_PKGS="mesa-vulkan-drivers libdrm2 libdrm-amdgpu1"
+
+system_ok() {
+  local v p
   v=$(dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null || true)
-  [ -n "$v" ] && dpkg --compare-versions "$v" ge 25 \
-    && dpkg-query -W -f='${Status}' libvulkan1 2>/dev/null | grep -q "ok installed" \
-    && dpkg-query -W -f='${Status}' ffmpeg 2>/dev/null | grep -q "ok installed"
+  [ -n "$v" ] && dpkg --compare-versions "$v" ge 25 || return 1
+  for p in $APT_PKGS; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "ok installed" || return 1
+  done
 }
 
 # The mirror comes from the machine's apt sources, so nothing here names a host.
@@ -32,15 +37,14 @@ debian_mirror() {
   echo "$uri"
 }
 
-if ! lavapipe_ok; then
+if ! system_ok; then
   mirror=$(debian_mirror)
-  log "system packages: Vulkan loader, Mesa 25 lavapipe (bookworm-backports from $mirror), ffmpeg"
+  log "system packages: Mesa 25 lavapipe (bookworm-backports from $mirror), $APT_PKGS"
   echo "deb $mirror bookworm-backports main" | $SUDO tee /etc/apt/sources.list.d/vla-ladder-backports.list >/dev/null
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends \
-    -t bookworm-backports mesa-vulkan-drivers libdrm2 libdrm-amdgpu1 >/dev/null
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends \
-    libvulkan1 vulkan-tools ffmpeg >/dev/null
+    -t bookworm-backports $BACKPORTS_PKGS >/dev/null
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends $APT_PKGS >/dev/null
 fi
 
 UV="$(command -v uv || true)"
