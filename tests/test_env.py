@@ -149,3 +149,18 @@ def test_target_not_in_scene_rejected(make_env):
         env.reset(seed=0, options={"target": "pear"})
     with pytest.raises(ValueError, match="seeds for"):
         env.reset(seed=[1, 2])
+
+
+def test_render_command_writes_both_cameras_and_episode(tmp_path):
+    import json
+
+    from PIL import Image
+
+    from vla_ladder.cli import main
+    assert main(["render", "--regime", "small_jitter", "--seed", "5", "--out", str(tmp_path)]) == 0
+    for cam in ("hand_camera", "fixed_camera"):
+        img = np.asarray(Image.open(tmp_path / f"small_jitter_seed5_{cam}.png"))
+        assert img.shape == (256, 256, 3) and img.std() > 10
+    ep = json.loads((tmp_path / "small_jitter_seed5.json").read_text())
+    assert ep["seed"] == 5 and ep["provenance"]["object_set"] == "standin"
+    assert ep["instruction"] == sample_layout("small_jitter", seed=5).instruction

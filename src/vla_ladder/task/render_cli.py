@@ -14,12 +14,13 @@ CAMERAS = ("hand_camera", "fixed_camera")
 
 def render_first_frames(regime: str, seed: int, out: str | Path, split: str = "canonical",
                         num_objects: int = NUM_OBJECTS, object_set: str = "auto", env=None) -> dict[str, Path]:
-    """Reset GraspObject-v1 with `seed` and write DIR/<regime>_seed<seed>_<camera>.png for both cameras."""
+    """Reset GraspObject-v1 with `seed` and write DIR/<regime>_seed<seed>_<camera>.png for both cameras, and
+    DIR/<regime>_seed<seed>.json with the episode's layout and the object set used."""
     import gymnasium as gym
     from PIL import Image
 
     import vla_ladder.task.env  # noqa: F401
-    from vla_ladder.io import atomic_path
+    from vla_ladder.io import atomic_path, provenance, write_json
 
     own = env is None
     if own:
@@ -34,6 +35,10 @@ def render_first_frames(regime: str, seed: int, out: str | Path, split: str = "c
             with atomic_path(path) as tmp:
                 Image.fromarray(obs["sensor_data"][cam]["rgb"][0].cpu().numpy()).save(tmp, format="PNG")
             paths[cam] = path
+        u = env.unwrapped
+        paths["episode"] = write_json(out / f"{regime}_seed{seed}.json", {
+            **u.layouts[0].to_dict(), "num_objects": num_objects, "cameras": list(CAMERAS),
+            "provenance": provenance(u.object_set)})
         return paths
     finally:
         if own:
@@ -54,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     for r in regimes:
         check_args(r, args.split, args.num_objects)
     for r in regimes:
-        for cam, path in render_first_frames(r, args.seed, args.out, args.split, args.num_objects,
+        for what, path in render_first_frames(r, args.seed, args.out, args.split, args.num_objects,
                                              args.object_set).items():
-            print(f"{r} {cam}: {path}")
+            print(f"{r} {what}: {path}")
     return 0
