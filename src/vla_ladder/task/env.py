@@ -115,7 +115,9 @@ class GraspObjectEnv(BaseEnv):
 
     # ------------------------------------------------------------------ episodes
     def reset(self, seed: None | int | Sequence[int] = None, options: dict | None = None):
-        """seed=s (int) gives env i the episode seed s + i; a list gives one seed per reset env."""
+        """seed=s (int) gives env i the episode seed s + i; a list gives one seed per reset env.
+        options["conditions"], a list of (regime, split, num_objects) per reset env, overrides the env's own
+        condition for these episodes (one GPU env can then train on a mixture of conditions)."""
         options = dict(options or {})
         env_idx = options.get("env_idx")
         idx = np.arange(self.num_envs) if env_idx is None else np.asarray(
@@ -134,6 +136,11 @@ class GraspObjectEnv(BaseEnv):
         self._layout_seeds[idx] = seeds
         if "target" in options:
             check_args(self.regime, self.split, self.num_objects, options["target"])
+        if "conditions" in options:
+            if len(options["conditions"]) != len(idx):
+                raise ValueError(f"got {len(options['conditions'])} conditions for {len(idx)} envs being reset")
+            for cond in options["conditions"]:
+                check_args(*cond)
         return super().reset(seed=None if seed is None else [int(s) for s in seeds] if env_idx is None
                              else None, options=options)
 
@@ -149,9 +156,10 @@ class GraspObjectEnv(BaseEnv):
         qpos = np.tile(REST_QPOS, (b, 1)).astype(np.float32)
         present = np.zeros((b, NUM_OBJECTS), dtype=bool)
         tgt = np.zeros(b, dtype=np.int64)
+        conditions = options.get("conditions") or [(self.regime, self.split, self.num_objects)] * b
         for row, i in enumerate(ids):
             seed = int(self._layout_seeds[i])
-            lay = sample_layout(self.regime, self.split, self.num_objects, seed, target)
+            lay = sample_layout(*conditions[row], seed, target)
             self.layouts[i] = lay
             tgt[row] = lay.target_index
             for name, xy, yaw in zip(lay.objects, lay.xy, lay.yaw):
