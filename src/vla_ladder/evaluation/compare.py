@@ -1,0 +1,125 @@
+"""`vla-ladder compare RUN_A RUN_B`: do two evaluation runs differ, metric by metric?
+
+Both runs must have played the same seeded episodes (same conditions, same seeds), so outcomes pair up
+episode by episode. The primary test is McNemar's exact test on the discordant pairs, the right test for
+paired binary outcomes; the unpaired two-proportion z-test is reported next to it because it is what
+readers usually compute from two published rates.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+import pandas as pd
+from statsmodels.stats.contingency_tables import mcnemar
+
+from vla_ladder.evaluation.metrics import CONDITION_KEYS, METRICS, condition_key, wilson
+from vla_ladder.evaluation.rundir import Run, load_run
+from vla_ladder.io import write_json
+
+PAIR_KEYS = (*CONDITION_KEYS, "episode")
+
+
+def mcnemar_exact(b: int, c: int) -> float:
+    """Two-sided exact McNemar p-value from the discordant counts b (A only) and c (B only)."""
+    if b + c == 0:
+        return 1.0
+    return float(mcnemar([[0, b], [c, 0]], exact=True).pvalue)
+
+
+def two_proportion_z(k1: int, n1: int, k2: int, n2: int) -> tuple[float, float]:
+    """Pooled two-proportion z statistic (p1 - p2) and its two-sided p-value."""
+    from statsmodels.stats.proportion import proportions_ztest
+    pooled = (k1 + k2) / (n1 + n2)
+    if pooled in (0.0, 1.0):  # no variance: the rates are equal by construction
+        return 0.0, 1.0
+    z, p = proportions_ztest([k1, k2], [n1, n2])
+    return float(z), float(p)
+
+
+def pair_episodes(a: Run, b: Run) -> pd.DataFrame:
+    """Episodes of both runs joined on condition and episode index; ValueError if they do not match."""
+    ea, eb = a.episodes, b.episodes
+    ka = {condition_key(*k) for k in ea[list(CONDITION_KEYS)].drop_duplicates().itertuples(index=False)}
+    kb = {condition_key(*k) for k in eb[list(CONDITION_KEYS)].drop_duplicates().itertuples(index=False)}
+    if ka != kb:
+        raise ValueError(f"the runs evaluated different conditions: only in {a.path}: "
+                         f"{sorted(ka - kb) or 'none'}; only in {b.path}: {sorted(kb - ka) or 'none'}")
+    merged = ea.merge(eb, on=list(PAIR_KEYS), how="outer", suffixes=("_a", "_b"), indicator=True)
+    unpaired = merged[merged["_merge"] != "both"]
+    if len(unpaired):
+        raise ValueError(f"the runs have different episodes: {len(unpaired)} episodes are in only one run "
+                         f"(e.g. {_describe(unpaired.iloc[0])}); evaluate both with the same --episodes")
+    bad = merged[merged["seed_a"] != merged["seed_b"]]
+    if len(bad):
+        ex = "; ".join(f"{_describe(r)}: seed {r.seed_a} vs {r.seed_b}" for _, r in bad.head(3).iterrows())
+        raise ValueError(f"the runs used different seeds on {len(bad)} of {len(merged)} episodes ({ex}); "
+                         f"evaluate both with the same --seed so they play the same layouts")
+    return merged.drop(columns="_merge")
+
+
+def _describe(row) -> str:
+    return f"{condition_key(row['regime'], row['split'], row['num_objects'])} episode {row['episode']}"
+
+
+def compare_runs(a: Run, b: Run) -> dict:
+    """Per condition and metric: both rates with Wilson intervals, McNemar's exact test, the z-test."""
+    merged = pair_episodes(a, b)
+    # Conditions in run A's order (the outer join sorts its keys alphabetically).
+    order = [tuple(k) for k in a.episodes[list(CONDITION_KEYS)].drop_duplicates().itertuples(index=False)]
+    groups = dict(list(merged.groupby(list(CONDITION_KEYS), sort=False)))
+    rows = []
+    for key in order:
+        df = groups[key]
+        n = len(df)
+        for m in METRICS:
+            xa, xb = df[f"{m}_a"].astype(bool), df[f"{m}_b"].astype(bool)
+            ka, kb = int(xa.sum()), int(xb.sum())
+            only_a, only_b = int((xa & ~xb).sum()), int((~xa & xb).sum())
+            z, pz = two_proportion_z(ka, n, kb, n)
+            rows.append({
+                "condition": condition_key(*key), "metric": m, "n": n,
+                "rate_a": ka / n, "ci95_a": list(wilson(ka, n)), "rate_b": kb / n, "ci95_b": list(wilson(kb, n)),
+                "diff": (kb - ka) / n, "only_a": only_a, "only_b": only_b,
+                "mcnemar_p": mcnemar_exact(only_a, only_b), "z": z, "z_p": pz,
+            })
+    return {"run_a": str(a.path), "run_b": str(b.path), "policy_a": a.label, "policy_b": b.label,
+            "tests": {"paired": "McNemar exact (binomial on discordant pairs), two-sided",
+                      "unpaired": "pooled two-proportion z-test, two-sided"},
+            "rows": rows}
+
+
+def format_table(result: dict, alpha: float = 0.05) -> str:
+    lines = [f"A = {result['policy_a']} ({result['run_a']})", f"B = {result['policy_b']} ({result['run_b']})", ""]
+    head = f"{'condition':<28} {'metric':<9} {'n':>4} {'A %':>5} {'B %':>5} {'B-A':>6} " \
+           f"{'A only':>6} {'B only':>6} {'McNemar p':>10} {'z':>6} {'z-test p':>9}"
+    lines += [head, "-" * len(head)]
+    for r in result["rows"]:
+        star = " *" if r["mcnemar_p"] < alpha else ""
+        z = "" if math.isnan(r["z"]) else f"{r['z']:6.2f}"
+        lines.append(f"{r['condition']:<28} {r['metric']:<9} {r['n']:>4} {100 * r['rate_a']:5.0f} "
+                     f"{100 * r['rate_b']:5.0f} {100 * r['diff']:+6.0f} {r['only_a']:>6} {r['only_b']:>6} "
+                     f"{r['mcnemar_p']:10.4f} {z:>6} {r['z_p']:9.4f}{star}")
+    lines += ["", f"* paired difference significant at {alpha} (McNemar exact)"]
+    return "\n".join(lines)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run_a", help="first run directory (from `vla-ladder eval --out`)")
+    p.add_argument("run_b", help="second run directory, evaluated on the same seeds")
+    p.add_argument("--json", default=None, metavar="PATH", help="also write the comparison as JSON here")
+    p.add_argument("--alpha", type=float, default=0.05, help="significance level for the * marks")
+
+
+def run(args: argparse.Namespace) -> int:
+    if not 0 < args.alpha < 1:
+        raise ValueError(f"--alpha must be in (0, 1), got {args.alpha}")
+    result = compare_runs(load_run(args.run_a), load_run(args.run_b))
+    print(format_table(result, args.alpha))
+    if args.json:
+        write_json(args.json, result)
+        print(f"wrote {args.json}", file=sys.stderr)
+    return 0
+

@@ -1,0 +1,171 @@
+"""Reference policies that calibrate the metrics: each fails in one known way.
+
+- `nearest`: ignores the instruction, grasps the object nearest the gripper (grasp-any high, success
+  about 1/#objects).
+- `layout-prior`: ignores perception, grasps at the instructed object's canonical region centre (the
+  location shortcut: strong under small jitter, collapsing under full random and held-out pairings).
+- `random`: uniform random actions, seeded per episode (the floor).
+
+nearest and layout-prior reuse the scripted expert's controller unchanged: they hand it an observation
+in which the "target" is a different object (nearest) or a made-up pose at the canonical location
+(layout-prior). The expert reads the target from `target_onehot`, `target_site` and that object's row of
+`obj_pose`, so rewriting those three fields is the whole hook.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from mani_skill.utils.geometry.rotation_conversions import quaternion_apply
+
+from vla_ladder.experts.scripted import ScriptedPolicy
+from vla_ladder.policies import Policy
+from vla_ladder.task import assets
+from vla_ladder.task.layouts import REGION_CENTERS
+from vla_ladder.task.objects import NUM_OBJECTS, OBJECTS
+
+
+def _retarget(obs: dict, obj: torch.Tensor, site: torch.Tensor, quat: torch.Tensor | None = None) -> dict:
+    """A copy of a state_dict observation whose target is object `obj` (N,) graspable at `site` (N, 3),
+    optionally with that object's orientation replaced by `quat` (N, 4 wxyz)."""
+    extra = dict(obs["extra"])
+    n = site.shape[0]
+    extra["target_onehot"] = torch.nn.functional.one_hot(obj, NUM_OBJECTS).to(site.dtype)
+    extra["target_site"] = site
+    extra["tcp_to_target"] = site - extra["tcp_pose"][:, :3]
+    if quat is not None:
+        poses = extra["obj_pose"].reshape(n, NUM_OBJECTS, 7).clone()
+        poses[torch.arange(n, device=site.device), obj, 3:] = quat
+        extra["obj_pose"] = poses.reshape(n, -1)
+    return {**obs, "extra": extra}
+
+
+def _geometry(object_set: str, device) -> dict[str, torch.Tensor]:
+    geo = assets.object_geometry(assets.resolve_object_set(object_set))
+    return {k: torch.as_tensor(v, dtype=torch.float32, device=device) for k, v in geo.items()}
+
+
+class NearestObjectPolicy(Policy):
+    """Grasps whichever present object is nearest the gripper (horizontally) at the episode's first
+    step; the instruction is never read."""
+
+    obs_mode = "state_dict"
+    name = "nearest"
+
+    def __init__(self, object_set: str = "auto", device: str | torch.device = "cpu", **expert_kwargs):
+        self.device = torch.device(device)
+        self.expert = ScriptedPolicy(device=self.device, **expert_kwargs)
+        geo = _geometry(object_set, self.device)
+        self._site_local = geo["center_offset"] + geo["grasp_point"]  # (5, 3) in the actor frame
+        self.choice = torch.zeros(0, dtype=torch.long, device=self.device)
+
+    def reset(self, seeds: Sequence[int], env_ids: Sequence[int] | None = None) -> None:
+        self.expert.reset(seeds, env_ids)
+        if env_ids is None:
+            self.choice = torch.full((len(seeds),), -1, dtype=torch.long, device=self.device)
+        else:
+            self.choice[torch.as_tensor(list(env_ids), dtype=torch.long, device=self.device)] = -1
+
+    def act(self, obs: Any, instructions: Sequence[str] | None = None) -> torch.Tensor:
+        extra = obs["extra"]
+        n = extra["tcp_pose"].shape[0]
+        poses = extra["obj_pose"].to(self.device).reshape(n, NUM_OBJECTS, 7)
+        sites = poses[..., :3] + quaternion_apply(poses[..., 3:], self._site_local.expand(n, -1, -1))
+        tcp = extra["tcp_pose"].to(self.device)[:, :3]
+        dist = torch.linalg.norm(sites[..., :2] - tcp[:, None, :2], dim=-1)
+        dist = torch.where(extra["obj_present"].to(self.device) > 0.5, dist, torch.full_like(dist, torch.inf))
+        # Commit once per episode: re-choosing every step would dither between two near objects.
+        fresh = self.choice < 0
+        self.choice = torch.where(fresh, dist.argmin(dim=1), self.choice)
+        rows = torch.arange(n, device=self.device)
+        return self.expert.act(_retarget(obs, self.choice, sites[rows, self.choice]), instructions)
+
+    def describe(self) -> dict:
+        return {"name": self.name, "controller": self.expert.describe()}
+
+
+class LayoutPriorPolicy(Policy):
+    """Grasps at the instructed object's canonical training location (the centre of region i for
+    object i, at its resting grasp height, unrotated); object poses are never read."""
+
+    obs_mode = "state_dict"
+    name = "layout-prior"
+
+    def __init__(self, object_set: str = "auto", device: str | torch.device = "cpu", **expert_kwargs):
+        self.device = torch.device(device)
+        self.expert = ScriptedPolicy(device=self.device, **expert_kwargs)
+        geo = _geometry(object_set, self.device)
+        sites = torch.zeros(NUM_OBJECTS, 3, device=self.device)
+        sites[:, :2] = torch.as_tensor(REGION_CENTERS, dtype=torch.float32, device=self.device)
+        # Canonical pose: yaw 0, bounding-box centre resting on the table (as layouts place it).
+        sites[:, 2] = geo["half_extents"][:, 2] + 1e-3
+        self.sites = sites + geo["grasp_point"]
+        self._instruction_index = {o.phrase: i for i, o in enumerate(OBJECTS)}
+
+    def reset(self, seeds: Sequence[int], env_ids: Sequence[int] | None = None) -> None:
+        self.expert.reset(seeds, env_ids)
+
+    def target_from(self, instructions: Sequence[str]) -> torch.Tensor:
+        """Object index named by each instruction ("grasp the <object>")."""
+        idx = []
+        for text in instructions:
+            name = text.removeprefix("grasp the ").strip()
+            if name not in self._instruction_index:
+                raise ValueError(f"cannot parse instruction {text!r}; expected 'grasp the <object>' with one of "
+                                 + ", ".join(self._instruction_index))
+            idx.append(self._instruction_index[name])
+        return torch.as_tensor(idx, dtype=torch.long, device=self.device)
+
+    def act(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
+        tgt = self.target_from(instructions)
+        quat = torch.tensor([1.0, 0, 0, 0], device=self.device).expand(len(tgt), 4)
+        return self.expert.act(_retarget(obs, tgt, self.sites[tgt], quat), instructions)
+
+    def describe(self) -> dict:
+        return {"name": self.name, "sites": self.sites.tolist(), "controller": self.expert.describe()}
+
+
+class RandomPolicy(Policy):
+    """Uniform random actions in [-1, 1]^7, reproducible from each episode's seed."""
+
+    obs_mode = "state_dict"
+    name = "random"
+
+    def __init__(self, device: str | torch.device = "cpu"):
+        self.device = torch.device(device)
+        self.rngs: list[np.random.Generator] = []
+
+    def reset(self, seeds: Sequence[int], env_ids: Sequence[int] | None = None) -> None:
+        fresh = [np.random.default_rng([int(s), 0x4A2D]) for s in seeds]
+        if env_ids is None:
+            self.rngs = fresh
+        else:
+            for i, rng in zip(env_ids, fresh):
+                self.rngs[int(i)] = rng
+
+    def act(self, obs: Any, instructions: Sequence[str] | None = None) -> torch.Tensor:
+        a = np.stack([rng.uniform(-1.0, 1.0, 7) for rng in self.rngs]).astype(np.float32)
+        return torch.from_numpy(a).to(self.device)
+
+
+def _no_arg(kind: str, arg: str | None) -> None:
+    if arg:
+        raise ValueError(f"policy {kind!r} takes no argument, got {arg!r}")
+
+
+def make_nearest(arg: str | None = None, **kwargs) -> NearestObjectPolicy:
+    _no_arg("nearest", arg)
+    return NearestObjectPolicy(**kwargs)
+
+
+def make_layout_prior(arg: str | None = None, **kwargs) -> LayoutPriorPolicy:
+    _no_arg("layout-prior", arg)
+    return LayoutPriorPolicy(**kwargs)
+
+
+def make_random(arg: str | None = None, **kwargs) -> RandomPolicy:
+    _no_arg("random", arg)
+    return RandomPolicy(**kwargs)
+

@@ -1,0 +1,304 @@
+"""`vla-ladder report RUN_DIR... --out report.html`: one self-contained HTML page of evaluation runs.
+
+Everything is inlined (images and videos as data: URIs, no scripts, no fonts, no network), so the page
+works opened from disk or mailed around. It holds: what each metric signature means, per-condition rates
+with 95% Wilson intervals, the paper's tables and figures for whatever conditions the runs cover, the
+confusion matrices, per-object rates, and for a sample of episodes of each outcome kind the rollout
+video plus a frame strip every 300 ms (every 6th step at 20 Hz, as in the paper's appendix figures).
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import html
+import tempfile
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from vla_ladder.evaluation.metrics import METRICS, OUTCOME_TEXT, OUTCOMES, outcomes
+from vla_ladder.evaluation.rundir import Run, load_runs
+from vla_ladder.io import write_text
+from vla_ladder.report import plots, tables
+
+CONTROL_HZ = 20
+STRIP_EVERY = 6  # steps: 300 ms at 20 Hz
+VIDEO_MAX_BYTES = 4_000_000  # larger videos are shown as frame strips only, to keep the page loadable
+
+# (policy kind, success, grasp-any, reach, meaning, measured on the ladder: 20 episodes per regime, seed 0,
+# stand-in objects, success/grasp-any/reach % for small -> medium -> large jitter -> full random).
+SIGNATURES = [
+    ("Instruction-following expert (scripted, PPO)", "high", "high", "high",
+     "Reaches, grasps and holds the instructed object: the upper bound of the setting.",
+     "scripted: 100/100/100 in every regime"),
+    ("Nearest object (ignores the instruction)", "≈ 1/#objects", "high", "≈ success",
+     "Grasping works, object selection does not: grasp-any far above success, wrong-object grasps fill "
+     "the confusion matrix's off-diagonal.",
+     "nearest: success 25, 20, 20, 25; grasp-any 100 everywhere; reach = success"),
+    ("Layout prior (ignores perception)", "high under small jitter, → 0 under full random / OOD pairings",
+     "follows success", "follows success",
+     "A location shortcut: it goes where the instructed object usually is. Success collapses as soon as "
+     "objects leave their regions; on held-out pairings it grasps whatever sits in the target's usual "
+     "region (wrong object) or nothing.",
+     "layout-prior: success 90, 35, 20, 0; grasp-any 100, 80, 40, 15; reach 90, 40, 20, 0"),
+    ("Random actions", "≈ 0", "≈ 0", "≈ 0", "The floor: no motor skill at all.",
+     "random: success 0; grasp-any and reach ≤ 5"),
+    ("Paper's VLA failure (e.g. SmolVLA, full random)", "low", "above success", "low",
+     "Confident reach-and-grasp motions to arbitrary places: the grasping primitive is learned, the "
+     "binding of the motion to the instructed object is not.",
+     "paper, SmolVLA: success 90, 37, 41, 2; grasp-any 98, 48, 50, 12; reach 100, 93, 100, 4"),
+]
+
+
+def _data_uri(data: bytes, mime: str) -> str:
+    return f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}"
+
+
+def _png(path: Path) -> str:
+    return f'<img class="plot" alt="{html.escape(path.stem)}" src="{_data_uri(path.read_bytes(), "image/png")}">'
+
+
+def _jpeg(frame: np.ndarray) -> bytes:
+    import imageio.v3 as iio
+    return iio.imwrite("<bytes>", frame, extension=".jpg", quality=85)
+
+
+def _read_frames(path: Path) -> np.ndarray:
+    import imageio.v3 as iio
+    return iio.imread(path, index=None)
+
+
+def results_by_label(runs: list[Run], labels: list[str] | None = None) -> dict[str, dict]:
+    """model label -> merged conditions; runs of one policy that cover different conditions merge,
+    and labels stay unique when two runs evaluated the same condition."""
+    out: dict[str, dict] = {}
+    for r, label in zip(runs, labels or [r.label for r in runs]):
+        conds = r.summary.get("conditions", {})
+        if label in out and set(out[label]) & set(conds):
+            label = f"{label} ({r.path.name})"
+        out.setdefault(label, {}).update(conds)
+    return out
+
+
+def _rate_cell(cond: dict, m: str) -> str:
+    lo, hi = cond["ci95"][m]
+    return f"{100 * cond[m]:.0f}<span class=ci> [{100 * lo:.0f}, {100 * hi:.0f}]</span>"
+
+
+def _conditions_table(results: dict[str, dict]) -> str:
+    head = "".join(f"<th>{tables.METRIC_NAMES[m]}</th>" for m in METRICS)
+    kinds = "".join(f"<th>{k.replace('_', ' ')}</th>" for k in OUTCOMES)
+    rows = []
+    for label, conds in results.items():
+        for key, c in conds.items():
+            out = c.get("outcomes", {})
+            rows.append(f"<tr><td>{html.escape(label)}</td><td>{html.escape(key)}</td><td>{c['n']}</td>"
+                        + "".join(f"<td>{_rate_cell(c, m)}</td>" for m in METRICS)
+                        + "".join(f"<td>{out.get(k, '')}</td>" for k in OUTCOMES) + "</tr>")
+    return (f"<table><tr><th>policy</th><th>condition</th><th>n</th>{head}{kinds}</tr>{''.join(rows)}</table>"
+            "<p class=note>Rates in %, 95% Wilson intervals in brackets. Outcome columns count episodes by "
+            "how they ended (see the section above).</p>")
+
+
+def _per_object_table(results: dict[str, dict]) -> str:
+    from vla_ladder.task.objects import OBJECTS
+    head = "".join(f"<th>{html.escape(o.phrase)}</th>" for o in OBJECTS)
+    rows = []
+    for label, conds in results.items():
+        for key, c in conds.items():
+            po = c.get("per_object", {})
+            cells = "".join(
+                f"<td>{_rate_cell(po[o.name], 'success')} <span class=ci>n={po[o.name]['n']}</span></td>"
+                if o.name in po else "<td>–</td>" for o in OBJECTS)
+            rows.append(f"<tr><td>{html.escape(label)}</td><td>{html.escape(key)}</td>{cells}</tr>")
+    return (f"<table><tr><th>policy</th><th>condition</th>{head}</tr>{''.join(rows)}</table>"
+            "<p class=note>Success rate (%) by instructed object.</p>")
+
+
+def _paper_tables(results: dict[str, dict]) -> list[tuple[str, tables.Table]]:
+    out = []
+    keys = {k for conds in results.values() for k in conds}
+    regimes = {k.split("/")[0] for k in keys if k.endswith("/canonical/5")}
+    if len(regimes) >= 2:
+        out.append(("ladder", tables.ladder_table(results)))
+    if any("/pairings_" in k for k in keys):
+        out.append(("pairings", tables.pairings_table(results)))
+    if len({k for k in keys if k.startswith("full_random/canonical/")}) >= 2:
+        out.append(("object_count", tables.object_count_table(results)))
+    return out
+
+
+def _md_table_html(t: tables.Table) -> str:
+    """The paper-layout table rendered as HTML (same cells as the Markdown version)."""
+    head = (["Model"] if t.grouped else []) + [t.row_title] + [tables.METRIC_NAMES[m] for m in METRICS]
+    rows = []
+    for model, group in t.groups.items():
+        for i, (label, cells) in enumerate(group):
+            lead = ([model if i == 0 else ""] if t.grouped else []) + [label]
+            rows.append("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in lead + [cells[m].md() for m in METRICS])
+                        + "</tr>")
+    return (f"<p><b>{html.escape(t.caption)}</b></p><table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head)
+            + "</tr>" + "".join(rows) + "</table>"
+            + f"<details><summary>LaTeX</summary><pre>{html.escape(t.to_latex())}</pre></details>")
+
+
+def _figures(results: dict[str, dict], runs: list[Run], tmp: Path, placements: bool) -> list[tuple[str, str]]:
+    figs = []
+    for name, table in _paper_tables(results):
+        path = tmp / f"{name}.png"
+        {"ladder": plots.plot_ladder, "pairings": plots.plot_pairings,
+         "object_count": plots.plot_object_count}[name](results, path)
+        figs.append((table.caption, _png(path)))
+    for label, conds in results.items():
+        path = tmp / f"confusion_{len(figs)}.png"
+        plots.plot_confusion({key: c for key, c in conds.items() if "confusion" in c}, path)
+        figs.append((f"Confusion matrices of {label}: instructed object x object held at the final step", _png(path)))
+    if placements:
+        fig = _placement_figure(runs, tmp)
+        if fig:
+            figs.append(fig)
+    return figs
+
+
+def _placement_figure(runs: list[Run], tmp: Path) -> tuple[str, str] | None:
+    try:
+        from vla_ladder.report.placements import plot_placements
+    except ImportError:
+        return None
+    from vla_ladder.task.layouts import REGIMES
+    present = {r for run in runs for r in run.episodes["regime"].unique()}
+    regimes = [r for r in REGIMES if r in present] or list(REGIMES)
+    path = tmp / "placements.png"
+    plot_placements(regimes, 200, 0, path)
+    return ("Initial object positions per regime (200 sampled layouts each)", _png(path))
+
+
+def _episode_card(run: Run, row, with_video: bool) -> str:
+    path = run.video_path(row["video"])
+    head = (f"<div class=cap><b>{html.escape(row['instruction'])}</b> — held: {html.escape(row['held'])}; "
+            f"success {int(row['success'])}, grasp-any {int(row['grasp_any'])}, reach {int(row['reach'])} "
+            f"(d={row['reach_dist']:.3f} m); {html.escape(row['regime'])}/{html.escape(row['split'])}/"
+            f"{row['num_objects']} seed {row['seed']}</div>")
+    if path is None:
+        return f"<div class=episode>{head}<p class=note>no video recorded</p></div>"
+    frames = _read_frames(path)
+    strip = "".join(
+        f"<figure><img class=frame alt='t={t * 1000 // CONTROL_HZ} ms' "
+        f"src='{_data_uri(_jpeg(frames[t]), 'image/jpeg')}'><figcaption>t = {t * 1000 // CONTROL_HZ} ms"
+        f"</figcaption></figure>" for t in range(0, len(frames), STRIP_EVERY))
+    video = ""
+    data = path.read_bytes()
+    if with_video and len(data) <= VIDEO_MAX_BYTES:
+        video = (f"<video class=rollout controls muted loop preload=auto "
+                 f"src='{_data_uri(data, 'video/mp4')}'></video>")
+    return f"<div class=episode>{head}{video}<div class=strip>{strip}</div></div>"
+
+
+def _rollouts(runs: list[Run], labels: list[str], samples: int, with_video: bool) -> str:
+    parts = []
+    for run, label in zip(runs, labels):
+        df = run.episodes.copy()
+        df["outcome"] = outcomes(df)
+        filmed = df[df["video"].astype(str) != ""]
+        counts = ", ".join(f"{k.replace('_', ' ')} {int((df['outcome'] == k).sum())}" for k in OUTCOMES)
+        parts.append(f"<h3>{html.escape(label)} <span class=ci>{html.escape(str(run.path))}</span></h3>"
+                     f"<p class=note>{len(df)} episodes: {counts}; {len(filmed)} filmed.</p>")
+        if filmed.empty:
+            parts.append("<p class=note>This run recorded no videos (evaluate with --videos N to see rollouts "
+                         "here).</p>")
+            continue
+        for kind in OUTCOMES:
+            sample = filmed[filmed["outcome"] == kind].head(samples)
+            if sample.empty:
+                continue
+            parts.append(f"<h4>{kind.replace('_', ' ')} <span class=ci>({OUTCOME_TEXT[kind]})</span></h4>")
+            parts += [_episode_card(run, row, with_video) for _, row in sample.iterrows()]
+    return "".join(parts)
+
+
+def _signatures() -> str:
+    rows = "".join("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in row) + "</tr>" for row in SIGNATURES)
+    kinds = "".join(f"<li><b>{k.replace('_', ' ')}</b>: {html.escape(v)}</li>" for k, v in OUTCOME_TEXT.items())
+    return (
+        "<p><b>Success</b>: the instructed object is grasped at the final step. <b>Grasp-any</b>: some object "
+        "was grasped at some step (the grasping primitive works). <b>Reach</b>: the gripper ends within 5 cm of "
+        "the instructed object (the policy at least went to the right object).</p>"
+        "<table><tr><th>policy kind</th><th>success</th><th>grasp-any</th><th>reach</th><th>what it means</th>"
+        "<th>measured along the ladder (small → medium → large jitter → full random, %)</th>"
+        f"</tr>{rows}</table><p class=note>Reference policies measured with 20 episodes per regime, seeds 0-19, "
+        "stand-in objects (docs/diagnostics.md); the last row is the paper's Table 2.</p>"
+        "<p>Reading a result: <i>grasp-any ≫ success</i> means the policy can grasp but picks the wrong object "
+        "(look at the confusion matrix: which object instead?); <i>reach ≫ grasp-any</i> means it goes to the "
+        "right object and fumbles the grasp; <i>success high under small jitter but not on OOD pairings</i> "
+        "means it learned where objects usually are, not what they are. Two rates whose intervals overlap "
+        "may still differ: use <code>vla-ladder compare RUN_A RUN_B</code> (paired test on the same seeds).</p>"
+        f"<p>Each episode ends in one of these outcomes:</p><ul>{kinds}</ul>")
+
+
+CSS = """
+body{font-family:sans-serif;margin:1.5em auto;max-width:1200px;color:#222}
+table{border-collapse:collapse;margin:.5em 0;font-size:.9em}
+td,th{border:1px solid #ccc;padding:3px 7px;text-align:left}
+th{background:#f2f2f2}.ci{color:#777;font-size:.85em}.note{color:#555;font-size:.9em}
+img.plot{max-width:100%;display:block;margin:.5em 0}
+.episode{border:1px solid #ddd;margin:.6em 0;padding:.4em}.cap{font-size:.9em;margin-bottom:.3em}
+.strip{display:flex;flex-wrap:wrap;gap:4px}.strip figure{margin:0;text-align:center;font-size:.75em}
+img.frame{height:96px;display:block}video.rollout{height:256px;display:block;margin-bottom:.3em}
+pre{background:#f7f7f7;padding:.5em;overflow-x:auto}
+"""
+
+
+def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder evaluation report", samples: int = 2,
+                 with_video: bool = True, placements: bool = True, labels: list[str] | None = None) -> Path:
+    """Write the HTML page for `runs` to `out` and return its path; `labels` name the runs' policies
+    (default: their policy specs)."""
+    labels = labels or [r.label for r in runs]
+    if len(labels) != len(runs):
+        raise ValueError(f"got {len(labels)} labels for {len(runs)} runs")
+    results = results_by_label(runs, labels)
+    prov = runs[0].summary.get("provenance", {})
+    with tempfile.TemporaryDirectory() as tmp:
+        figs = _figures(results, runs, Path(tmp), placements)
+        body = [
+            f"<h1>{html.escape(title)}</h1>",
+            f"<p class=note>Generated {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC from "
+            f"{len(runs)} run(s); versions: {html.escape(', '.join(f'{k} {v}' for k, v in prov.items()))}</p>",
+            "<ul>" + "".join(f"<li>{html.escape(label)}: <code>{html.escape(str(r.path))}</code>, "
+                             f"{len(r.episodes)} episodes</li>" for r, label in zip(runs, labels)) + "</ul>",
+            "<h2>Reading the metrics</h2>", _signatures(),
+            "<h2>Results per condition</h2>", _conditions_table(results),
+        ]
+        paper = _paper_tables(results)
+        if paper:
+            body.append("<h2>The paper's tables</h2>")
+            body += [_md_table_html(t) for _, t in paper]
+        body.append("<h2>Figures</h2>")
+        body += [f"<figure>{img}<figcaption class=note>{html.escape(cap)}</figcaption></figure>" for cap, img in figs]
+        body += ["<h2>Success by instructed object</h2>", _per_object_table(results),
+                 "<h2>Rollouts</h2>", f"<p class=note>Up to {samples} recorded episodes of each outcome per run; "
+                 f"frames every {STRIP_EVERY * 1000 // CONTROL_HZ} ms.</p>",
+                 _rollouts(runs, labels, samples, with_video)]
+    page = ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8>"
+            f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body>{''.join(body)}</body></html>")
+    return write_text(out, page)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories from `vla-ladder eval --out`")
+    p.add_argument("--out", required=True, help="HTML file to write")
+    p.add_argument("--title", default="vla-ladder evaluation report")
+    p.add_argument("--samples", type=int, default=2, help="recorded episodes shown per outcome kind and run")
+    p.add_argument("--no-video", action="store_true", help="frame strips only (a smaller page)")
+    p.add_argument("--no-placements", action="store_true", help="leave out the placement figure")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.samples < 0:
+        raise ValueError(f"--samples must be >= 0, got {args.samples}")
+    out = build_report(load_runs(args.runs), args.out, args.title, args.samples, not args.no_video,
+                       not args.no_placements)
+    print(out.resolve())
+    return 0
+

@@ -1,0 +1,62 @@
+"""Constructed run directories (the `vla-ladder eval --out DIR` contract) for statistics/report tests.
+
+The episodes are made up, so the tests know every count; the files are written exactly as the runner
+writes them (episodes.parquet, summary.json, config.json, videos/*.mp4).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from vla_ladder.evaluation.metrics import summarize
+from vla_ladder.io import write_json, write_parquet
+from vla_ladder.task.layouts import sample_layout
+
+
+def episode_row(policy: str, regime: str, split: str, k: int, j: int, seed: int, kind: str,
+                video: str = "") -> dict:
+    lay = sample_layout(regime, split, k, seed)
+    other = lay.objects[1] if k > 1 else "none"
+    held = {"success": lay.target, "wrong_object": other}.get(kind, "none")
+    return {"policy": policy, "regime": regime, "split": split, "num_objects": k, "episode": j, "seed": seed,
+            "target": lay.target, "instruction": lay.instruction, "held": held,
+            "success": kind == "success", "grasp_any": kind in ("success", "wrong_object", "grasp_lost"),
+            "reach": kind in ("success", "reached_no_grasp"), "reach_dist": 0.01 if kind == "success" else 0.2,
+            "object_set": "standin", "layout": json.dumps(lay.to_dict()), "video": video}
+
+
+def write_video(path: Path, steps: int = 50, seed: int = 0) -> None:
+    """A small synthetic MP4: a coloured square moving over a gradient, 20 fps like the env."""
+    import imageio.v3 as iio
+    rng = np.random.default_rng(seed)
+    colour = rng.integers(50, 255, 3)
+    frames = np.zeros((steps, 64, 128, 3), np.uint8)
+    frames[..., 1] = np.linspace(40, 200, 128, dtype=np.uint8)[None, None, :]
+    for t in range(steps):
+        frames[t, 20:40, 2 * t:2 * t + 20] = colour
+    path.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(path, frames, fps=20, codec="libx264", macro_block_size=16)
+
+
+def make_run(out: Path, policy: str, conditions: list[tuple[str, str, int]], kinds: list[str], seed: int = 0,
+             videos: int = 0) -> Path:
+    """One run dir: every condition gets len(kinds) episodes whose outcome kinds are `kinds` (in order);
+    the first `videos` episodes of each condition get a synthetic MP4."""
+    rows = []
+    for regime, split, k in conditions:
+        for j, kind in enumerate(kinds):
+            video = ""
+            if j < videos:
+                video = f"videos/{regime}_{split}_{k}_{j:04d}.mp4"
+                write_video(out / video, seed=j)
+            rows.append(episode_row(policy, regime, split, k, j, seed + j, kind, video))
+    df = pd.DataFrame(rows)
+    write_parquet(out / "episodes.parquet", df)
+    write_json(out / "summary.json", {"policy": {"name": policy}, "provenance": {}, "seed": seed,
+                                      "episodes_per_condition": len(kinds), "conditions": summarize(df)})
+    write_json(out / "config.json", {"policy": policy, "seed": seed, "episodes": len(kinds)})
+    return out

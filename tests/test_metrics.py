@@ -1,0 +1,111 @@
+"""Statistics of evaluation runs: Wilson intervals, confusion counts, outcome kinds, `vla-ladder compare`."""
+
+import json
+
+import pandas as pd
+import pytest
+from report_fixtures import make_run
+
+from vla_ladder.cli import main
+from vla_ladder.evaluation.compare import compare_runs, mcnemar_exact, two_proportion_z
+from vla_ladder.evaluation.metrics import confusion, outcomes, summarize, wilson
+from vla_ladder.evaluation.rundir import load_run
+
+SJ = ("small_jitter", "canonical", 5)
+FR = ("full_random", "canonical", 5)
+
+
+def test_wilson_interval_known_values():
+    # Reference values: Wilson score interval, z = 1.95996 (e.g. R's prop.test(correct=FALSE)).
+    assert wilson(0, 10) == pytest.approx((0.0, 0.27753), abs=1e-5)
+    assert wilson(37, 100) == pytest.approx((0.28182, 0.46779), abs=1e-5)
+    assert wilson(90, 100) == pytest.approx((0.82563, 0.94477), abs=1e-5)
+    assert wilson(10, 10)[1] == pytest.approx(1.0)
+    lo, hi = wilson(0, 0)
+    assert lo != lo and hi != hi  # nan without episodes
+
+
+def test_paired_and_unpaired_tests_known_values():
+    # McNemar exact: 1 vs 9 discordant pairs -> 2 * P(Bin(10, 1/2) <= 1) = 22/1024.
+    assert mcnemar_exact(1, 9) == pytest.approx(22 / 1024)
+    assert mcnemar_exact(9, 1) == pytest.approx(22 / 1024)
+    assert mcnemar_exact(0, 0) == 1.0
+    # Pooled two-proportion z-test, 37/100 vs 41/100: z = -0.04 / sqrt(.39 * .61 * .02).
+    z, p = two_proportion_z(37, 100, 41, 100)
+    assert z == pytest.approx(-0.57989, abs=1e-4)
+    assert p == pytest.approx(0.56199, abs=1e-4)
+    assert two_proportion_z(0, 10, 0, 10) == (0.0, 1.0)
+
+
+def _ep(target, held, success, grasp_any, reach):
+    return {"regime": "small_jitter", "split": "canonical", "num_objects": 5, "target": target, "held": held,
+            "success": success, "grasp_any": grasp_any, "reach": reach}
+
+
+def test_confusion_outcomes_and_per_object_rates_on_constructed_episodes():
+    df = pd.DataFrame([
+        _ep("apple", "apple", True, True, True),
+        _ep("apple", "mug", False, True, False),
+        _ep("apple", "mug", False, True, True),
+        _ep("mug", "none", False, True, False),  # grasped something, dropped it
+        _ep("mug", "none", False, False, True),
+        _ep("large_marker", "none", False, False, False),
+    ])
+    cm = confusion(df)
+    assert list(cm.columns)[-1] == "none" and cm.shape == (5, 6)
+    assert cm.loc["apple", "apple"] == 1 and cm.loc["apple", "mug"] == 2
+    assert cm.loc["mug", "none"] == 2 and cm.loc["large_marker", "none"] == 1
+    assert int(cm.values.sum()) == len(df)
+    assert list(outcomes(df)) == ["success", "wrong_object", "wrong_object", "grasp_lost", "reached_no_grasp",
+                                  "nothing"]
+
+    cond = summarize(df)["small_jitter/canonical/5"]
+    assert cond["n"] == 6 and cond["success"] == pytest.approx(1 / 6) and cond["grasp_any"] == pytest.approx(4 / 6)
+    assert cond["ci95"]["success"] == pytest.approx(list(wilson(1, 6)))
+    assert cond["per_object"]["apple"]["success"] == pytest.approx(1 / 3)
+    assert cond["per_object"]["apple"]["n"] == 3 and "orange" not in cond["per_object"]
+    assert cond["outcomes"] == {"success": 1, "wrong_object": 2, "grasp_lost": 1, "reached_no_grasp": 1,
+                                "nothing": 1}
+    assert cond["confusion"]["counts"][0][:4] == [1, 0, 0, 2]
+    json.dumps(cond)  # summaries go straight into summary.json
+
+
+def test_compare_pairs_episodes_and_tests_each_metric(tmp_path, capsys):
+    a = make_run(tmp_path / "a", "nearest", [SJ, FR], ["success"] * 3 + ["nothing"] * 7)
+    b = make_run(tmp_path / "b", "scripted", [SJ, FR], ["success"] * 10)
+    result = compare_runs(load_run(a), load_run(b))
+    row = next(r for r in result["rows"] if r["condition"] == "small_jitter/canonical/5" and r["metric"] == "success")
+    assert (row["n"], row["only_a"], row["only_b"]) == (10, 0, 7)
+    assert row["rate_a"] == pytest.approx(0.3) and row["diff"] == pytest.approx(0.7)
+    assert row["mcnemar_p"] == pytest.approx(2 / 2**7)
+    assert len(result["rows"]) == 2 * 3
+
+    assert main(["compare", str(a), str(b), "--json", str(tmp_path / "cmp.json")]) == 0
+    out = capsys.readouterr().out
+    assert "McNemar" in out and "full_random/canonical/5" in out
+    assert json.loads((tmp_path / "cmp.json").read_text())["rows"][0]["metric"] == "success"
+
+
+def test_compare_rejects_mismatched_runs_and_non_run_dirs(tmp_path, capsys):
+    a = make_run(tmp_path / "a", "nearest", [SJ], ["success"] * 4)
+    shifted = make_run(tmp_path / "s", "nearest", [SJ], ["success"] * 4, seed=100)
+    other = make_run(tmp_path / "o", "nearest", [FR], ["success"] * 4)
+    shorter = make_run(tmp_path / "h", "nearest", [SJ], ["success"] * 3)
+    with pytest.raises(ValueError, match="different seeds"):
+        compare_runs(load_run(a), load_run(shifted))
+    with pytest.raises(ValueError, match="different conditions.*full_random"):
+        compare_runs(load_run(a), load_run(other))
+    with pytest.raises(ValueError, match="different episodes"):
+        compare_runs(load_run(a), load_run(shorter))
+
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "half").mkdir()
+    (tmp_path / "half" / "summary.json").write_text("{}")
+    assert main(["compare", str(a), str(tmp_path / "empty")]) == 2
+    err = capsys.readouterr().err
+    assert "not a run directory" in err and "episodes.parquet" in err and "summary.json" in err
+    assert main(["compare", str(tmp_path / "half"), str(a)]) == 2
+    err = capsys.readouterr().err
+    assert "missing episodes.parquet" in err and "missing episodes.parquet, summary.json" not in err
+    assert main(["compare", str(a), str(shifted)]) == 2
+    assert "different seeds" in capsys.readouterr().err

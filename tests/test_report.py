@@ -1,0 +1,147 @@
+"""Tables, plots, experiment configs and the self-contained HTML report (opened in headless Chromium)."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from report_fixtures import make_run
+
+from vla_ladder.cli import main
+from vla_ladder.evaluation.metrics import OUTCOMES
+from vla_ladder.evaluation.rundir import load_run
+from vla_ladder.report import plots, tables
+from vla_ladder.report.experiments import ExperimentConfig, PolicyEntry, available, plan
+from vla_ladder.report.html import build_report
+
+CHROMIUM = "/usr/bin/chromium"
+LADDER = [(r, "canonical", 5) for r in ("small_jitter", "medium_jitter", "large_jitter", "full_random")]
+PAIRINGS = [("small_jitter", "pairings_id", 5), ("small_jitter", "pairings_ood", 5)]
+COUNTS = [("full_random", "canonical", k) for k in (1, 2, 3, 4, 5)]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("runs")
+    a = make_run(root / "nearest", "nearest", LADDER + PAIRINGS, ["success", "wrong_object", "wrong_object",
+                                                                    "wrong_object", "grasp_lost"], videos=5)
+    b = make_run(root / "prior", "layout-prior", LADDER + COUNTS, list(OUTCOMES) * 2)
+    return [load_run(a), load_run(b)]
+
+
+def _results(runs):
+    return {r.label: r.summary["conditions"] for r in runs}
+
+
+def test_tables_follow_the_paper_layouts(runs):
+    res = _results(runs)
+    ladder = tables.ladder_table(res)
+    md, tex = ladder.to_markdown(), ladder.to_latex()
+    assert "| Model | Regime | Success | Grasp-any | Reach |" in md
+    assert "| nearest | Small jitter | 20 [4, 62] | 100 [57, 100] | 20 [4, 62] |" in md
+    assert "\\multirow{4}{*}{nearest} & Small jitter & $20$ & $100$ & $20$ \\\\" in tex
+    assert "\\label{tab:ladder}" in tex and tex.count("\\midrule") == 2  # header rule + one between models
+
+    pair = tables.pairings_table(res)
+    assert "| Split | Success | Grasp-any | Reach |" in pair.to_markdown()
+    assert "Pairings (OOD) & $20$ & $100$ & $20$" in pair.to_latex()
+
+    count = tables.object_count_table(res)
+    assert [row for row, _ in count.groups["layout-prior"]] == ["1", "2", "3", "4", "5"]
+    assert "\\# Objects" in count.to_latex()
+
+    conds = res["layout-prior"]
+    scaling = tables.data_scaling_table([{"model": "SmolVLA", "regime": "medium_jitter", "sizes": ("0.5k", "1k"),
+                                          "before": res["nearest"], "after": conds}])
+    assert "Med. jitter & $20\\!\\rightarrow\\!20$ & $100\\!\\rightarrow\\!60$" in scaling.to_latex()
+    assert "0.5k → 1k" in scaling.to_markdown()
+
+
+def test_plots_write_pngs(runs, tmp_path):
+    res = _results(runs)
+    paths = [plots.plot_ladder(res, tmp_path / "ladder.png"), plots.plot_pairings(res, tmp_path / "pair.png"),
+             plots.plot_object_count(res, tmp_path / "count.png"),
+             plots.plot_confusion(res["nearest"], tmp_path / "cm.png"),
+             plots.plot_data_scaling([{"model": "m", "regime": "full_random", "sizes": ("10k", "100k"),
+                                       "before": res["nearest"], "after": res["layout-prior"]}], tmp_path / "ds.png")]
+    for p in paths:
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
+
+
+def test_experiment_configs_and_policy_entries():
+    assert set(available()) >= {"ladder", "pairings", "data_scaling", "object_count"}
+    assert [c.regime for c in ExperimentConfig.load("ladder").conditions] == \
+        ["small_jitter", "medium_jitter", "large_jitter", "full_random"]
+    assert [c.num_objects for c in ExperimentConfig.load("object_count").conditions] == [1, 2, 3, 4, 5]
+    e = PolicyEntry.parse("label=SmolVLA,regime=medium_jitter,size=0.5k,spec=lerobot:/tmp/ckpt")
+    assert (e.label, e.regime, e.size, e.spec) == ("SmolVLA", "medium_jitter", "0.5k", "lerobot:/tmp/ckpt")
+    ds = ExperimentConfig.load("data_scaling")
+    assert [c.regime for c in plan(ds, [e])[0][1]] == ["medium_jitter"]
+    with pytest.raises(ValueError, match="size="):
+        plan(ds, [PolicyEntry.parse("label=a,regime=medium_jitter,size=5k,spec=nearest")])
+    with pytest.raises(ValueError, match="unknown policy"):
+        PolicyEntry.parse("teleport")
+    with pytest.raises(ValueError, match="unknown experiment.*ladder"):
+        ExperimentConfig.load("ladderr")
+    with pytest.raises(ValueError, match="data_scaling only"):
+        plan(ExperimentConfig.load("ladder"), [e])
+
+
+def test_report_is_self_contained_and_renders_in_chromium(runs, tmp_path):
+    if not Path(CHROMIUM).exists():
+        pytest.skip("Debian's chromium is not installed (scripts/setup.sh installs it)")
+    from playwright.sync_api import sync_playwright
+
+    out = build_report(runs, tmp_path / "report.html", samples=1)
+    page_html = out.read_text()
+    assert "http://" not in page_html and "https://" not in page_html and "<script" not in page_html
+    # Move it away from the run dirs: nothing may be loaded from disk either.
+    moved = shutil.copy(out, tmp_path / "elsewhere.html")
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=[
+            "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+            "--disable-component-update", "--disable-sync"])
+        try:
+            page = browser.new_page(viewport={"width": 1200, "height": 900})
+            failed = []
+            page.on("requestfailed", lambda r: failed.append(r.url[:80]))
+            page.goto(f"file://{moved}")
+            page.wait_for_function("[...document.images].every(i => i.complete)", timeout=30000)
+            images = page.evaluate("[...document.images].map(i => [i.alt, i.naturalWidth])")
+            # Videos: wait until every one has decoded its first frame (or failed).
+            page.wait_for_function("[...document.querySelectorAll('video')].every(v => v.readyState >= 2 || v.error)",
+                                   timeout=30000)
+            videos = page.evaluate("[...document.querySelectorAll('video')].map(v => [v.readyState, !!v.error, "
+                                   "v.videoWidth])")
+            text = page.inner_text("body")
+            shot = page.screenshot(full_page=False)
+        finally:
+            browser.close()
+    assert not failed
+    plots_ = [i for i in images if not i[0].startswith("t=")]
+    frames = [i for i in images if i[0].startswith("t=")]
+    assert len(plots_) >= 5 and all(w > 100 for _, w in plots_), plots_  # ladder, pairings, counts, 2 confusions
+    assert len(frames) >= 9 and all(w > 0 for _, w in frames)
+    assert ["t=0 ms", "t=300 ms"] == [a for a, _ in frames[:2]]
+    assert videos and all(state >= 2 and not err and w > 0 for state, err, w in videos), videos
+    for needle in ("Reading the metrics", "Performance along the spatial task ladder", "wrong object",
+                   "Pairings (OOD)"):
+        assert needle in text
+    import imageio.v3 as iio
+    pixels = iio.imread(shot)
+    assert pixels.std() > 20 and len(np.unique(pixels.reshape(-1, pixels.shape[-1]), axis=0)) > 50
+
+
+def test_report_command_and_bad_input(runs, tmp_path, capsys):
+    out = tmp_path / "r.html"
+    assert main(["report", str(runs[1].path), "--out", str(out), "--no-placements"]) == 0
+    assert "no video" in out.read_text().lower() or "recorded no videos" in out.read_text()
+    assert main(["report", str(tmp_path / "nope"), "--out", str(out)]) == 2
+    assert "not a run directory" in capsys.readouterr().err
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "episodes.parquet").write_bytes(b"")
+    assert main(["report", str(bad), "--out", str(out)]) == 2
+    assert "missing summary.json" in capsys.readouterr().err
+    json.loads((runs[0].path / "summary.json").read_text())
