@@ -89,8 +89,7 @@ def test_experiment_configs_and_policy_entries():
 
 
 def test_report_is_self_contained_and_renders_in_chromium(runs, tmp_path):
-    if not Path(CHROMIUM).exists():
-        pytest.skip("Debian's chromium is not installed (scripts/setup.sh installs it)")
+    assert Path(CHROMIUM).exists(), "Debian's chromium is missing: scripts/setup.sh installs it"
     from playwright.sync_api import sync_playwright
 
     out = build_report(runs, tmp_path / "report.html", samples=1)
