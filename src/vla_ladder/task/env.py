@@ -18,7 +18,7 @@ from mani_skill.agents.robots.panda.panda_wristcam import PandaWristCam
 from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.sensors.camera import CameraConfig
 from mani_skill.utils import sapien_utils
-from mani_skill.utils.geometry.rotation_conversions import quaternion_apply, quaternion_invert
+from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs.pose import Pose
 from mani_skill.utils.structs.types import GPUMemoryConfig, SimConfig
@@ -197,10 +197,13 @@ class GraspObjectEnv(BaseEnv):
 
     # ------------------------------------------------------------------ state and metrics
     def _refresh(self) -> dict[str, torch.Tensor]:
-        """Object poses, gathered once per step: evaluate, observations and reward all reuse them."""
+        """Object poses, rotations and grasp sites, gathered once per step: evaluate, observations and
+        reward all reuse them (small-tensor torch ops dominate the CPU step, not physics)."""
         p = torch.stack([o.pose.p for o in self.objs], dim=1)  # (N, 5, 3)
         q = torch.stack([o.pose.q for o in self.objs], dim=1)  # (N, 5, 4) wxyz
-        self._cache = dict(p=p, q=q, tcp=self.agent.tcp_pose.p)
+        rot = quaternion_to_matrix(q)  # (N, 5, 3, 3)
+        sites = p + (rot @ (self._center + self._grasp_local)[..., None])[..., 0]
+        self._cache = dict(p=p, q=q, rot=rot, sites=sites, tcp=self.agent.tcp_pose.p)
         return self._cache
 
     def _target_select(self, x: torch.Tensor) -> torch.Tensor:
@@ -208,14 +211,13 @@ class GraspObjectEnv(BaseEnv):
 
     def grasp_sites(self) -> torch.Tensor:
         """(N, 5, 3) world positions where each object is meant to be grasped."""
-        c = self._cache
-        local = (self._center + self._grasp_local).expand(c["q"].shape[0], -1, -1)
-        return c["p"] + quaternion_apply(c["q"], local)
+        return self._cache["sites"]
 
     def _dist_to_boxes(self) -> torch.Tensor:
         """(N, 5) distance from the TCP to each object's oriented bounding box (0 inside)."""
         c = self._cache
-        local = quaternion_apply(quaternion_invert(c["q"]), c["tcp"][:, None, :] - c["p"]) - self._center
+        rel = (c["tcp"][:, None, :] - c["p"])[..., None]
+        local = (c["rot"].transpose(-1, -2) @ rel)[..., 0] - self._center
         return torch.linalg.norm(torch.clamp(local.abs() - self._half, min=0.0), dim=-1)
 
     def _grasp_flags(self, min_force: float = 0.5, max_angle_deg: float = 85.0) -> torch.Tensor:
