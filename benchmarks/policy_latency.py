@@ -1,0 +1,144 @@
+"""Inference latency per action chunk of LeRobot policies as `lerobot:` evaluation runs them.
+
+Times one chunk for a batch of B GraspObject-v1 observations (two 256x256 cameras, 15-d state,
+instruction) through the saved-processor path (preprocessor -> predict_action_chunk -> postprocessor),
+with random weights (latency does not depend on them):
+  - tiny SmolVLA (the test model: 2-layer VLM from vla_ladder.training.tiny) and tiny ACT;
+  - with --full: SmolVLA at its real size (SmolVLM2-500M backbone truncated to 16 layers, as
+    lerobot/smolvla_base), built offline from a local config.
+
+    python benchmarks/policy_latency.py [--full] [--device cpu|cuda] [--threads N] [--batch 1] [--repeats 5]
+
+Writes benchmarks/results/policy_latency_<device>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+import torch  # noqa: E402
+
+from vla_ladder import io  # noqa: E402
+from vla_ladder.training.dataset import ACTION_DIM, CAMERA_KEYS, STATE_DIM, STATE_KEY  # noqa: E402
+from vla_ladder.training.tiny import build_vlm_dir  # noqa: E402
+
+CHUNK = 16
+
+
+def features():
+    from lerobot.configs import FeatureType, PolicyFeature
+
+    inputs = {k: PolicyFeature(FeatureType.VISUAL, (3, 256, 256)) for k in CAMERA_KEYS}
+    inputs[STATE_KEY] = PolicyFeature(FeatureType.STATE, (STATE_DIM,))
+    return inputs, {"action": PolicyFeature(FeatureType.ACTION, (ACTION_DIM,))}
+
+
+def stats():
+    unit = lambda d: {"mean": torch.zeros(d), "std": torch.ones(d), "min": -torch.ones(d), "max": torch.ones(d),  # noqa: E731
+                      "q01": -torch.ones(d), "q99": torch.ones(d)}
+    return {STATE_KEY: unit(STATE_DIM), "action": unit(ACTION_DIM)}
+
+
+def build(kind: str, device: str, vlm_root: Path):
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+    from lerobot.configs.policies import PreTrainedConfig
+
+    inputs, outputs = features()
+    common = dict(input_features=inputs, output_features=outputs, device=device, chunk_size=CHUNK,
+                  n_action_steps=CHUNK)
+    if kind == "smolvla-tiny":
+        cfg = PreTrainedConfig.get_choice_class("smolvla")(
+            vlm_model_name=str(build_vlm_dir(vlm_root / "tiny", "tiny")), load_vlm_weights=False,
+            train_expert_only=False, freeze_vision_encoder=False, resize_imgs_with_padding=(64, 64), **common)
+    elif kind == "smolvla-full":
+        cfg = PreTrainedConfig.get_choice_class("smolvla")(
+            vlm_model_name=str(build_vlm_dir(vlm_root / "full", "smolvlm2-500m")), load_vlm_weights=False,
+            **common)
+    elif kind == "act-tiny":
+        cfg = PreTrainedConfig.get_choice_class("act")(
+            pretrained_backbone_weights=None, dim_model=32, n_heads=2, dim_feedforward=64, n_encoder_layers=1,
+            n_decoder_layers=1, use_vae=False, **common)
+    else:
+        raise ValueError(kind)
+    policy = get_policy_class(cfg.type)(cfg).to(device).eval()
+    pre, post = make_pre_post_processors(cfg, dataset_stats=stats())
+    return policy, pre, post
+
+
+def observation(batch: int, device: str) -> dict:
+    g = torch.Generator().manual_seed(0)
+    obs = {k: torch.rand(batch, 3, 256, 256, generator=g).to(device) for k in CAMERA_KEYS}
+    obs[STATE_KEY] = torch.randn(batch, STATE_DIM, generator=g).to(device)
+    obs["task"] = ["grasp the apple"] * batch
+    return obs
+
+
+def time_chunks(kind: str, device: str, batch: int, repeats: int, vlm_root: Path) -> dict:
+    t0 = time.perf_counter()
+    policy, pre, post = build(kind, device, vlm_root)
+    build_s = time.perf_counter() - t0
+    obs = observation(batch, device)
+    times = []
+    with torch.no_grad():
+        for i in range(repeats + 1):  # the first call warms up (allocations, kernels)
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            t = time.perf_counter()
+            chunk = post(policy.predict_action_chunk(pre(dict(obs))))
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            if i:
+                times.append(time.perf_counter() - t)
+    assert chunk.shape == (batch, CHUNK, ACTION_DIM), chunk.shape
+    params = sum(p.numel() for p in policy.parameters())
+    row = {"policy": kind, "device": device, "batch": batch, "chunk_size": CHUNK, "params": params,
+           "build_s": round(build_s, 2), "repeats": repeats, "chunk_latency_s_median": statistics.median(times),
+           "chunk_latency_s_min": min(times), "per_step_s_at_horizon_8": statistics.median(times) / 8}
+    print(f"{kind:14s} {device:5s} batch {batch}: {params / 1e6:7.2f}M params, "
+          f"{row['chunk_latency_s_median'] * 1e3:9.1f} ms/chunk (median of {repeats}), built in {build_s:.1f} s",
+          flush=True)
+    return row
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--batch", type=int, default=1)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--full", action="store_true", help="also the full-size SmolVLA architecture")
+    p.add_argument("--full-repeats", type=int, default=3)
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
+    args = p.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    load_before = os.getloadavg()[0]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for kind in ("smolvla-tiny", "act-tiny"):
+            rows.append(time_chunks(kind, args.device, args.batch, args.repeats, Path(tmp)))
+        if args.full:
+            rows.append(time_chunks("smolvla-full", args.device, args.batch, args.full_repeats, Path(tmp)))
+    for row in rows:
+        row.update(torch_threads=torch.get_num_threads(), load_average_1min=[load_before, os.getloadavg()[0]])
+    out = Path(__file__).parent / "results" / f"policy_latency_{args.device.split(':')[0]}.json"
+    # Rows of earlier invocations (other models, thread counts) stay; a re-measured one is replaced.
+    key = lambda r: (r["policy"], r["device"], r["batch"], r.get("torch_threads"))  # noqa: E731
+    old = json.loads(out.read_text())["results"] if out.is_file() else []
+    fresh = {key(r) for r in rows}
+    rows = [r for r in old if key(r) not in fresh] + rows
+    io.write_json(out, {"benchmark": "policy_latency", "cpu_count": os.cpu_count(), "results": rows,
+                        "provenance": io.provenance()})
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

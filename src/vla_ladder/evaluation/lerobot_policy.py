@@ -1,0 +1,171 @@
+"""Any LeRobot checkpoint as a GraspObject-v1 `Policy`: `--policy lerobot:CHECKPOINT_DIR[?n_action_steps=H]`.
+
+The checkpoint is loaded with the pre/post-processors LeRobot saved next to it (normalisation statistics,
+tokenizer, camera renames), so the policy sees observations exactly as in training: both 256x256 cameras
+as float CHW in [0, 1], the 15-d proprioceptive state and the instruction as `task`. Action chunks run
+through LeRobot's own `select_action` queue, so the execution horizon is the checkpoint's
+`n_action_steps`, which `?n_action_steps=H` (or the `n_action_steps` argument) overrides. The same code
+runs one CPU env or a batch of GPU envs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+from urllib.parse import parse_qsl
+
+import torch
+
+from vla_ladder.policies import Policy
+from vla_ladder.training.dataset import ACTION_DIM, CAMERA_KEYS, STATE_DIM, STATE_KEY
+
+ENV_IMAGE_SHAPE = (3, 256, 256)
+# Policies that resize images themselves and pad cameras a batch lacks (LeRobot's VLAs).
+FLEXIBLE_CAMERAS = {"smolvla", "pi0", "pi05", "pi0_fast"}
+QUERY_KEYS = {"n_action_steps": int, "device": str}
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """A training run dir, a checkpoint dir or a pretrained_model dir -> the dir holding config.json."""
+    path = Path(path)
+    for cand in (path, path / "pretrained_model", path / "checkpoints" / "last" / "pretrained_model"):
+        if (cand / "config.json").is_file():
+            return cand
+    raise ValueError(f"no LeRobot checkpoint at {str(path)!r}: expected config.json in it, in "
+                     "pretrained_model/ or in checkpoints/last/pretrained_model/ (a `vla-ladder train` run dir)")
+
+
+def check_env_compatible(cfg, rename_map: dict[str, str]) -> None:
+    """ValueError naming every input/output feature of the policy that GraspObject-v1 cannot provide."""
+    from lerobot.configs import FeatureType
+
+    fed = {rename_map.get(k, k) for k in CAMERA_KEYS}
+    images = {k: ft for k, ft in cfg.input_features.items() if ft.type is FeatureType.VISUAL}
+    problems = []
+    flexible = cfg.type in FLEXIBLE_CAMERAS
+    if not fed & set(images):
+        problems.append(f"none of its cameras {sorted(images)} is one the env provides")
+    for key, ft in images.items():
+        if key not in fed and not flexible:
+            problems.append(f"camera {key} is not provided")
+        if not flexible and tuple(ft.shape) != ENV_IMAGE_SHAPE:
+            problems.append(f"camera {key} has shape {tuple(ft.shape)}, the env renders {ENV_IMAGE_SHAPE}")
+    state = cfg.input_features.get(rename_map.get(STATE_KEY, STATE_KEY))
+    padded = getattr(cfg, "max_state_dim", 0)
+    if state is not None and state.shape[0] != STATE_DIM and STATE_DIM > padded:
+        problems.append(f"state has {state.shape[0]} dims, the env provides {STATE_DIM}")
+    for key, ft in cfg.input_features.items():
+        if ft.type not in (FeatureType.VISUAL, FeatureType.STATE):
+            problems.append(f"input {key} ({ft.type.value}) is not provided")
+    action = cfg.output_features.get("action")
+    if action is None or tuple(action.shape) != (ACTION_DIM,):
+        problems.append(f"action has shape {None if action is None else tuple(action.shape)}, the env takes "
+                        f"({ACTION_DIM},)")
+    if problems:
+        raise ValueError(f"LeRobot checkpoint ({cfg.type}) does not match GraspObject-v1: " + "; ".join(problems)
+                         + f". The env provides {', '.join(CAMERA_KEYS)} {ENV_IMAGE_SHAPE}, {STATE_KEY} "
+                         f"({STATE_DIM},) and takes action ({ACTION_DIM},)")
+
+
+def _saved_rename_map(path: Path) -> dict[str, str]:
+    import json
+
+    pre = path / "policy_preprocessor.json"
+    if not pre.is_file():
+        return {}
+    for step in json.loads(pre.read_text()).get("steps", []):
+        if step.get("registry_name") == "rename_observations_processor":
+            return dict(step.get("config", {}).get("rename_map", {}))
+    return {}
+
+
+class LeRobotPolicy(Policy):
+    """A LeRobot PreTrainedPolicy with its saved processors, batched over envs."""
+
+    obs_mode = "rgb"
+
+    def __init__(self, path: str | Path, n_action_steps: int | None = None, device: str | None = None):
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+        self.path = resolve_checkpoint(path)
+        overrides = [] if n_action_steps is None else [f"--n_action_steps={int(n_action_steps)}"]
+        device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+        overrides.append(f"--device={device}")
+        try:
+            cfg = PreTrainedConfig.from_pretrained(self.path, cli_overrides=overrides)
+        except Exception as e:  # draccus wraps the config's own checks (e.g. n_action_steps > chunk_size)
+            raise ValueError(f"cannot use the checkpoint {str(self.path)!r} with {overrides}: {e}") from e
+        rename_map = _saved_rename_map(self.path)
+        check_env_compatible(cfg, rename_map)
+
+        self.policy = get_policy_class(cfg.type).from_pretrained(self.path, config=cfg).eval()
+        self.config = self.policy.config
+        self.device = torch.device(self.config.device)
+        self.preprocessor, self.postprocessor = make_pre_post_processors(
+            self.config, pretrained_path=self.path,
+            preprocessor_overrides={"device_processor": {"device": str(self.device)}})
+        self.name = f"lerobot-{cfg.type}"
+        self._num_envs = 0
+
+    @property
+    def n_action_steps(self) -> int | None:
+        return getattr(self.config, "n_action_steps", None)
+
+    def reset(self, seeds: Sequence[int], env_ids: Sequence[int] | None = None) -> None:
+        # LeRobot keeps one action queue for the whole batch, so envs restart together (episodes have a
+        # fixed length of 50 steps, so they always do).
+        if env_ids is not None and self._num_envs and len(set(env_ids)) < self._num_envs:
+            raise ValueError("LeRobot policies keep one action queue per batch: reset all envs together")
+        self.policy.reset()
+        if len(seeds):
+            torch.manual_seed(int(seeds[0]))  # the flow-matching/diffusion noise of this batch of episodes
+
+    def batch(self, obs: Any, instructions: Sequence[str]) -> dict[str, Any]:
+        """Env observation -> LeRobot's raw observation dict (before the saved preprocessor)."""
+        out: dict[str, Any] = {}
+        for key in CAMERA_KEYS:
+            rgb = obs["sensor_data"][key.rsplit(".", 1)[1]]["rgb"]
+            out[key] = torch.as_tensor(rgb).permute(0, 3, 1, 2).to(self.device, torch.float32) / 255.0
+        out[STATE_KEY] = torch.as_tensor(obs["extra"]["proprio"]).to(self.device, torch.float32)
+        out["task"] = [str(t) for t in instructions]
+        return out
+
+    @torch.no_grad()
+    def act(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
+        proprio = torch.as_tensor(obs["extra"]["proprio"])
+        self._num_envs = proprio.shape[0]
+        batch = self.preprocessor(self.batch(obs, instructions))
+        action = self.postprocessor(self.policy.select_action(batch))
+        return action.to(proprio.device, torch.float32).reshape(proprio.shape[0], ACTION_DIM).clamp(-1, 1)
+
+    def predict_chunk(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
+        """One full action chunk (N, chunk, 7), unnormalised; what the latency benchmark times."""
+        with torch.no_grad():
+            batch = self.preprocessor(self.batch(obs, instructions))
+            return self.postprocessor(self.policy.predict_action_chunk(batch))
+
+    def describe(self) -> dict:
+        return {"name": self.name, "type": self.config.type, "checkpoint": str(self.path),
+                "chunk_size": getattr(self.config, "chunk_size", getattr(self.config, "horizon", None)),
+                "n_action_steps": self.n_action_steps, "device": str(self.device)}
+
+
+def parse_arg(arg: str) -> tuple[str, dict]:
+    """"PATH?n_action_steps=8&device=cpu" -> (PATH, {"n_action_steps": 8, "device": "cpu"})."""
+    path, _, query = arg.partition("?")
+    kwargs = {}
+    for key, value in parse_qsl(query, strict_parsing=bool(query)):
+        if key not in QUERY_KEYS:
+            raise ValueError(f"unknown option {key!r} in lerobot:{arg}; allowed: {', '.join(QUERY_KEYS)}")
+        kwargs[key] = QUERY_KEYS[key](value)
+    return path, kwargs
+
+
+def make_policy(arg: str | None, **kwargs) -> LeRobotPolicy:
+    """Factory for `load_policy("lerobot:PATH[?n_action_steps=H&device=D]")`."""
+    if not arg:
+        raise ValueError("policy 'lerobot' needs a checkpoint: lerobot:CHECKPOINT_DIR[?n_action_steps=H]")
+    path, options = parse_arg(arg)
+    options.update({k: v for k, v in kwargs.items() if k in ("n_action_steps", "device") and v is not None})
+    return LeRobotPolicy(path, **options)

@@ -1,0 +1,317 @@
+"""`vla-ladder train`: fine-tune a LeRobot policy on a recorded GraspObject-v1 dataset with LeRobot's own
+training loop (lerobot.scripts.lerobot_train), the paper's defaults and fully offline.
+
+The command composes `lerobot-train` flags, parses them with LeRobot's own config parser into a
+TrainPipelineConfig and runs LeRobot's `train` in this process, so every LeRobot flag is accepted after
+`--` and the equivalent `lerobot-train` command is saved with the run. Multi-GPU: LeRobot always trains
+through an `accelerate` Accelerator, so `accelerate launch -m vla_ladder.cli train ...` spreads it over GPUs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import os
+import shlex
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from vla_ladder import io
+from vla_ladder.task.layouts import REGIMES
+from vla_ladder.training.dataset import check_features, dataset_regime, read_info
+
+log = logging.getLogger(__name__)
+
+# Paper, appendix "VLA implementation details": checkpoints and per-policy settings.
+DEFAULT_PRETRAINED = {"smolvla": "lerobot/smolvla_base", "pi05": "lerobot/pi05_base"}
+POLICY_PRESETS: dict[str, dict[str, str]] = {
+    "pi05": {"dtype": "bfloat16", "gradient_checkpointing": "true", "freeze_vision_encoder": "true",
+             "train_expert_only": "true"},
+}
+# Batch size by placement regime: 128 in full random, 64 in the jitter regimes and the pairings.
+BATCH_FOR_REGIME = {"full_random": 128}
+DEFAULT_BATCH = 64
+# The config field that holds the action chunk length, where it is not called chunk_size.
+CHUNK_FIELD = {"diffusion": "horizon"}
+# Tokenizers the policies' saved processors load by name; offline they must be local or in the HF cache.
+PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"
+TOKENIZER_OF = {"pi0": lambda cfg: PALIGEMMA_TOKENIZER, "pi05": lambda cfg: PALIGEMMA_TOKENIZER,
+                "pi0_fast": lambda cfg: PALIGEMMA_TOKENIZER, "smolvla": lambda cfg: cfg.vlm_model_name}
+# Dataset camera -> pretrained camera slot when a checkpoint names its cameras differently
+# (lerobot/smolvla_base and pi05_base: observation.images.camera1/2/3; the paper feeds camera1 and camera2).
+CAMERA_ORDER = ("observation.images.fixed_camera", "observation.images.hand_camera")
+PAPER_RENAME = dict(zip(CAMERA_ORDER, ("observation.images.camera1", "observation.images.camera2")))
+
+
+def policy_types() -> list[str]:
+    """Every policy type registered in LeRobot (including installed plugins)."""
+    import lerobot.policies  # noqa: F401  (registers the built-in configs)
+    from lerobot.configs.policies import PreTrainedConfig
+
+    return sorted(PreTrainedConfig.get_known_choices())
+
+
+@dataclass
+class TrainRequest:
+    """One training run; validated on construction, before anything slow happens."""
+
+    policy_type: str
+    dataset: Path
+    out: Path
+    pretrained: str | None = "default"
+    """Local checkpoint dir or hub id; "default" = the paper's checkpoint for the type; None = from scratch."""
+    batch_size: int | None = None
+    """None: from the dataset's regime (128 full random, else 64)."""
+    regime: str | None = None
+    """Overrides the regime read from the dataset's provenance (only used to pick the batch size)."""
+    chunk_size: int = 16
+    n_action_steps: int | None = None
+    """Execution horizon stored with the checkpoint (None: the chunk size, or LeRobot's default for policies
+    with observation history such as diffusion); evaluation can override it."""
+    steps: int = 30_000
+    save_freq: int = 20_000
+    log_freq: int = 200
+    num_workers: int = 4
+    seed: int = 1000
+    device: str | None = None
+    wandb: bool = False
+    rename_map: dict[str, str] | None = None
+    extra: list[str] = field(default_factory=list)
+    """Raw lerobot-train flags appended last (they win), e.g. --policy.optimizer_lr=5e-5."""
+
+    def __post_init__(self):
+        allowed = policy_types()
+        if self.policy_type not in allowed:
+            raise ValueError(f"unknown policy type {self.policy_type!r}; allowed: {', '.join(allowed)}")
+        self.dataset, self.out = Path(self.dataset), Path(self.out)
+        self.info = read_info(self.dataset)
+        check_features(self.info, self.dataset)
+        if self.pretrained == "default":
+            self.pretrained = DEFAULT_PRETRAINED.get(self.policy_type)
+        if self.pretrained in ("", "none", "None"):
+            self.pretrained = None
+        if self.regime is None:
+            self.regime = dataset_regime(self.dataset)
+        if self.regime is not None and self.regime not in REGIMES:
+            raise ValueError(f"unknown regime {self.regime!r}; allowed: {', '.join(REGIMES)}")
+        if self.batch_size is None:
+            if self.regime is None:
+                raise ValueError(f"{str(self.dataset)!r} does not say which regime it was recorded in; pass "
+                                 "--regime (full_random -> batch 128, else 64) or --batch-size")
+            self.batch_size = BATCH_FOR_REGIME.get(self.regime, DEFAULT_BATCH)
+        if self.n_action_steps is None and self.policy_type not in CHUNK_FIELD:
+            self.n_action_steps = self.chunk_size
+        for name in ("batch_size", "chunk_size", "n_action_steps", "steps"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        if self.n_action_steps is not None and self.n_action_steps > self.chunk_size:
+            raise ValueError(f"--n-action-steps ({self.n_action_steps}) cannot exceed --chunk-size "
+                             f"({self.chunk_size})")
+        if self.out.exists() and any(self.out.iterdir()):
+            raise ValueError(f"output directory {str(self.out)!r} exists and is not empty; pick a new --out")
+
+    # ------------------------------------------------------------------ lerobot-train flags
+    def _config_class(self):
+        from lerobot.configs.policies import PreTrainedConfig
+        return PreTrainedConfig.get_choice_class(self.policy_type)
+
+    def policy_flags(self) -> list[str]:
+        """--policy.* flags, without the leading "policy." (the form PreTrainedConfig overrides take)."""
+        names = {f.name for f in dataclasses.fields(self._config_class())}
+        flags = {"push_to_hub": "false"}
+        chunk_field = CHUNK_FIELD.get(self.policy_type, "chunk_size")
+        if chunk_field in names:
+            flags[chunk_field] = str(self.chunk_size)
+        if "n_action_steps" in names and self.n_action_steps is not None:
+            flags["n_action_steps"] = str(self.n_action_steps)
+        flags.update(POLICY_PRESETS.get(self.policy_type, {}))
+        if "pretrained_backbone_weights" in names and _offline():
+            flags["pretrained_backbone_weights"] = "null"  # torchvision would download ImageNet weights
+        if self.device:
+            flags["device"] = self.device
+        return [f"--{k}={v}" for k, v in flags.items()]
+
+    def pipeline_flags(self) -> list[str]:
+        flags = [
+            f"--dataset.repo_id=local/{self.dataset.resolve().name}",
+            f"--dataset.root={self.dataset.resolve()}",
+            f"--output_dir={self.out.resolve()}",
+            f"--job_name={self.policy_type}",
+            f"--batch_size={self.batch_size}",
+            f"--steps={self.steps}",
+            f"--save_freq={self.save_freq}",
+            f"--log_freq={self.log_freq}",
+            f"--num_workers={self.num_workers}",
+            f"--seed={self.seed}",
+            f"--wandb.enable={'true' if self.wandb else 'false'}",
+        ]
+        rename = self.camera_rename_map()
+        if rename:
+            flags.append(f"--rename_map={json.dumps(rename)}")
+        return flags
+
+    def camera_rename_map(self) -> dict[str, str]:
+        """Dataset camera -> checkpoint camera, when fine-tuning a checkpoint with other camera names."""
+        if self.rename_map is not None or self.pretrained is None:
+            return dict(self.rename_map or {})
+        config_path = Path(self.pretrained) / "config.json"
+        if not config_path.is_file():  # a hub id: build_config maps onto the fetched config's cameras
+            return dict(PAPER_RENAME) if self.pretrained in DEFAULT_PRETRAINED.values() else {}
+        return _rename_for(json.loads(config_path.read_text()).get("input_features", {}))
+
+    def lerobot_command(self) -> list[str]:
+        """The equivalent `lerobot-train` command line."""
+        policy = ([f"--policy.path={self.pretrained}"] if self.pretrained
+                  else [f"--policy.type={self.policy_type}"])
+        return ["lerobot-train", *self.pipeline_flags(), *policy,
+                *(f"--policy.{f[2:]}" for f in self.policy_flags()), *self.extra]
+
+    def build_config(self):
+        """LeRobot's TrainPipelineConfig, parsed by LeRobot's own parser from the flags above."""
+        try:
+            return self._parse_config()
+        except Exception as e:
+            if isinstance(e, ValueError):
+                raise
+            # draccus wraps LeRobot's own checks (e.g. n_action_steps > chunk_size) in its DecodingError
+            raise ValueError(f"LeRobot rejects this configuration: {e}") from e
+
+    def _parse_config(self):
+        import draccus
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.configs.train import TrainPipelineConfig
+
+        extra_policy = [f"--{a[len('--policy.'):]}" for a in self.extra if a.startswith("--policy.")]
+        extra_other = [a for a in self.extra if not a.startswith("--policy.")]
+        policy_flags = self.policy_flags() + extra_policy
+        if self.pretrained:
+            cfg = draccus.parse(TrainPipelineConfig, args=self.pipeline_flags() + extra_other)
+            try:
+                cfg.policy = PreTrainedConfig.from_pretrained(self.pretrained, cli_overrides=policy_flags)
+            except Exception as e:  # hub errors come in many types; all mean the same here
+                raise ValueError(f"cannot load the pretrained config {self.pretrained!r} ({e}); offline, pass "
+                                 "a local checkpoint directory or --pretrained none") from e
+            if cfg.policy.type != self.policy_type:
+                raise ValueError(f"--pretrained {self.pretrained!r} is a {cfg.policy.type!r} checkpoint, "
+                                 f"not {self.policy_type!r}")
+            cfg.policy.pretrained_path = Path(self.pretrained)
+            if not cfg.rename_map:
+                cfg.rename_map = _rename_for({k: v for k, v in cfg.policy.input_features.items()})
+        else:
+            cfg = draccus.parse(TrainPipelineConfig, args=self.pipeline_flags() + extra_other
+                                + [f"--policy.type={self.policy_type}"]
+                                + [f"--policy.{f[2:]}" for f in policy_flags])
+        return cfg
+
+
+def check_offline_assets(policy_cfg) -> None:
+    """Offline, fail now (not after loading data and weights) when the policy's tokenizer is unreachable."""
+    name_of = TOKENIZER_OF.get(policy_cfg.type)
+    if name_of is None or not _offline():
+        return
+    name = str(name_of(policy_cfg))
+    if Path(name).is_dir():
+        return
+    from huggingface_hub import try_to_load_from_cache
+
+    if not isinstance(try_to_load_from_cache(name, "tokenizer_config.json"), str):
+        hint = ("build a local SmolVLM directory with vla_ladder.training.tiny.build_vlm_dir and pass "
+                "-- --policy.vlm_model_name=DIR --policy.load_vlm_weights=false"
+                if policy_cfg.type == "smolvla" else
+                f"LeRobot's {policy_cfg.type} processor loads the tokenizer {name!r} by hub id; download it "
+                f"once with network (`hf download {name}`) so it is in the HF cache")
+        raise ValueError(f"offline (HF_HUB_OFFLINE=1) and the tokenizer {name!r} of {policy_cfg.type} is "
+                         f"neither a local directory nor in the Hugging Face cache: {hint}")
+
+
+def _offline() -> bool:
+    return os.environ.get("HF_HUB_OFFLINE", "0").lower() in ("1", "true", "yes")
+
+
+def _rename_for(input_features: dict) -> dict[str, str]:
+    """Map our two cameras onto a checkpoint's image slots in CAMERA_ORDER (fixed view first), unless the
+    checkpoint already uses our names."""
+    slots = [k for k, v in input_features.items()
+             if (v.get("type") if isinstance(v, dict) else getattr(v.type, "value", v.type)) == "VISUAL"]
+    if not slots or all(k in slots for k in CAMERA_ORDER):
+        return {}
+    return dict(zip(CAMERA_ORDER, slots))
+
+
+def checkpoint_dir(out: str | Path) -> Path:
+    """The last checkpoint's pretrained_model directory of a training run."""
+    return Path(out) / "checkpoints" / "last" / "pretrained_model"
+
+
+def train(req: TrainRequest) -> Path:
+    """Run LeRobot training for `req`; returns the final checkpoint's pretrained_model directory."""
+    from lerobot.scripts.lerobot_train import train as lerobot_train
+
+    cfg = req.build_config()
+    check_offline_assets(cfg.policy)
+    if req.out.exists():
+        req.out.rmdir()  # empty (checked above); LeRobot refuses to reuse an existing directory
+    log.info("training %s on %s for %d steps (batch %d, chunk %d): %s", req.policy_type, req.dataset,
+             req.steps, req.batch_size, req.chunk_size, shlex.join(req.lerobot_command()))
+    start = time.time()
+    lerobot_train(cfg)
+    if int(os.environ.get("RANK", "0")) == 0:
+        io.write_json(req.out / "vla_ladder_train.json", {
+            "request": asdict(req),
+            "lerobot_train_command": shlex.join(req.lerobot_command()),
+            "dataset": {"root": str(req.dataset), "regime": req.regime,
+                        "episodes": req.info.get("total_episodes"), "frames": req.info.get("total_frames")},
+            "checkpoint": str(checkpoint_dir(req.out)),
+            "wall_s": round(time.time() - start, 1),
+            "provenance": io.provenance(),
+        })
+    return checkpoint_dir(req.out)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--policy-type", required=True,
+                   help="LeRobot policy type: smolvla, pi05, act, diffusion, ... (all LeRobot types)")
+    p.add_argument("--dataset", required=True, type=Path, help="local LeRobotDataset v3 directory")
+    p.add_argument("--out", required=True, type=Path, help="run directory (new or empty)")
+    p.add_argument("--pretrained", default="default",
+                   help="local checkpoint dir or hub id to fine-tune; 'none' trains from scratch "
+                        "(default: lerobot/smolvla_base for smolvla, lerobot/pi05_base for pi05, else none)")
+    p.add_argument("--batch-size", type=int, help="default: 128 for full_random datasets, else 64")
+    p.add_argument("--regime", help="regime of the dataset when its provenance does not say (picks the batch)")
+    p.add_argument("--chunk-size", type=int, default=16)
+    p.add_argument("--n-action-steps", type=int, help="execution horizon saved with the policy (default: chunk)")
+    p.add_argument("--steps", type=int, default=30_000)
+    p.add_argument("--save-freq", type=int, default=20_000)
+    p.add_argument("--log-freq", type=int, default=200)
+    p.add_argument("--num-workers", type=int, default=4, help="data-loader worker processes")
+    p.add_argument("--seed", type=int, default=1000)
+    p.add_argument("--device", help="cuda, cpu, mps (default: LeRobot picks)")
+    p.add_argument("--wandb", action="store_true", help="log to Weights & Biases (off by default)")
+    p.add_argument("--rename-map", type=json.loads,
+                   help='JSON dataset key -> checkpoint key, e.g. \'{"observation.images.hand_camera": '
+                        '"observation.images.camera2"}\' (default: fixed camera -> first image slot)')
+    p.add_argument("--print-command", action="store_true",
+                   help="print the equivalent lerobot-train command and exit")
+    p.add_argument("extra", nargs="*", metavar="-- LEROBOT_FLAG",
+                   help="further lerobot-train flags after --, e.g. -- --policy.optimizer_lr=5e-5")
+
+
+def request_from_args(args: argparse.Namespace) -> TrainRequest:
+    return TrainRequest(
+        policy_type=args.policy_type, dataset=args.dataset, out=args.out, pretrained=args.pretrained,
+        batch_size=args.batch_size, regime=args.regime, chunk_size=args.chunk_size,
+        n_action_steps=args.n_action_steps, steps=args.steps, save_freq=args.save_freq, log_freq=args.log_freq,
+        num_workers=args.num_workers, seed=args.seed, device=args.device, wandb=args.wandb,
+        rename_map=args.rename_map, extra=list(args.extra))
+
+
+def run(args: argparse.Namespace) -> int:
+    req = request_from_args(args)
+    if args.print_command:
+        print(shlex.join(req.lerobot_command()))
+        return 0
+    print(train(req))
+    return 0

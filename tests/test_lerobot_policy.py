@@ -1,0 +1,108 @@
+"""`lerobot:CHECKPOINT` policies and the LeRobot env plugin, with real LeRobot checkpoints trained here."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+import lerobot_helpers as H
+from vla_ladder.evaluation.lerobot_policy import LeRobotPolicy, parse_arg, resolve_checkpoint
+from vla_ladder.policies import load_policy
+
+
+def _obs(n: int, seed: int = 0) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    cam = {"rgb": torch.randint(0, 256, (n, 256, 256, 3), dtype=torch.uint8, generator=g)}
+    return {"sensor_data": {"hand_camera": cam, "fixed_camera": {"rgb": cam["rgb"].flip(1)}},
+            "extra": {"proprio": torch.randn(n, 15, generator=g)}}
+
+
+@pytest.fixture(scope="module")
+def smolvla_run(tmp_path_factory):
+    return H.trained(tmp_path_factory, "smolvla")
+
+
+def test_loads_with_processors_and_runs_chunks_batched(smolvla_run):
+    policy = load_policy(f"lerobot:{smolvla_run}?n_action_steps=2", device="cpu")
+    assert policy.obs_mode == "rgb"
+    assert policy.describe()["n_action_steps"] == 2 and policy.describe()["chunk_size"] == 4
+    calls = []
+    inner = policy.policy._get_action_chunk
+    policy.policy._get_action_chunk = lambda *a, **k: calls.append(1) or inner(*a, **k)
+
+    policy.reset([0, 1])
+    obs = _obs(2)
+    actions = [policy.act(obs, ["grasp the apple", "grasp the mug"]) for _ in range(5)]
+    assert all(a.shape == (2, 7) and a.dtype == torch.float32 for a in actions)
+    assert all(float(a.abs().max()) <= 1.0 for a in actions)
+    assert len(calls) == 3  # a new chunk every 2 steps: steps 0, 2, 4
+
+    # Same seeds, same observations -> the same (flow-matching) actions.
+    policy.reset([0, 1])
+    again = policy.act(obs, ["grasp the apple", "grasp the mug"])
+    torch.testing.assert_close(again, actions[0])
+    assert policy.predict_chunk(obs, ["grasp the apple"] * 2).shape == (2, 4, 7)
+
+
+def test_checkpoint_paths_resolve(smolvla_run):
+    ckpt = smolvla_run / "checkpoints" / "last" / "pretrained_model"
+    assert resolve_checkpoint(smolvla_run) == ckpt
+    assert resolve_checkpoint(ckpt.parent) == ckpt
+    assert resolve_checkpoint(ckpt) == ckpt
+    with pytest.raises(ValueError, match="no LeRobot checkpoint"):
+        resolve_checkpoint(smolvla_run / "nope")
+
+
+def test_bad_specs_fail_before_loading(smolvla_run):
+    with pytest.raises(ValueError, match="allowed: n_action_steps, device"):
+        parse_arg(f"{smolvla_run}?horizon=3")
+    with pytest.raises(ValueError, match="n_action_steps"):
+        load_policy(f"lerobot:{smolvla_run}?n_action_steps=8")  # > chunk size 4
+    with pytest.raises(ValueError, match="needs a path"):
+        load_policy("lerobot")
+
+
+def test_mismatched_checkpoint_features_are_rejected(smolvla_run, tmp_path):
+    bad = tmp_path / "bad"
+    shutil.copytree(smolvla_run / "checkpoints" / "last" / "pretrained_model", bad)
+    cfg = json.loads((bad / "config.json").read_text())
+    feats = cfg["input_features"]
+    feats["observation.images.top"] = feats.pop("observation.images.hand_camera")
+    feats["observation.images.side"] = feats.pop("observation.images.fixed_camera")
+    cfg["output_features"]["action"]["shape"] = [6]
+    (bad / "config.json").write_text(json.dumps(cfg))
+    (bad / "model.safetensors").unlink()  # the check must come before any weight is read
+    with pytest.raises(ValueError) as err:
+        LeRobotPolicy(bad)
+    msg = str(err.value)
+    assert "none of its cameras" in msg and "observation.images.top" in msg
+    assert "action has shape (6,)" in msg
+
+
+def test_lerobot_env_plugin_constructs_and_steps():
+    from lerobot.configs.parser import load_plugin
+    from lerobot.envs.factory import make_env, make_env_config
+    from lerobot.envs.utils import close_envs, preprocess_observation
+
+    load_plugin("vla_ladder.envs_lerobot")  # what `lerobot-eval --env.discover_packages_path=...` does
+    cfg = make_env_config("grasp_object", regime="small_jitter", num_objects=2)
+    assert cfg.type == "grasp_object" and cfg.features_map["pixels/hand_camera"] == "observation.images.hand_camera"
+    with pytest.raises(ValueError, match="regime"):
+        make_env_config("grasp_object", regime="nowhere")
+    envs = make_env(cfg, n_envs=1)
+    vec = envs["grasp_object"][0]
+    try:
+        obs, _ = vec.reset(seed=[7])
+        batch = preprocess_observation(obs)
+        assert batch["observation.images.hand_camera"].shape == (1, 3, 256, 256)
+        assert batch["observation.state"].shape == (1, 15)
+        assert vec.call("task_description")[0].startswith("grasp the ")
+        assert vec.call("_max_episode_steps")[0] == 50
+        for _ in range(2):
+            obs, reward, terminated, truncated, info = vec.step(np.zeros((1, 7), np.float32))
+            assert info["is_success"].dtype == bool and info["is_success"].shape == (1,)
+            assert not terminated[0] and not truncated[0]
+    finally:
+        close_envs(envs)

@@ -1,0 +1,137 @@
+"""`vla-ladder train` and `vla-ladder grid`: real LeRobot training of tiny policies on a dataset recorded by the
+recording pipeline, evaluated in the real simulator (with rendering) by the eval runner. CPU, offline."""
+
+import json
+import os
+
+import pandas as pd
+import pytest
+
+import lerobot_helpers as H
+from vla_ladder.cli import main
+from vla_ladder.training.cli import TrainRequest
+from vla_ladder.training.grid import best_row
+
+EVAL = ["--regime", "small_jitter", "--num-objects", "2", "--seed", "100"]
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    return H.dataset(tmp_path_factory)
+
+
+def _evaluate(spec: str, out, episodes: int) -> tuple[pd.DataFrame, dict]:
+    assert main(["eval", "--policy", spec, "--out", str(out), "--episodes", str(episodes), *EVAL]) == 0
+    return pd.read_parquet(out / "episodes.parquet"), json.loads((out / "summary.json").read_text())
+
+
+@pytest.mark.parametrize("kind", ["smolvla", "act"])
+def test_tiny_policy_trains_saves_reloads_and_evaluates(kind, tmp_path_factory, tmp_path):
+    run = H.trained(tmp_path_factory, kind)
+    ckpt = run / "checkpoints" / "last" / "pretrained_model"
+    for name in ("config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"):
+        assert (ckpt / name).is_file(), name
+    record = json.loads((run / "vla_ladder_train.json").read_text())
+    assert record["lerobot_train_command"].startswith("lerobot-train ")
+    assert "--policy.push_to_hub=false" in record["lerobot_train_command"]
+    cfg = json.loads((ckpt / "config.json").read_text())
+    assert cfg["type"] == kind and cfg["chunk_size"] == 4
+    assert set(cfg["input_features"]) == {"observation.images.hand_camera", "observation.images.fixed_camera",
+                                          "observation.state"}
+
+    episodes, summary = _evaluate(f"lerobot:{run}?n_action_steps=2", tmp_path / "eval", episodes=1)
+    assert len(episodes) == 1 and episodes["seed"].tolist() == [100]
+    assert episodes["instruction"].iloc[0].startswith("grasp the ")
+    assert summary["policy"]["type"] == kind and summary["policy"]["n_action_steps"] == 2
+    cond = summary["conditions"]["small_jitter/canonical/2"]
+    assert cond["n"] == 1 and all(0.0 <= cond[m] <= 1.0 for m in ("success", "grasp_any", "reach"))
+
+
+def test_pi05_gets_the_paper_settings_and_a_clear_offline_error(data, tmp_path):
+    req = TrainRequest(policy_type="pi05", dataset=data, out=tmp_path / "pi05", pretrained="none")
+    assert (req.batch_size, req.chunk_size, req.steps) == (64, 16, 30_000)  # small_jitter data: batch 64
+    policy = req.build_config().policy
+    assert (policy.dtype, policy.gradient_checkpointing, policy.freeze_vision_encoder,
+            policy.train_expert_only, policy.chunk_size, policy.push_to_hub) == \
+        ("bfloat16", True, True, True, 16, False)
+    assert "--policy.path=lerobot/pi05_base" in TrainRequest(
+        policy_type="pi05", dataset=data, out=tmp_path / "p").lerobot_command()
+    # Offline, LeRobot's pi05 processor cannot get its PaliGemma tokenizer: the run stops before any work.
+    if os.environ.get("HF_HUB_OFFLINE") == "1":
+        rc = main(["train", "--policy-type", "pi05", "--dataset", str(data), "--out", str(tmp_path / "pi05"),
+                   "--pretrained", "none", "--steps", "1"])
+        assert rc == 2 and not (tmp_path / "pi05").exists()
+        rc = main(["train", "--policy-type", "pi05", "--dataset", str(data), "--out", str(tmp_path / "pi05")])
+        assert rc == 2  # lerobot/pi05_base is not in the local cache
+
+
+def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
+    base = ["train", "--dataset", str(data), "--out", str(tmp_path / "run"), "--pretrained", "none"]
+    assert main(base + ["--policy-type", "nope"]) == 2
+    assert "allowed: act, diffusion" in capsys.readouterr().err
+    assert main(["train", "--policy-type", "act", "--dataset", str(tmp_path / "missing"),
+                 "--out", str(tmp_path / "run")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+    wrong = tmp_path / "wrong"
+    (wrong / "meta").mkdir(parents=True)
+    info = json.loads((data / "meta" / "info.json").read_text())
+    info["features"]["observation.state"]["shape"] = [9]
+    del info["features"]["observation.images.fixed_camera"]
+    (wrong / "meta" / "info.json").write_text(json.dumps(info))
+    assert main(["train", "--policy-type", "act", "--dataset", str(wrong), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert "observation.state has shape (9,), expected (15,)" in err
+    assert "observation.images.fixed_camera missing" in err
+
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "x").write_text("")
+    assert main(base[:-4] + ["--out", str(tmp_path / "busy"), "--policy-type", "act"]) == 2
+    assert "not empty" in capsys.readouterr().err
+    assert main(base + ["--policy-type", "act", "--chunk-size", "4", "--n-action-steps", "8"]) == 2
+    assert not (tmp_path / "run").exists()
+
+
+def test_best_is_success_then_grasp_then_reach():
+    df = pd.DataFrame([
+        {"batch_size": 64, "chunk_size": 8, "n_action_steps": 1, "success": 0.5, "grasp_any": 0.9, "reach": 0.1},
+        {"batch_size": 64, "chunk_size": 8, "n_action_steps": 4, "success": 0.6, "grasp_any": 0.7, "reach": 0.2},
+        {"batch_size": 128, "chunk_size": 8, "n_action_steps": 4, "success": 0.6, "grasp_any": 0.8, "reach": 0.0},
+        {"batch_size": 128, "chunk_size": 16, "n_action_steps": 8, "success": 0.6, "grasp_any": 0.8, "reach": 0.3},
+    ])
+    best = best_row(df)
+    assert (best["batch_size"], best["chunk_size"], best["n_action_steps"]) == (128, 16, 8)
+
+
+def test_grid_2x2_keeps_every_run_and_picks_the_best(data, tmp_path_factory, tmp_path, capsys):
+    vlm = H.tiny_vlm(tmp_path_factory)
+    out = tmp_path / "grid"
+    argv = ["grid", "--policy-type", "smolvla", "--dataset", str(data), "--out", str(out), "--pretrained", "none",
+            "--steps", "1", "--num-workers", "0", "--device", "cpu", "--batch-sizes", "2,4", "--chunk-sizes", "4",
+            "--horizons", "2,4", "--eval-args", " ".join(["--episodes", "1", *EVAL]),
+            "--", *H.tiny_policy_flags("smolvla", vlm)]
+    assert main(argv) == 0
+    grid = json.loads((out / "grid.json").read_text())
+    df = pd.read_parquet(out / "grid.parquet")
+    assert sorted(zip(df.batch_size, df.chunk_size, df.n_action_steps)) == \
+        [(2, 4, 2), (2, 4, 4), (4, 4, 2), (4, 4, 4)]
+    for row in df.itertuples():
+        summary = json.loads((out / "runs" / f"b{row.batch_size}_c{row.chunk_size}" /
+                              f"eval_h{row.n_action_steps}" / "summary.json").read_text())
+        assert summary["policy"]["n_action_steps"] == row.n_action_steps
+        assert summary["seed"] == 100  # every run sees the same seeded episodes
+        assert row.success == summary["conditions"]["small_jitter/canonical/2"]["success"]
+    expected = best_row(df)
+    assert {k: grid["best"][k] for k in ("batch_size", "chunk_size", "n_action_steps")} == \
+        {k: expected[k] for k in ("batch_size", "chunk_size", "n_action_steps")}
+    assert len(grid["runs"]) == 4
+
+    # A rerun finds every model and evaluation done and only rewrites the tables.
+    stamp = (out / "runs" / "b2_c4" / "eval_h2" / "summary.json").stat().st_mtime_ns
+    assert main(argv) == 0
+    assert (out / "runs" / "b2_c4" / "eval_h2" / "summary.json").stat().st_mtime_ns == stamp
+    # Other settings in the same directory are refused.
+    other = list(argv)
+    other[other.index("--steps") + 1] = "2"
+    assert main(other) == 2
+    assert "other settings" in capsys.readouterr().err
