@@ -1,0 +1,293 @@
+"""Client side of the episode protocol: one connection (`EpisodeClient`) and a pool drawing episodes from
+several servers at once (`EpisodeSource`), which runs its own event loop in a background thread so that
+the (blocking) dataset writer simply calls `get()`."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import queue
+import threading
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from vla_ladder.recording import protocol as P
+from vla_ladder.recording.server import ACTION_DIM, CAMERAS, IMAGE_SHAPE, STATE_DIM
+
+log = logging.getLogger(__name__)
+# Close codes after which reconnecting cannot help: the server refused this client or its messages.
+PERMANENT = {P.CLOSE_TOO_BIG, P.CLOSE_INTERNAL} | set(range(4000, 5000))
+
+
+class ServerError(RuntimeError):
+    """A server closed the connection or could not be reached."""
+
+    def __init__(self, url: str, message: str, code: int | None = None):
+        super().__init__(f"{url}: {message}" + (f" (close code {code})" if code is not None else ""))
+        self.url, self.code = url, code
+
+    @property
+    def permanent(self) -> bool:
+        return self.code in PERMANENT
+
+
+@dataclass
+class Episode:
+    """One simulated episode as received: metadata header plus, when sent, its frames."""
+
+    seed: int
+    header: dict
+    images: dict[str, np.ndarray]
+    """camera -> (T, 256, 256, 3) uint8"""
+    state: np.ndarray | None
+    """(T, 15) float32: the 15-d proprioceptive state before each action"""
+    action: np.ndarray | None
+    """(T, 7) float32"""
+    server: str
+
+    @property
+    def success(self) -> bool:
+        return bool(self.header["metrics"]["success"])
+
+    @property
+    def has_frames(self) -> bool:
+        return self.state is not None
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.header["num_frames"])
+
+    @classmethod
+    def from_message(cls, msg: P.Message, server: str) -> "Episode":
+        h = msg.header
+        seed = P.require(h, "seed", int)
+        for key, kind in (("instruction", str), ("layout", dict), ("metrics", dict), ("expert", dict),
+                          ("object_set", str), ("num_frames", int), ("has_frames", bool)):
+            P.require(h, key, kind)
+        if not h["has_frames"]:
+            return cls(seed, h, {}, None, None, server)
+        T = h["num_frames"]
+        expected = {**{f"images.{c}": ((T, *IMAGE_SHAPE), np.uint8) for c in CAMERAS},
+                    "state": ((T, STATE_DIM), np.float32), "action": ((T, ACTION_DIM), np.float32)}
+        for name, (shape, dtype) in expected.items():
+            a = msg.arrays.get(name)
+            if a is None or a.shape != shape or a.dtype != dtype:
+                got = None if a is None else (a.shape, a.dtype.name)
+                raise P.ProtocolError(f"episode {seed}: array {name!r} should be {shape} {np.dtype(dtype).name}, "
+                                      f"got {got}")
+        return cls(seed, h, {c: msg.arrays[f"images.{c}"] for c in CAMERAS}, msg.arrays["state"],
+                   msg.arrays["action"], server)
+
+
+class EpisodeClient:
+    """One protocol connection: hello/welcome, then `request(seeds)` and `receive()`."""
+
+    def __init__(self, url: str, token: str | None = None, max_message: int = P.MAX_EPISODE_MESSAGE):
+        self.url, self.token, self.max_message = url, token, max_message
+        self.ws = None
+        self.welcome: dict | None = None
+
+    async def connect(self, open_timeout: float = 30.0) -> dict:
+        from websockets.asyncio.client import connect
+
+        try:
+            self.ws = await connect(self.url, max_size=self.max_message, compression=None, max_queue=2,
+                                    open_timeout=open_timeout)
+        except (OSError, TimeoutError) as e:
+            raise ServerError(self.url, f"cannot connect: {e}") from None
+        await self._send(P.hello(self.token, self.max_message))
+        msg = await self._recv()
+        if msg.type != "welcome" or msg.header.get("protocol") != P.PROTOCOL_VERSION:
+            await self.close()
+            raise ServerError(self.url, f"expected a protocol {P.PROTOCOL_VERSION} welcome, got {msg.header}")
+        self.welcome = msg.header
+        return msg.header
+
+    async def request(self, seeds: list[int], failed_frames: bool = False) -> None:
+        await self._send(P.run(seeds, failed_frames))
+
+    async def receive(self) -> Episode:
+        msg = await self._recv()
+        if msg.type != "episode":
+            raise ServerError(self.url, f"unexpected message {msg.type!r}")
+        try:
+            return Episode.from_message(msg, self.url)
+        except P.ProtocolError as e:
+            await self.ws.close(e.code, e.reason[:120])
+            raise ServerError(self.url, f"malformed episode: {e.reason}", e.code) from None
+
+    async def close(self) -> None:
+        if self.ws is not None:
+            await self.ws.close()
+
+    async def _send(self, data: bytes) -> None:
+        from websockets.exceptions import ConnectionClosed
+        try:
+            await self.ws.send(data)
+        except ConnectionClosed as e:
+            raise self._closed(e) from None
+
+    async def _recv(self) -> P.Message:
+        from websockets.exceptions import ConnectionClosed
+        try:
+            data = await self.ws.recv()
+        except ConnectionClosed as e:
+            raise self._closed(e) from None
+        try:
+            return P.decode(data)
+        except P.ProtocolError as e:
+            await self.ws.close(e.code, e.reason[:120])
+            raise ServerError(self.url, f"malformed message: {e.reason}", e.code) from None
+
+    def _closed(self, e) -> ServerError:
+        frame = e.rcvd or e.sent
+        code = frame.code if frame else 1006
+        reason = (frame.reason if frame else "") or "connection lost"
+        return ServerError(self.url, f"server closed the connection: {reason}", code)
+
+
+class _Failed:
+    """Queue marker: every server is gone."""
+
+    def __init__(self, errors: list[Exception]):
+        self.errors = errors
+
+
+class EpisodeSource:
+    """Draws episodes from one or more servers until `successes_needed` successful ones have arrived.
+
+    Seeds come from `reserve(n)` (the dataset store, which never hands a seed out twice). Each server gets
+    at most `window` seeds ahead of what it has delivered, and received episodes wait in a queue of
+    `queue_size`: a slow writer blocks the receivers, which stops the requests, which idles the servers.
+    """
+
+    def __init__(self, urls: list[str], reserve: Callable[[int], list[int]], successes_needed: int,
+                 check_server: Callable[[str, dict], None] | None = None, token: str | None = None,
+                 queue_size: int = 4, retries: int = 3, failed_frames: bool = False):
+        if not urls:
+            raise ValueError("need at least one server URL")
+        self.urls, self.reserve, self.token = list(urls), reserve, token
+        self.successes_needed, self.check_server = successes_needed, check_server
+        self.retries, self.failed_frames = retries, failed_frames
+        self.received = self.successes = 0
+        self.outstanding: dict[str, int] = {u: 0 for u in self.urls}
+        self.welcomes: dict[str, dict] = {}
+        self._out: queue.Queue = queue.Queue(maxsize=queue_size)
+        self._stopping = threading.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._main: asyncio.Task | None = None
+        self._thread = threading.Thread(target=self._run, name="episode-source", daemon=True)
+        self._changed: asyncio.Event | None = None
+
+    # ------------------------------------------------------------------ writer-side API
+    def start(self) -> "EpisodeSource":
+        self._thread.start()
+        return self
+
+    def get(self, timeout: float | None = None) -> Episode:
+        """The next episode (successful or not); raises ServerError once every server has failed."""
+        item = self._out.get(timeout=timeout)
+        if isinstance(item, _Failed):
+            self._out.put(item)  # later calls fail the same way
+            errors = "; ".join(str(e) for e in item.errors)
+            raise ServerError("all servers", f"no server left to draw episodes from: {errors}")
+        return item
+
+    def stop(self) -> None:
+        self._stopping.set()
+        if self._loop is not None and self._main is not None and self._thread.is_alive():
+            with contextlib.suppress(RuntimeError):  # the loop may have finished on its own meanwhile
+                self._loop.call_soon_threadsafe(self._main.cancel)
+        self._thread.join(timeout=30)
+
+    # ------------------------------------------------------------------ event loop
+    def _run(self) -> None:
+        asyncio.run(self._amain())
+
+    async def _amain(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._changed = asyncio.Event()
+        self._main = asyncio.current_task()
+        if self._stopping.is_set():
+            return
+        try:
+            results = await asyncio.gather(*(self._serve(u) for u in self.urls), return_exceptions=True)
+        except asyncio.CancelledError:
+            return
+        errors = [r for r in results if isinstance(r, Exception)]
+        if errors and not self._stopping.is_set():
+            self._put(_Failed(errors))
+
+    def _demand(self, free: int) -> int:
+        """How many more seeds to request now: enough that the expected successes of everything
+        outstanding cover what is still needed (success rate estimated as it goes)."""
+        needed = self.successes_needed - self.successes
+        if needed <= 0 or free <= 0:
+            return 0
+        p = (self.successes + 1) / (self.received + 1)
+        want = math.ceil(needed / p - sum(self.outstanding.values()))
+        return max(0, min(free, want))
+
+    async def _serve(self, url: str) -> None:
+        attempt = 0
+        while not self._stopping.is_set():
+            client = EpisodeClient(url, self.token)
+            try:
+                welcome = await client.connect()
+                if self.check_server is not None:
+                    self.check_server(url, welcome["server"])
+                self.welcomes[url] = welcome
+                attempt = 0
+                await self._pump(url, client, welcome)
+                return
+            except ValueError as e:  # a server simulating something else than this recording: stop all
+                await asyncio.to_thread(self._put, _Failed([e]))
+                return
+            except ServerError as e:
+                if e.permanent or attempt >= self.retries:
+                    log.error("giving up on %s", e)
+                    raise
+                attempt += 1
+                log.warning("%s; reconnecting in %d s (%d/%d)", e, 2 ** (attempt - 1), attempt, self.retries)
+                await asyncio.sleep(2 ** (attempt - 1))
+            finally:
+                self.outstanding[url] = 0  # seeds in flight on a lost connection are given up, never reused
+                self._changed.set()
+                await client.close()
+
+    async def _pump(self, url: str, client: EpisodeClient, welcome: dict) -> None:
+        limits, server = welcome["limits"], welcome["server"]
+        window = min(int(limits["max_outstanding"]), max(2, 2 * int(server["num_envs"])),
+                     int(limits["max_seeds_per_request"]))
+        while True:
+            k = self._demand(window - self.outstanding[url])
+            if k:
+                await client.request(self.reserve(k), self.failed_frames)
+                self.outstanding[url] += k
+            if self.outstanding[url] == 0:
+                if self.successes >= self.successes_needed:
+                    return
+                self._changed.clear()
+                try:  # another server's results may change the demand
+                    await asyncio.wait_for(self._changed.wait(), 1.0)
+                except TimeoutError:
+                    pass
+                continue
+            episode = await client.receive()
+            self.outstanding[url] -= 1
+            self.received += 1
+            self.successes += episode.success
+            self._changed.set()
+            await asyncio.to_thread(self._put, episode)
+
+    def _put(self, item) -> None:
+        while not self._stopping.is_set():
+            try:
+                self._out.put(item, timeout=0.2)
+                return
+            except queue.Full:
+                continue

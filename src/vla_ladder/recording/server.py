@@ -1,0 +1,379 @@
+"""Simulation server: runs an expert in GraspObject-v1 with both cameras and streams whole episodes.
+
+One simulation thread owns the env and the policy and runs batches of up to `num_envs` requested seeds in
+lock step (episodes all last 50 steps); the asyncio side speaks the protocol of `protocol.py` to any number
+of clients. The server never simulates a seed nobody asked for and caps what each client may have
+outstanding, so a slow writer slows the simulation down instead of filling memory.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import ipaddress
+import logging
+import queue
+import threading
+import time
+import traceback
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from vla_ladder.recording import protocol as P
+from vla_ladder.task.layouts import check_args
+from vla_ladder.task.objects import OBJECT_NAMES
+
+log = logging.getLogger(__name__)
+CAMERAS = ("hand_camera", "fixed_camera")
+# GraspObject-v1's fixed episode length and camera resolution, kept here so that the protocol side never
+# imports the simulator (the Simulator checks they still match the env).
+EPISODE_STEPS = 50
+IMAGE_SHAPE = (256, 256, 3)
+STATE_DIM, ACTION_DIM, FPS = 15, 7, 20
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass
+class ServerConfig:
+    """What a server simulates and how it listens."""
+
+    policy: str = "scripted"
+    """Expert spec for `load_policy` ("scripted", "ppo:PATH", ...)."""
+    regime: str = "small_jitter"
+    split: str = "canonical"
+    num_objects: int = 5
+    seed: int = 0
+    """Seeds the server's global torch/numpy RNGs; episode seeds always come from the client."""
+    num_envs: int = 1
+    """Parallel envs simulated in lock step; > 1 needs a GPU (physx_cuda)."""
+    host: str = "127.0.0.1"
+    port: int = 8765
+    """0 picks a free port (the actual URL is reported once listening)."""
+    token: str | None = None
+    """Shared secret every client must send in its hello; required off loopback."""
+    max_outstanding: int = 0
+    """Episodes one client may have requested but not yet received (0: 4 x num_envs, at least 8)."""
+    lazy: bool = False
+    """Build the simulator on the first request instead of at start (cheap start for protocol checks)."""
+
+    def __post_init__(self):
+        check_args(self.regime, self.split, self.num_objects)
+        if self.num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
+        if self.num_envs > 1:
+            import torch
+            if not torch.cuda.is_available():
+                raise ValueError("num_envs > 1 needs a CUDA GPU (physx_cuda); on CPU use --num-envs 1 "
+                                 "and run several servers instead")
+        if not 0 <= self.port < 65536:
+            raise ValueError(f"port must be in 0..65535, got {self.port}")
+        if not self.token and not is_loopback(self.host):
+            raise ValueError(f"binding to {self.host!r} (not loopback) needs --token; allowed without a "
+                             "token: 127.0.0.1, ::1, localhost")
+        if self.max_outstanding <= 0:
+            self.max_outstanding = max(8, 4 * self.num_envs)
+
+
+@dataclass
+class EpisodeResult:
+    seed: int
+    header: dict[str, Any]
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+class Simulator:
+    """GraspObject-v1 with both cameras plus the expert; `run(seeds)` plays whole episodes."""
+
+    def __init__(self, cfg: ServerConfig):
+        import gymnasium as gym
+        import torch
+
+        import vla_ladder.task.env  # noqa: F401  (registers GraspObject-v1)
+        from vla_ladder.policies import load_policy
+
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed % 2**32)
+        self.cfg = cfg
+        self.policy = load_policy(cfg.policy)
+        # The expert reads privileged state, the dataset needs pixels: ManiSkill renders both in one obs
+        # ("state_dict+rgb"); a pixel policy ("rgb") already gets the cameras.
+        mode = self.policy.obs_mode
+        obs_mode = "rgb" if mode == "rgb" else "state_dict+rgb"
+        self._flatten = mode == "state"
+        backend = "physx_cuda" if cfg.num_envs > 1 else "physx_cpu"
+        self.env = gym.make("GraspObject-v1", obs_mode=obs_mode, regime=cfg.regime, split=cfg.split,
+                            num_objects=cfg.num_objects, num_envs=cfg.num_envs, sim_backend=backend)
+        self.base = self.env.unwrapped
+        from mani_skill.utils.registration import REGISTERED_ENVS
+        self.steps = int(REGISTERED_ENVS["GraspObject-v1"].max_episode_steps)
+        if self.steps != EPISODE_STEPS or self.base.control_freq != FPS:
+            raise RuntimeError("GraspObject-v1 changed its episode length or control rate; update server.py")
+        self.object_set = self.base.object_set
+        self.expert = {"spec": cfg.policy, **self.policy.describe()}
+
+    def _policy_obs(self, obs):
+        if self._flatten:
+            from mani_skill.utils import common
+            return common.flatten_state_dict({"agent": obs["agent"], "extra": obs["extra"]}, use_torch=True)
+        return obs
+
+    def run(self, seeds: list[int]) -> list[EpisodeResult]:
+        """Play one episode per seed (at most num_envs), padding the batch with repeats of the first."""
+        import torch
+
+        n, real = self.cfg.num_envs, len(seeds)
+        batch = list(seeds) + [seeds[0]] * (n - real)
+        obs, _ = self.env.reset(seed=batch)
+        self.policy.reset(batch)
+        instructions = self.base.instructions
+        layouts = [lay.to_dict() for lay in self.base.layouts]
+        T = self.steps
+        if any(tuple(obs["sensor_data"][cam]["rgb"].shape[1:]) != IMAGE_SHAPE for cam in CAMERAS):
+            raise RuntimeError(f"cameras no longer render {IMAGE_SHAPE}; update server.py")
+        frames = {cam: np.empty((n, T, *IMAGE_SHAPE), np.uint8) for cam in CAMERAS}
+        state = np.empty((n, T, obs["extra"]["proprio"].shape[1]), np.float32)
+        action = np.empty((n, T, 7), np.float32)
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            for t in range(T):
+                for cam in CAMERAS:
+                    frames[cam][:, t] = obs["sensor_data"][cam]["rgb"].cpu().numpy()
+                state[:, t] = obs["extra"]["proprio"].cpu().numpy()
+                a = self.policy.act(self._policy_obs(obs), instructions).to(torch.float32)
+                action[:, t] = a.cpu().numpy()
+                obs, _, _, _, info = self.env.step(a)
+        sim_s = (time.perf_counter() - t0) / real
+        held = info["held"].cpu().numpy()
+        results = []
+        for i, seed in enumerate(seeds):
+            metrics = {
+                "success": bool(info["success"][i]), "grasp_any": bool(info["grasp_any"][i]),
+                "reach": bool(info["reach"][i]), "lifted": bool(info["lifted"][i]),
+                "held": OBJECT_NAMES[held[i]] if held[i] >= 0 else "none",
+                "reach_dist": float(info["reach_dist"][i]),
+            }
+            header = {
+                "type": "episode", "seed": int(seed), "instruction": instructions[i], "layout": layouts[i],
+                "target": layouts[i]["target"], "regime": self.cfg.regime, "split": self.cfg.split,
+                "num_objects": self.cfg.num_objects, "object_set": self.object_set, "expert": self.expert,
+                "metrics": metrics, "num_frames": T, "sim_seconds": sim_s,
+            }
+            arrays = {**{f"images.{cam}": frames[cam][i] for cam in CAMERAS},
+                      "state": state[i], "action": action[i]}
+            results.append(EpisodeResult(int(seed), header, arrays))
+        return results
+
+    def close(self):
+        self.env.close()
+
+
+@dataclass
+class _Work:
+    conn: "_Connection"
+    seed: int
+    failed_frames: bool
+
+
+class _Connection:
+    def __init__(self, ws, loop: asyncio.AbstractEventLoop):
+        self.ws, self.loop = ws, loop
+        self.outbox: asyncio.Queue = asyncio.Queue()
+        self.outstanding = 0
+        self.closed = False
+
+    def deliver(self, item) -> None:
+        """Called from the simulation thread."""
+        if not self.closed:
+            self.loop.call_soon_threadsafe(self.outbox.put_nowait, item)
+
+
+class EpisodeServer:
+    """The WebSocket front end and the simulation thread behind it."""
+
+    def __init__(self, cfg: ServerConfig):
+        self.cfg = cfg
+        self._work: queue.Queue[_Work] = queue.Queue()
+        self._stop = threading.Event()
+        self._sim: Simulator | None = None
+        self._thread: threading.Thread | None = None
+        self.url: str | None = None
+        self.episodes_served = 0
+        # Resolved here, before the simulation thread exists: importing mani_skill from two threads at
+        # once trips over its circular imports.
+        from vla_ladder.task.assets import resolve_object_set
+        self.object_set = resolve_object_set("auto")
+
+    # ------------------------------------------------------------------ simulation thread
+    def _simulate(self) -> None:
+        try:
+            if not self.cfg.lazy:
+                with contextlib.suppress(Exception):  # logged; every request will report it
+                    self._build()
+            while not self._stop.is_set():
+                batch = self._next_batch()
+                if not batch:
+                    continue
+                try:
+                    if self._sim is None:
+                        self._build()
+                    results = self._sim.run([w.seed for w in batch])
+                except Exception as e:  # a broken episode must not take other clients down with it
+                    log.error("simulation failed for seeds %s:\n%s", [w.seed for w in batch], traceback.format_exc())
+                    error = P.ProtocolError(f"simulation failed: {type(e).__name__}: {e}", P.CLOSE_INTERNAL)
+                    for w in batch:
+                        w.conn.deliver(error)
+                    continue
+                for w, r in zip(batch, results):
+                    w.conn.deliver((r, w.failed_frames))
+        finally:
+            if self._sim is not None:
+                self._sim.close()
+
+    def _next_batch(self) -> list[_Work]:
+        """Up to num_envs requested seeds of clients still connected (empty after a short wait)."""
+        try:
+            batch = [self._work.get(timeout=0.2)]
+        except queue.Empty:
+            return []
+        while len(batch) < self.cfg.num_envs:
+            try:
+                batch.append(self._work.get_nowait())
+            except queue.Empty:
+                break
+        return [w for w in batch if not w.conn.closed]
+
+    def _build(self) -> None:
+        t0 = time.perf_counter()
+        try:
+            self._sim = Simulator(self.cfg)
+        except Exception:
+            log.error("simulator could not start:\n%s", traceback.format_exc())
+            raise
+        log.info("simulator ready in %.1f s (%s, %s, object set %s)", time.perf_counter() - t0,
+                 self.cfg.policy, self.cfg.regime, self._sim.object_set)
+
+    # ------------------------------------------------------------------ protocol
+    def _welcome(self) -> bytes:
+        server = {k: v for k, v in asdict(self.cfg).items() if k not in ("token", "host", "port", "lazy")}
+        server.update(object_set=self.object_set, fps=FPS, episode_steps=EPISODE_STEPS,
+                      cameras=list(CAMERAS), image_shape=list(IMAGE_SHAPE), state_dim=STATE_DIM,
+                      action_dim=ACTION_DIM)
+        limits = {"max_client_message": P.MAX_CLIENT_MESSAGE, "max_outstanding": self.cfg.max_outstanding,
+                  "max_seeds_per_request": P.MAX_SEEDS_PER_REQUEST}
+        return P.encode({"type": "welcome", "protocol": P.PROTOCOL_VERSION, "server": server, "limits": limits})
+
+    def _episode_bytes(self) -> int:
+        return P.episode_message_size(EPISODE_STEPS, {c: IMAGE_SHAPE for c in CAMERAS}, STATE_DIM, ACTION_DIM)
+
+    async def _handshake(self, ws) -> None:
+        try:
+            raw = await asyncio.wait_for(ws.recv(), P.HANDSHAKE_TIMEOUT_S)
+        except TimeoutError:
+            raise P.ProtocolError(f"no hello within {P.HANDSHAKE_TIMEOUT_S:.0f} s", P.CLOSE_HANDSHAKE_TIMEOUT)
+        msg = P.decode(raw)
+        if msg.type != "hello":
+            raise P.ProtocolError(f"expected 'hello' first, got {msg.type!r}", P.CLOSE_UNEXPECTED)
+        version = P.require(msg.header, "protocol", int)
+        if version != P.PROTOCOL_VERSION:
+            raise P.ProtocolError(f"protocol version {version} not supported; this server speaks "
+                                  f"{P.PROTOCOL_VERSION}", P.CLOSE_VERSION)
+        if self.cfg.token:
+            token = msg.header.get("token")
+            if not isinstance(token, str) or not hmac.compare_digest(token.encode(), self.cfg.token.encode()):
+                raise P.ProtocolError("unauthorised: missing or wrong token", P.CLOSE_UNAUTHORISED)
+        limit = P.require(msg.header, "max_message", int)
+        if limit < self._episode_bytes():
+            raise P.ProtocolError(f"episodes need up to {self._episode_bytes()} bytes per message but the "
+                                  f"client accepts {limit}", P.CLOSE_LIMIT)
+        await ws.send(self._welcome())
+
+    async def _send_results(self, conn: _Connection) -> None:
+        while True:
+            item = await conn.outbox.get()
+            if isinstance(item, P.ProtocolError):
+                await conn.ws.close(item.code, _reason(item.reason))
+                return
+            result, failed_frames = item
+            with_frames = result.header["metrics"]["success"] or failed_frames
+            header = {**result.header, "has_frames": with_frames}
+            data = await asyncio.to_thread(P.encode, header, result.arrays if with_frames else None)
+            await conn.ws.send(data)  # waits while the client's socket is full: backpressure
+            conn.outstanding -= 1
+            self.episodes_served += 1
+
+    async def _handle(self, ws) -> None:
+        peer = ws.remote_address
+        conn = _Connection(ws, asyncio.get_running_loop())
+        sender = None
+        try:
+            await self._handshake(ws)
+            log.info("client %s connected", peer)
+            sender = asyncio.create_task(self._send_results(conn))
+            async for raw in ws:
+                msg = P.decode(raw)
+                if msg.type == "bye":
+                    await ws.close(P.CLOSE_NORMAL, "bye")
+                    break
+                if msg.type != "run":
+                    raise P.ProtocolError(f"unexpected message type {msg.type!r}; expected 'run' or 'bye'",
+                                          P.CLOSE_UNEXPECTED)
+                seeds = P.check_seeds(msg.header.get("seeds"))
+                if conn.outstanding + len(seeds) > self.cfg.max_outstanding:
+                    raise P.ProtocolError(f"{conn.outstanding + len(seeds)} episodes outstanding; the limit is "
+                                          f"{self.cfg.max_outstanding}", P.CLOSE_LIMIT)
+                conn.outstanding += len(seeds)
+                failed_frames = bool(msg.header.get("failed_frames", False))
+                for s in seeds:
+                    self._work.put(_Work(conn, s, failed_frames))
+        except P.ProtocolError as e:
+            log.warning("closing %s: %s (%d)", peer, e.reason, e.code)
+            await ws.close(e.code, _reason(e.reason))
+        except Exception as e:  # ConnectionClosed and friends: the client is gone, keep serving others
+            log.info("client %s gone: %s", peer, e)
+        finally:
+            conn.closed = True  # the simulation thread drops this client's queued seeds
+            if sender is not None:
+                sender.cancel()
+        log.info("client %s disconnected", peer)
+
+    # ------------------------------------------------------------------ lifecycle
+    async def serve(self, ready: Callable[[str], None] | None = None) -> None:
+        """Listen until cancelled; `ready(url)` is called once the socket is bound."""
+        from websockets.asyncio.server import serve
+
+        self._thread = threading.Thread(target=self._simulate, name="simulator", daemon=True)
+        self._thread.start()
+        try:
+            async with serve(self._handle, self.cfg.host, self.cfg.port, max_size=P.MAX_CLIENT_MESSAGE,
+                             compression=None, max_queue=4) as server:
+                sock = next(iter(server.sockets))
+                host, port = sock.getsockname()[:2]
+                self.url = f"ws://{_url_host(host)}:{port}"
+                if ready is not None:
+                    ready(self.url)
+                await asyncio.Future()  # until cancelled
+        finally:
+            self._stop.set()
+            self._thread.join(timeout=60)
+
+
+def _reason(text: str) -> str:
+    """Close reasons are limited to 123 UTF-8 bytes."""
+    data = text.encode()[:123]
+    return data.decode(errors="ignore")
+
+
+def _url_host(host: str) -> str:
+    return f"[{host}]" if ":" in host else host
+

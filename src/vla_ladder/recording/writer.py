@@ -1,0 +1,356 @@
+"""A LeRobotDataset v3 that only ever holds whole, committed episodes, whatever kills the writer.
+
+LeRobot writes a dataset through open Parquet writers, an episode-metadata buffer and in-place rewrites of
+info.json/stats.json: a process killed half-way leaves files that do not load. So episodes go into a
+*staging* copy of the dataset and reach DATASET_DIR only by commit:
+
+1. staging = hard links of DATASET_DIR's immutable files (data/, videos/, meta/episodes/ and our own
+   sidecar shards; LeRobot's resume never rewrites those, it starts new files) plus copies of the small
+   files LeRobot rewrites (meta/info.json, stats.json, tasks.parquet) -- no bulk copying;
+2. LeRobotDataset.resume(staging) (or .create for the first batch), add_frame/save_episode per episode;
+3. commit: finalize, write the batch's provenance shard and our recording state, fsync, then swap
+   staging and DATASET_DIR with one atomic renameat2(RENAME_EXCHANGE) and delete the old version.
+
+A reader therefore always sees either the previous or the next commit. Staging leftovers of a killed
+writer are deleted when the next writer starts. Seeds are reserved (and persisted) before any server sees
+them, so a seed is never played twice for one dataset, even across kill -9 and resumes.
+
+The work directory next to the dataset, `.<name>.recording/`, holds the lock, the staging copy and the seed
+reservation; it is small and may be deleted whenever no recorder runs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import errno
+import fcntl
+import json
+import logging
+import os
+import shutil
+import threading
+import time
+from dataclasses import asdict, dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterator
+
+import pandas as pd
+
+from vla_ladder import io
+from vla_ladder.recording.server import ACTION_DIM, CAMERAS, EPISODE_STEPS, FPS, IMAGE_SHAPE, STATE_DIM
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1
+RECORDING_FILE = "meta/vla_ladder_recording.json"
+PROVENANCE_DIR = "meta/vla_ladder_episodes"
+# Directories whose files LeRobot never modifies after writing them (resume opens new chunk files).
+IMMUTABLE_DIRS = ("data", "videos", "meta/episodes", PROVENANCE_DIR)
+STATE_NAMES = [f"joint_pos_{i}" for i in range(7)] + [f"joint_vel_{i}" for i in range(7)] + ["gripper_width"]
+ACTION_NAMES = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
+
+
+def features(video: bool = True) -> dict[str, dict]:
+    """The dataset schema of the paper's appendix ("Dataset format")."""
+    cam = {"dtype": "video" if video else "image", "shape": IMAGE_SHAPE, "names": ["height", "width", "channels"]}
+    return {
+        **{f"observation.images.{c}": dict(cam) for c in CAMERAS},
+        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": STATE_NAMES},
+        "action": {"dtype": "float32", "shape": (ACTION_DIM,), "names": ACTION_NAMES},
+    }
+
+
+@dataclass(frozen=True)
+class RecordingConfig:
+    """What a dataset is a recording of; resuming requires the same values."""
+
+    policy: str = "scripted"
+    regime: str = "small_jitter"
+    split: str = "canonical"
+    num_objects: int = 5
+    seed: int = 0
+    """First episode seed; later ones follow without repeats."""
+    video: bool = True
+    """Cameras stored as MP4 video (LeRobot's default) or as PNG images inside the Parquet files."""
+
+    def differences(self, other: dict) -> list[str]:
+        return [f"{k}={other.get(k)!r} (this command: {v!r})" for k, v in asdict(self).items() if other.get(k) != v]
+
+
+def read_provenance(root: str | os.PathLike) -> pd.DataFrame:
+    """Per-episode provenance of a recorded dataset (seed, layout, expert, metrics...), by episode_index."""
+    shards = sorted((Path(root) / PROVENANCE_DIR).glob("*.parquet"))
+    if not shards:
+        return pd.DataFrame()
+    return pd.concat([pd.read_parquet(p) for p in shards], ignore_index=True).sort_values(
+        "episode_index", ignore_index=True)
+
+
+def read_recording_state(root: str | os.PathLike) -> dict | None:
+    path = Path(root) / RECORDING_FILE
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+class DatasetStore:
+    """Owns DATASET_DIR while recording: reserve seeds, add successful episodes, commit atomically."""
+
+    def __init__(self, root: str | os.PathLike, config: RecordingConfig, commit_every: int = 50,
+                 commit_seconds: float = 600.0, repo_id: str | None = None):
+        if commit_every < 1:
+            raise ValueError(f"commit_every must be >= 1, got {commit_every}")
+        self.root = Path(root).resolve()
+        self.config = config
+        self.commit_every, self.commit_seconds = commit_every, commit_seconds
+        self.repo_id = repo_id or f"vla-ladder/{self.root.name}"
+        self.work = self.root.parent / f".{self.root.name}.recording"
+        self.staging = self.work / "staging"
+        self.work.mkdir(parents=True, exist_ok=True)
+        self._lock_file = open(self.work / "lock", "a+")
+        try:
+            fcntl.flock(self._lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self._lock_file.close()
+            raise ValueError(f"another recorder is writing {self.root} (lock {self.work / 'lock'} is held)")
+        # A killed writer may have left a half-written staging copy or, killed right after a commit's
+        # swap, the previous version there: neither is ever needed again.
+        shutil.rmtree(self.staging, ignore_errors=True)
+        shutil.rmtree(self.work / "hf-cache", ignore_errors=True)
+        self._seed_lock = threading.Lock()
+        self._ds = None
+        self._rows: list[dict] = []
+        self._writing = False  # inside add(): staging holds a half-written episode
+        self._batch_started = time.monotonic()
+        state = self._load_committed()
+        self.saved = int(state["counters"]["saved"]) if state else 0
+        self.counters = dict(state["counters"]) if state else {"saved": 0, "attempted": 0, "failed": 0,
+                                                                "commits": 0}
+        self.object_set: str | None = state.get("object_set") if state else None
+        self.next_seed = self._load_next_seed(state)
+        self.pending = 0
+
+    # ------------------------------------------------------------------ state on disk
+    def _load_committed(self) -> dict | None:
+        if not self.root.exists() or not any(self.root.iterdir()):
+            return None
+        state = read_recording_state(self.root)
+        if state is None or not (self.root / "meta/info.json").exists():
+            raise ValueError(f"{self.root} exists and is not a vla-ladder recording; choose a new --out")
+        if state.get("format") != FORMAT_VERSION:
+            raise ValueError(f"{self.root} was written by recording format {state.get('format')}; this version "
+                             f"reads format {FORMAT_VERSION}")
+        diff = self.config.differences(state["config"])
+        if diff:
+            raise ValueError(f"{self.root} was recorded with " + ", ".join(diff) +
+                             "; resume with the same arguments or record into a new --out")
+        info = json.loads((self.root / "meta/info.json").read_text())
+        if info["total_episodes"] != state["counters"]["saved"]:
+            raise ValueError(f"{self.root}: info.json has {info['total_episodes']} episodes but the recording "
+                             f"state says {state['counters']['saved']}; the dataset was modified outside vla-ladder")
+        return state
+
+    def _load_next_seed(self, state: dict | None) -> int:
+        next_seed = self.config.seed
+        if state:
+            next_seed = max(next_seed, int(state["next_seed"]))
+        path = self.work / "seeds.json"
+        if path.exists():
+            reserved = json.loads(path.read_text())
+            if reserved.get("config") == asdict(self.config):
+                next_seed = max(next_seed, int(reserved["next_seed"]))
+        return next_seed
+
+    def reserve_seeds(self, n: int) -> list[int]:
+        """n seeds never handed out before for this dataset; persisted before they are returned."""
+        if n < 1:
+            raise ValueError(f"reserve at least one seed, got {n}")
+        with self._seed_lock:
+            seeds = list(range(self.next_seed, self.next_seed + n))
+            io.write_json(self.work / "seeds.json", {"config": asdict(self.config), "next_seed": seeds[-1] + 1})
+            self.next_seed = seeds[-1] + 1
+            return seeds
+
+    # ------------------------------------------------------------------ writing
+    def count(self, success: bool) -> None:
+        """Account for an attempted episode (written or not) in the recording state."""
+        self.counters["attempted"] += 1
+        self.counters["failed"] += not success
+
+    def add(self, episode) -> int:
+        """Write one successful episode (a client.Episode) into staging; returns its episode_index."""
+        if not episode.success or not episode.has_frames:
+            raise ValueError(f"only successful episodes with frames are recorded (seed {episode.seed})")
+        object_set = episode.header["object_set"]
+        if self.object_set is None:
+            self.object_set = object_set
+        elif object_set != self.object_set:
+            raise ValueError(f"episode {episode.seed} used object set {object_set!r} but {self.root} holds "
+                             f"{self.object_set!r}; all servers must use the same assets")
+        from lerobot.utils.utils import SuppressProgressBars
+
+        ds = self._dataset()
+        task = episode.header["instruction"]
+        self._writing = True
+        for t in range(episode.num_frames):
+            ds.add_frame({**{f"observation.images.{c}": episode.images[c][t] for c in CAMERAS},
+                          "observation.state": episode.state[t], "action": episode.action[t], "task": task})
+        with SuppressProgressBars():
+            ds.save_episode()
+        self._writing = False
+        index = self.saved + self.pending
+        self._rows.append(_provenance_row(index, episode))
+        self.pending += 1
+        if self.pending >= self.commit_every or time.monotonic() - self._batch_started >= self.commit_seconds:
+            self.commit()
+        return index
+
+    def _dataset(self):
+        if self._ds is not None:
+            return self._ds
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+        self._batch_started = time.monotonic()
+        shutil.rmtree(self.staging, ignore_errors=True)
+        # Episodes are whole when they reach the writer, so the encoder queue may take a full episode at
+        # once; LeRobot's streaming encoder drops frames when its queue stays full for 0.1 s.
+        opts = dict(streaming_encoding=self.config.video, encoder_queue_maxsize=4 * EPISODE_STEPS,
+                    image_writer_threads=0 if self.config.video else 2)
+        if self.saved == 0:
+            self._ds = LeRobotDataset.create(self.repo_id, fps=FPS, features=features(self.config.video),
+                                             root=self.staging, robot_type="panda", use_videos=self.config.video,
+                                             **opts)
+        else:
+            _link_copy(self.root, self.staging)
+            with _private_datasets_cache(self.work / "hf-cache"):
+                self._ds = LeRobotDataset.resume(self.repo_id, root=self.staging, **opts)
+        return self._ds
+
+    def commit(self) -> None:
+        """Make every episode added so far part of DATASET_DIR, atomically."""
+        if self.pending == 0:
+            return
+        t0 = time.perf_counter()
+        self._ds.finalize()
+        self._ds = None
+        self.counters["commits"] += 1
+        self.counters["saved"] = self.saved + self.pending
+        io.write_parquet(self.staging / PROVENANCE_DIR / f"commit-{self.counters['commits']:06d}.parquet",
+                         pd.DataFrame(self._rows))
+        with self._seed_lock:
+            io.write_json(self.staging / RECORDING_FILE, self._state())
+        _fsync_tree(self.staging)
+        if self.root.exists():
+            if not any(self.root.iterdir()):
+                self.root.rmdir()
+        if self.root.exists():
+            _exchange(self.staging, self.root)
+        else:
+            os.rename(self.staging, self.root)
+        _fsync_dir(self.root.parent)
+        shutil.rmtree(self.staging, ignore_errors=True)  # the previous version, after an exchange
+        shutil.rmtree(self.work / "hf-cache", ignore_errors=True)
+        self.saved += self.pending
+        self.pending = 0
+        self._rows = []
+        log.info("committed: %d episodes in %s (%.2f s)", self.saved, self.root, time.perf_counter() - t0)
+
+    def _state(self) -> dict:
+        return {"format": FORMAT_VERSION, "config": asdict(self.config), "next_seed": self.next_seed,
+                "counters": self.counters, "object_set": self.object_set,
+                "updated": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                "provenance": io.provenance(self.object_set)}
+
+    def close(self, commit: bool = True) -> None:
+        """Commit what is pending (or drop it) and release the dataset. Episodes pending when an exception
+        (e.g. Ctrl-C) interrupted add() are dropped: LeRobot's files may then be out of step."""
+        if commit and self._writing:
+            log.warning("interrupted while writing an episode: dropping the %d pending episodes", self.pending)
+            commit = False
+        try:
+            if commit:
+                self.commit()
+            elif self._ds is not None:
+                with contextlib.suppress(Exception):  # staging is discarded: only release threads and files
+                    self._ds.finalize()
+        finally:
+            self._ds = None
+            shutil.rmtree(self.staging, ignore_errors=True)
+            fcntl.flock(self._lock_file, fcntl.LOCK_UN)
+            self._lock_file.close()
+
+
+def _provenance_row(index: int, episode) -> dict[str, Any]:
+    h, m = episode.header, episode.header["metrics"]
+    return {
+        "episode_index": index, "seed": int(episode.seed), "policy": h["expert"]["spec"],
+        "regime": h["regime"], "split": h["split"], "num_objects": int(h["num_objects"]), "target": h["target"],
+        "instruction": h["instruction"], "layout": json.dumps(h["layout"], default=io._default),
+        "expert": json.dumps(h["expert"], default=io._default), "object_set": h["object_set"],
+        "success": bool(m["success"]), "grasp_any": bool(m["grasp_any"]), "reach": bool(m["reach"]),
+        "lifted": bool(m["lifted"]), "held": m["held"], "reach_dist": float(m["reach_dist"]),
+        "num_frames": int(episode.num_frames), "server": episode.server,
+        "recorded_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+# ---------------------------------------------------------------------- filesystem primitives
+def _link_copy(src: Path, dst: Path) -> None:
+    """dst = src with immutable files hard-linked and the rest copied."""
+    for dirpath, _, files in os.walk(src):
+        rel = Path(dirpath).relative_to(src)
+        (dst / rel).mkdir(parents=True, exist_ok=True)
+        immutable = any(rel == Path(d) or Path(d) in rel.parents for d in IMMUTABLE_DIRS)
+        for f in files:
+            (os.link if immutable else shutil.copy2)(Path(dirpath) / f, dst / rel / f)
+
+
+def _fsync_tree(root: Path) -> None:
+    """Flush what this batch wrote (files with one link: new or copied) and every directory entry."""
+    for dirpath, _, files in os.walk(root):
+        for f in files:
+            path = Path(dirpath) / f
+            if path.stat().st_nlink == 1:
+                fd = os.open(path, os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+        _fsync_dir(Path(dirpath))
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+_AT_FDCWD, _RENAME_EXCHANGE = -100, 2
+
+
+def _exchange(a: Path, b: Path) -> None:
+    """Atomically swap two directories (Linux renameat2 with RENAME_EXCHANGE, glibc >= 2.28)."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    if not hasattr(libc, "renameat2"):
+        raise RuntimeError("recording needs renameat2 (Linux, glibc >= 2.28) to commit episodes atomically")
+    if libc.renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) != 0:
+        err = ctypes.get_errno()
+        hint = " (the filesystem does not support RENAME_EXCHANGE)" if err in (errno.EINVAL, errno.ENOSYS) else ""
+        raise OSError(err, f"cannot swap {a} and {b}: {os.strerror(err)}{hint}")
+
+
+@contextlib.contextmanager
+def _private_datasets_cache(path: Path) -> Iterator[None]:
+    """Point `datasets`' Arrow cache at `path` while LeRobot loads the staging metadata, so the per-commit
+    conversions land in a directory deleted after each commit instead of piling up under HF_HOME."""
+    import datasets.config
+
+    old = datasets.config.HF_DATASETS_CACHE
+    datasets.config.HF_DATASETS_CACHE = path
+    try:
+        yield
+    finally:
+        datasets.config.HF_DATASETS_CACHE = old
+
