@@ -49,7 +49,8 @@ class GraspObjectEnv(BaseEnv):
     def __init__(self, *args, regime: str = "small_jitter", split: str = "canonical", num_objects: int = 5,
                  target: str | None = None, object_set: str = "auto", robot_init_qpos_noise: float = 0.02,
                  robot_uids="panda_wristcam", render_backend: str = "auto", obs_mode: str | None = None,
-                 render_mode: str | None = None, sensor_configs: dict | None = None, **kwargs):
+                 render_mode: str | None = None, sensor_configs: dict | None = None,
+                 reconfiguration_freq: int | None = None, **kwargs):
         check_args(regime, split, num_objects, target)
         self.regime, self.split, self.num_objects, self.target = regime, split, int(num_objects), target
         self.object_set = assets.resolve_object_set(object_set)
@@ -66,8 +67,15 @@ class GraspObjectEnv(BaseEnv):
         cams = {"hand_camera": dict(width=CAMERA_SIZE, height=CAMERA_SIZE, fov=np.deg2rad(WRIST_FOV_DEG))}
         for k, v in (sensor_configs or {}).items():
             cams[k] = {**cams.get(k, {}), **v} if isinstance(v, dict) else v
+        if reconfiguration_freq is None:
+            # PhysX keeps solver caches across resets, so on the CPU an episode replayed in a used scene
+            # drifts by millimetres (enough to flip a grasp). Rebuilding the scene each episode (~0.3 s)
+            # makes a seed replay bit for bit, whatever ran before: policies are compared on identical
+            # episodes. Batched GPU envs cannot rebuild one sub-scene, so they keep the scene.
+            reconfiguration_freq = 0 if kwargs.get("num_envs", 1) > 1 else 1
         super().__init__(*args, robot_uids=robot_uids, render_backend=render_backend, obs_mode=obs_mode,
-                         render_mode=render_mode, sensor_configs=cams, **kwargs)
+                         render_mode=render_mode, sensor_configs=cams, reconfiguration_freq=reconfiguration_freq,
+                         **kwargs)
         self.metadata = {**self.metadata, "object_set": self.object_set}
 
     # ------------------------------------------------------------------ configuration
