@@ -71,8 +71,10 @@ class GraspObjectEnv(BaseEnv):
             # PhysX keeps solver caches across resets, so on the CPU an episode replayed in a used scene
             # drifts by millimetres (enough to flip a grasp). Rebuilding the scene each episode (~0.3 s)
             # makes a seed replay bit for bit, whatever ran before: policies are compared on identical
-            # episodes. Batched GPU envs cannot rebuild one sub-scene, so they keep the scene.
-            reconfiguration_freq = 0 if kwargs.get("num_envs", 1) > 1 else 1
+            # episodes. GPU sub-scenes cannot be rebuilt one at a time, so physx_cuda keeps its scene.
+            backend = kwargs.get("sim_backend", "auto")
+            on_cpu = backend in ("physx_cpu", "cpu") or (backend == "auto" and kwargs.get("num_envs", 1) == 1)
+            reconfiguration_freq = 1 if on_cpu else 0
         super().__init__(*args, robot_uids=robot_uids, render_backend=render_backend, obs_mode=obs_mode,
                          render_mode=render_mode, sensor_configs=cams, reconfiguration_freq=reconfiguration_freq,
                          **kwargs)
