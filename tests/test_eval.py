@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from vla_ladder.cli import main
-from vla_ladder.evaluation.runner import EPISODE_COLUMNS, EvalConfig, parse_regimes, run_evaluation
+from vla_ladder.evaluation.runner import EPISODE_COLUMNS, EvalConfig, run_evaluation
 from vla_ladder.policies import Policy
-from vla_ladder.task.layouts import REGIMES
+from vla_ladder.task.layouts import REGIMES, parse_regimes
 
 
 class HoldStill(Policy):

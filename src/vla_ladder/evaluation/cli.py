@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from vla_ladder.evaluation.runner import SIM_BACKENDS, parse_regimes
+from vla_ladder.evaluation.runner import SIM_BACKENDS
+from vla_ladder.task.layouts import parse_regimes
 from vla_ladder.task.layouts import REGIMES, SPLITS
 
 

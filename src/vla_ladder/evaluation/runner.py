@@ -18,7 +18,7 @@ import torch
 
 from vla_ladder import io
 from vla_ladder.policies import Policy, load_policy, parse_spec
-from vla_ladder.task.layouts import REGIMES, check_args
+from vla_ladder.task.layouts import REGIMES, check_args, parse_regimes
 from vla_ladder.task.objects import OBJECT_NAMES
 
 SIM_BACKENDS = ("physx_cpu", "physx_cuda")
@@ -81,15 +81,6 @@ class EvalConfig:
     @property
     def conditions(self) -> list[tuple[str, str, int]]:
         return [(r, self.split, self.num_objects) for r in self.regimes]
-
-
-def parse_regimes(text: str) -> tuple[str, ...]:
-    """"all" or a comma-separated list of regimes; unknown names raise ValueError listing the allowed ones."""
-    names = tuple(REGIMES) if text.strip() == "all" else tuple(r.strip() for r in text.split(",") if r.strip())
-    for r in names:
-        if r not in REGIMES:
-            raise ValueError(f"unknown regime {r!r}; allowed: {', '.join(REGIMES)} or all")
-    return names
 
 
 def make_env(policy: Policy, regime: str, split: str, num_objects: int, num_envs: int = 1,

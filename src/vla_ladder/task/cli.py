@@ -4,17 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from vla_ladder.task.layouts import REGIMES, SPLITS, check_args, sample_layouts
+from vla_ladder.task.layouts import REGIMES, SPLITS, check_args, parse_regimes, sample_layouts
 from vla_ladder.task.objects import NUM_OBJECTS
-
-
-def parse_regimes(value: str) -> list[str]:
-    """"all" or a comma-separated list of regimes."""
-    regimes = list(REGIMES) if value == "all" else [r.strip() for r in value.split(",") if r.strip()]
-    for r in regimes or [value]:
-        if r not in REGIMES:
-            raise ValueError(f"unknown regime {r!r}; allowed: {', '.join(REGIMES)} or all")
-    return regimes
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

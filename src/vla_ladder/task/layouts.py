@@ -100,6 +100,17 @@ def check_args(regime: str, split: str = "canonical", num_objects: int = 5, targ
         object_index(target)
 
 
+def parse_regimes(text: str) -> tuple[str, ...]:
+    """"all" or a comma-separated list of regimes; unknown names raise ValueError listing the allowed ones."""
+    names = tuple(REGIMES) if text.strip() == "all" else tuple(r.strip() for r in text.split(",") if r.strip())
+    if not names:
+        raise ValueError(f"no regime given; allowed: {', '.join(REGIMES)} or all")
+    for r in names:
+        if r not in REGIMES:
+            raise ValueError(f"unknown regime {r!r}; allowed: {', '.join(REGIMES)} or all")
+    return names
+
+
 @lru_cache(maxsize=None)
 def region_assignments(objects: tuple[int, ...], split: str) -> tuple[tuple[int, ...], ...]:
     """Every injective object->region map allowed by a split (objects[0] is the target)."""

@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vla_ladder.task.cli import parse_regimes
-from vla_ladder.task.layouts import SPLITS, check_args
+from vla_ladder.task.layouts import SPLITS, check_args, parse_regimes
 from vla_ladder.task.objects import NUM_OBJECTS
 
 CAMERAS = ("hand_camera", "fixed_camera")
