@@ -15,7 +15,7 @@ _CACHE: dict[str, Path] = {}
 def _record_with_pipeline(root: Path, episodes: int, seed: int) -> Path:
     from vla_ladder.cli import main
 
-    argv = ["record", "--out", str(root), "--episodes", str(episodes), "--seed", str(seed),
+    argv = ["record", "--out", str(root), "--episodes", str(episodes), "--first-seed", str(seed),
             "--regime", "small_jitter", "--num-objects", "2"]
     # On an overloaded machine a server can drop the connection (exit code 1); the recorder's documented
     # remedy is to rerun the same command, which resumes.

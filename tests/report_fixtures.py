@@ -12,14 +12,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from vla_ladder.conditions import Condition
 from vla_ladder.evaluation.metrics import summarize
-from vla_ladder.io import write_json, write_parquet
+from vla_ladder.files import write_json, write_parquet
 from vla_ladder.task.layouts import sample_layout
 
 
 def episode_row(policy: str, regime: str, split: str, k: int, j: int, seed: int, kind: str,
                 video: str = "") -> dict:
-    lay = sample_layout(regime, split, k, seed)
+    lay = sample_layout(Condition(regime, split, k), seed)
     other = lay.objects[1] if k > 1 else "none"
     held = {"success": lay.target, "wrong_object": other}.get(kind, "none")
     return {"policy": policy, "regime": regime, "split": split, "num_objects": k, "episode": j, "seed": seed,
@@ -56,7 +57,7 @@ def make_run(out: Path, policy: str, conditions: list[tuple[str, str, int]], kin
             rows.append(episode_row(policy, regime, split, k, j, seed + j, kind, video))
     df = pd.DataFrame(rows)
     write_parquet(out / "episodes.parquet", df)
-    write_json(out / "summary.json", {"policy": {"name": policy}, "provenance": {}, "seed": seed,
+    write_json(out / "summary.json", {"policy": {"name": policy}, "provenance": {}, "first_seed": seed,
                                       "episodes_per_condition": len(kinds), "conditions": summarize(df)})
-    write_json(out / "config.json", {"policy": policy, "seed": seed, "episodes": len(kinds)})
+    write_json(out / "config.json", {"policy": policy, "first_seed": seed, "episodes": len(kinds)})
     return out

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from vla_ladder.task.layouts import REGIMES, sample_layout
+from vla_ladder.conditions import REGIMES, Condition
+from vla_ladder.task.layouts import sample_layout
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
 
 CASES = [(r, s) for r, e in REGIMES.items() for s in (["canonical", "pairings_id", "pairings_ood"] if e else ["canonical"])]
@@ -13,11 +14,12 @@ CASES = [(r, s) for r, e in REGIMES.items() for s in (["canonical", "pairings_id
 def _seed_with(objects, regime="small_jitter", num_objects=2, target=None):
     """First seed whose layout holds exactly `objects` (pure numpy search)."""
     for s in range(10_000):
-        if set(sample_layout(regime, num_objects=num_objects, seed=s, target=target).objects) == set(objects):
+        if set(sample_layout(Condition(regime, num_objects=num_objects), seed=s, target=target).objects) == set(objects):
             return s
     raise AssertionError(objects)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("regime, split", CASES)
 def test_reset_and_step_every_regime_split_and_count(make_env, regime, split):
     for k in (1, 3, 5) if split == "canonical" else (5,):
@@ -25,7 +27,7 @@ def test_reset_and_step_every_regime_split_and_count(make_env, regime, split):
         u = env.unwrapped
         for seed in (0, 1):
             obs, info = env.reset(seed=seed)
-            lay = sample_layout(regime, split, k, seed)
+            lay = sample_layout(Condition(regime, split, k), seed)
             assert u.layouts[0].to_dict() == lay.to_dict() and u.instructions == [lay.instruction]
             assert u.present[0].sum().item() == k and OBJECT_NAMES[u.target_idx[0]] == lay.target
             # Objects stand where the layout says; absent ones wait far from the table.
@@ -80,6 +82,7 @@ def _grasp(env, name, steps=50):
     return infos
 
 
+@pytest.mark.slow
 def test_metrics_target_grasped_and_lifted(make_env):
     env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=1, target="rubiks_cube")
     env.reset(seed=0)
@@ -91,6 +94,7 @@ def test_metrics_target_grasped_and_lifted(make_env):
     assert infos[-1]["elapsed_steps"].item() == 50
 
 
+@pytest.mark.slow
 def test_metrics_wrong_object_grasped(make_env):
     seed = _seed_with({"apple", "rubiks_cube"}, target="apple")
     env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=2, target="apple")
@@ -100,6 +104,7 @@ def test_metrics_wrong_object_grasped(make_env):
     assert last["held"].item() == OBJECT_NAMES.index("rubiks_cube") and last["wrong_grasp"].item()
 
 
+@pytest.mark.slow
 def test_metrics_hovering_near_target_and_doing_nothing(make_env):
     env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=5, target="orange")
     env.reset(seed=4)
@@ -115,6 +120,7 @@ def test_metrics_hovering_near_target_and_doing_nothing(make_env):
     assert 0.0 < info["reach_dist"].item() <= 0.05
 
 
+@pytest.mark.slow
 def test_rendering_both_cameras(make_env):
     env = make_env(obs_mode="rgb", regime="large_jitter")
     obs, _ = env.reset(seed=2)
@@ -151,21 +157,23 @@ def test_target_not_in_scene_rejected(make_env):
         env.reset(seed=[1, 2])
 
 
+@pytest.mark.slow
 def test_render_command_writes_both_cameras_and_episode(tmp_path):
     import json
 
     from PIL import Image
 
     from vla_ladder.cli import main
-    assert main(["render", "--regime", "small_jitter", "--seed", "5", "--out", str(tmp_path)]) == 0
+    assert main(["render", "--regimes", "small_jitter", "--seed", "5", "--out", str(tmp_path)]) == 0
     for cam in ("hand_camera", "fixed_camera"):
         img = np.asarray(Image.open(tmp_path / f"small_jitter_seed5_{cam}.png"))
         assert img.shape == (256, 256, 3) and img.std() > 10
     ep = json.loads((tmp_path / "small_jitter_seed5.json").read_text())
     assert ep["seed"] == 5 and ep["provenance"]["object_set"] == "standin"
-    assert ep["instruction"] == sample_layout("small_jitter", seed=5).instruction
+    assert ep["instruction"] == sample_layout(Condition("small_jitter"), seed=5).instruction
 
 
+@pytest.mark.slow
 def test_a_seed_replays_bit_for_bit_whatever_ran_before(make_env):
     """Layout, target, instruction and the whole physical rollout are a function of the seed alone
     (a grasp replayed in a used CPU scene drifted by millimetres before scenes were rebuilt per episode)."""

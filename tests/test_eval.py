@@ -8,9 +8,10 @@ import pytest
 import torch
 
 from vla_ladder.cli import main
-from vla_ladder.evaluation.runner import EPISODE_COLUMNS, EvalConfig, run_evaluation
+from vla_ladder.conditions import REGIMES, ConditionGrid, parse_regimes
+from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
+from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.policies import Policy
-from vla_ladder.task.layouts import REGIMES, parse_regimes
 
 
 class HoldStill(Policy):
@@ -24,10 +25,11 @@ class HoldStill(Policy):
         return action
 
 
+@pytest.mark.slow
 def test_eval_command_writes_run_directory(tmp_path, capsys):
     out = tmp_path / "run"
-    rc = main(["eval", "--policy", "scripted", "--regime", "small_jitter", "--num-objects", "3",
-               "--episodes", "2", "--seed", "5", "--out", str(out), "--videos", "1"])
+    rc = main(["eval", "--policy", "scripted", "--regimes", "small_jitter", "--num-objects", "3",
+               "--episodes", "2", "--first-seed", "5", "--out", str(out), "--videos", "1"])
     assert rc == 0
     assert "small_jitter/canonical/3" in capsys.readouterr().out
     df = pd.read_parquet(out / "episodes.parquet")
@@ -48,18 +50,19 @@ def test_eval_command_writes_run_directory(tmp_path, capsys):
 
     summary = json.loads((out / "summary.json").read_text())
     assert summary["policy"]["name"] == "scripted"
-    assert summary["seed"] == 5 and summary["episodes_per_condition"] == 2
+    assert summary["first_seed"] == 5 and summary["episodes_per_condition"] == 2
     cond = summary["conditions"]["small_jitter/canonical/3"]
     assert cond["n"] == 2 and cond["success"] == 1.0
     assert summary["provenance"]["object_set"] == df["object_set"][0]
     config = json.loads((out / "config.json").read_text())
-    assert config["regimes"] == ["small_jitter"] and config["videos"] == 1
+    assert config["grid"]["regimes"] == ["small_jitter"] and config["videos"] == 1
 
 
+@pytest.mark.slow
 def test_same_seeds_give_same_layouts_for_every_policy(tmp_path):
-    kwargs = dict(regimes=["medium_jitter", "full_random"], num_objects=2, episodes=2, seed=11, progress=False)
-    a = run_evaluation("scripted", out=tmp_path / "a", **kwargs)
-    b = run_evaluation(HoldStill(), out=tmp_path / "b", **kwargs)
+    kwargs = dict(grid=ConditionGrid(("medium_jitter", "full_random"), num_objects=(2,)), episodes=2, first_seed=11)
+    a = run_evaluation(EvalConfig("scripted", out=tmp_path / "a", **kwargs), progress=False)
+    b = run_evaluation(EvalConfig("hold-still", out=tmp_path / "b", **kwargs), HoldStill(), progress=False)
     da, db = (pd.read_parquet(tmp_path / r / "episodes.parquet") for r in "ab")
     for col in ("regime", "seed", "episode", "target", "instruction", "layout"):
         assert da[col].tolist() == db[col].tolist(), col
@@ -70,11 +73,11 @@ def test_same_seeds_give_same_layouts_for_every_policy(tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--regime", "tiny_jitter"], "allowed: small_jitter"),
+    (["--regimes", "tiny_jitter"], "allowed: small_jitter"),
     (["--policy", "oracle"], "allowed: scripted"),
     (["--policy", "ppo"], "needs a path"),
-    (["--split", "pairings_xx"], "allowed: canonical"),
-    (["--regime", "full_random", "--split", "pairings_ood"], "needs a jitter regime"),
+    (["--splits", "pairings_xx"], "allowed: canonical"),
+    (["--regimes", "full_random", "--splits", "pairings_ood"], "need a jitter regime"),
     (["--num-objects", "6"], "from 1 to 5"),
     (["--episodes", "0"], "positive integer"),
     (["--num-envs", "4"], "physx_cuda"),
@@ -82,7 +85,7 @@ def test_same_seeds_give_same_layouts_for_every_policy(tmp_path):
     (["--videos", "-1"], ">= 0"),
 ])
 def test_bad_input_is_rejected_before_any_work(tmp_path, capsys, args, message):
-    base = {"--policy": "scripted", "--regime": "small_jitter", "--episodes": "3", "--seed": "0",
+    base = {"--policy": "scripted", "--regimes": "small_jitter", "--episodes": "3", "--first-seed": "0",
             "--out": str(tmp_path / "run")}
     for flag, value in zip(args[::2], args[1::2]):
         base[flag] = value
@@ -93,8 +96,9 @@ def test_bad_input_is_rejected_before_any_work(tmp_path, capsys, args, message):
 
 
 def test_regime_lists():
-    assert parse_regimes("all") == tuple(REGIMES)
+    assert parse_regimes("all") == parse_regimes(["all"]) == tuple(REGIMES)
     assert parse_regimes("large_jitter, small_jitter") == ("large_jitter", "small_jitter")
-    assert EvalConfig(policy="scripted", regimes="all").regimes == tuple(REGIMES)
+    assert parse_regimes(["large_jitter", "small_jitter"]) == ("large_jitter", "small_jitter")
+    assert EvalConfig(policy="scripted", grid=ConditionGrid(("all",))).grid.regimes == tuple(REGIMES)
     with pytest.raises(ValueError, match="no regime"):
-        EvalConfig(policy="scripted", regimes=())
+        EvalConfig(policy="scripted", grid=ConditionGrid(()))

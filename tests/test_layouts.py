@@ -1,5 +1,6 @@
 """Placement ladder properties: pure numpy, no simulator."""
 
+import dataclasses
 import itertools
 import json
 import subprocess
@@ -8,9 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from vla_ladder.task.layouts import (CENTER_REGION, HELD_OUT_REGIONS, MIN_GAP, REGIMES, REGION_CENTERS, SPLITS,
-                                     TRAIN_REGIONS, WORKSPACE_CENTER, WORKSPACE_SIZE, region_assignments,
-                                     sample_layout)
+from vla_ladder.conditions import REGIMES, SPLITS, Condition, ConditionGrid
+from vla_ladder.task.layouts import (CENTER_REGION, HELD_OUT_REGIONS, MIN_GAP, REGION_CENTERS, TRAIN_REGIONS,
+                                     WORKSPACE_CENTER, WORKSPACE_SIZE, region_assignments, sample_layout)
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, OBJECTS, object_index
 
 SEEDS = range(300)
@@ -30,7 +31,7 @@ def test_objects_stay_in_their_region(regime):
     half = np.asarray(REGIMES[regime]) / 2
     spread = np.zeros((NUM_OBJECTS, 2))
     for s in SEEDS:
-        lay = sample_layout(regime, seed=s)
+        lay = sample_layout(Condition(regime), seed=s)
         for name, xy, region in zip(lay.objects, lay.xy, lay.regions):
             assert region == object_index(name), "object i always sits in region i"
             off = np.abs(xy - REGION_CENTERS[region])
@@ -43,7 +44,7 @@ def test_objects_stay_in_their_region(regime):
 
 def test_small_jitter_centre_object_is_fixed():
     for s in SEEDS:
-        lay = sample_layout("small_jitter", seed=s)
+        lay = sample_layout(Condition("small_jitter"), seed=s)
         k = lay.regions.index(CENTER_REGION)
         np.testing.assert_allclose(lay.xy[k], WORKSPACE_CENTER)
 
@@ -52,7 +53,7 @@ def test_full_random_covers_workspace_inside_bounds():
     lo, hi = WORKSPACE_CENTER - WORKSPACE_SIZE / 2, WORKSPACE_CENTER + WORKSPACE_SIZE / 2
     pts = []
     for s in SEEDS:
-        lay = sample_layout("full_random", seed=s)
+        lay = sample_layout(Condition("full_random"), seed=s)
         assert lay.regions is None
         for name, xy in zip(lay.objects, lay.xy):
             r = OBJECTS[object_index(name)].footprint_radius
@@ -68,7 +69,7 @@ def test_full_random_covers_workspace_inside_bounds():
 @pytest.mark.parametrize("k", [2, 5])
 def test_placements_are_collision_free(regime, k):
     for s in SEEDS:
-        lay = sample_layout(regime, num_objects=k, seed=s)
+        lay = sample_layout(Condition(regime, num_objects=k), seed=s)
         r = np.array([OBJECTS[object_index(n)].footprint_radius for n in lay.objects])
         for i, j in itertools.combinations(range(k), 2):
             assert np.linalg.norm(lay.xy[i] - lay.xy[j]) >= r[i] + r[j] + MIN_GAP - 1e-9
@@ -76,24 +77,24 @@ def test_placements_are_collision_free(regime, k):
 
 def test_seed_determines_layout_target_and_instruction():
     for regime, split in [("small_jitter", "pairings_ood"), ("full_random", "canonical"), ("large_jitter", "pairings_id")]:
-        a = sample_layout(regime, split, 4, seed=123)
-        b = sample_layout(regime, split, 4, seed=123)
-        c = sample_layout(regime, split, 4, seed=124)
+        a = sample_layout(Condition(regime, split, 4), seed=123)
+        b = sample_layout(Condition(regime, split, 4), seed=123)
+        c = sample_layout(Condition(regime, split, 4), seed=124)
         assert a.to_dict() == b.to_dict()
         assert a.to_dict() != c.to_dict()
         assert a.instruction == f"grasp the {OBJECTS[a.target_index].phrase}"
 
 
 def test_target_is_uniform_and_can_be_fixed():
-    counts = np.bincount([sample_layout("medium_jitter", seed=s).target_index for s in range(2000)], minlength=5)
+    counts = np.bincount([sample_layout(Condition("medium_jitter"), seed=s).target_index for s in range(2000)], minlength=5)
     assert counts.min() > 300  # 400 expected each
-    assert all(sample_layout("full_random", seed=s, target="mug").target == "mug" for s in range(20))
+    assert all(sample_layout(Condition("full_random"), seed=s, target="mug").target == "mug" for s in range(20))
 
 
 def test_object_count_scenes():
     for k in range(1, 6):
         for s in range(50):
-            lay = sample_layout("large_jitter", num_objects=k, seed=s)
+            lay = sample_layout(Condition("large_jitter", num_objects=k), seed=s)
             assert len(lay.objects) == k == len(set(lay.objects)) == len(lay.xy)
 
 
@@ -107,11 +108,11 @@ def test_pairing_splits_disjoint_and_complete():
     seen_id, seen_ood_target = set(), set()
     for s in range(3000):
         k = 1 + s % 5
-        lid = sample_layout("small_jitter", "pairings_id", k, seed=s)
+        lid = sample_layout(Condition("small_jitter", "pairings_id", k), seed=s)
         pairs = {(object_index(n), r) for n, r in zip(lid.objects, lid.regions)}
         assert pairs <= train, "no held-out pair ever appears in an ID layout"
         seen_id |= pairs
-        lood = sample_layout("small_jitter", "pairings_ood", k, seed=s)
+        lood = sample_layout(Condition("small_jitter", "pairings_ood", k), seed=s)
         t = (lood.target_index, lood.regions[0])
         assert t in held, "the instructed object sits in one of its held-out regions"
         seen_ood_target.add(t)
@@ -135,25 +136,54 @@ def test_region_assignments_enumerate_all_valid_maps():
     (dict(regime="small_jitter", target="banana"), ", ".join(OBJECT_NAMES)),
 ])
 def test_bad_arguments_name_what_is_allowed(kwargs, allowed):
+    target = kwargs.pop("target", None)
     with pytest.raises(ValueError) as e:
-        sample_layout(**kwargs)
+        sample_layout(Condition(**kwargs), target=target)
     assert allowed in str(e.value)
 
 
+def test_condition_has_one_key_and_one_parser():
+    for c in (Condition(), Condition("full_random", "canonical", 1), Condition("large_jitter", "pairings_ood", 3)):
+        assert Condition.parse(c.key) == c and str(c) == c.key
+    assert Condition.parse("medium_jitter/pairings_id/2") == Condition("medium_jitter", "pairings_id", 2)
+    for bad in ("small_jitter", "small_jitter/canonical", "small_jitter/canonical/x", "a/b/c/d"):
+        with pytest.raises(ValueError, match="regime/split/num_objects"):
+            Condition.parse(bad)
+    with pytest.raises(ValueError, match="allowed: small_jitter"):
+        Condition.parse("tiny/canonical/5")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        Condition().regime = "full_random"
+
+
+def test_condition_grid_expands_all_and_skips_pairings_without_regions():
+    grid = ConditionGrid(("all",), ("canonical", "pairings_ood"), (1, 5))
+    keys = [c.key for c in grid.conditions]
+    assert len(keys) == 4 * 2 + 3 * 2 and "full_random/pairings_ood/1" not in keys
+    assert keys[:4] == ["small_jitter/canonical/1", "small_jitter/canonical/5", "small_jitter/pairings_ood/1",
+                        "small_jitter/pairings_ood/5"]
+    assert ConditionGrid(("large_jitter,small_jitter",)).regimes == ("large_jitter", "small_jitter")
+    with pytest.raises(ValueError, match="no valid condition"):
+        ConditionGrid(("full_random",), ("pairings_id",))
+    with pytest.raises(ValueError, match="no regime"):
+        ConditionGrid(())
+
+
+@pytest.mark.slow
 def test_placements_command_writes_json_and_figure(tmp_path):
     js, png = tmp_path / "l.json", tmp_path / "fig.png"
-    subprocess.run([sys.executable, "-m", "vla_ladder.cli", "placements", "--regime", "all", "--n", "20",
-                    "--seed", "7", "--json", str(js), "--plot", str(png)], check=True)
+    subprocess.run([sys.executable, "-m", "vla_ladder.cli", "placements", "--regimes", "all", "--n", "20",
+                    "--first-seed", "7", "--json", str(js), "--plot", str(png)], check=True)
     data = json.loads(js.read_text())
     assert len(data["episodes"]) == 80
     ep = data["episodes"][0]
     assert ep["seed"] == 7 and ep["target"] in ep["positions"]
     assert all(len(v) == 2 for v in ep["positions"].values())
-    assert ep == sample_layout(ep["regime"], seed=7).to_dict()
+    assert ep == sample_layout(Condition(ep["regime"]), seed=7).to_dict()
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.slow
 def test_placements_command_rejects_bad_input(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "vla_ladder.cli", "placements", "--regime", "nope", "--n", "2",
-                        "--seed", "0"], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "vla_ladder.cli", "placements", "--regimes", "nope", "--n", "2",
+                        "--first-seed", "0"], capture_output=True, text=True)
     assert r.returncode == 2 and "allowed: small_jitter" in r.stderr and "Traceback" not in r.stderr

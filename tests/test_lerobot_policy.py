@@ -8,8 +8,10 @@ import pytest
 import torch
 
 import lerobot_helpers as H
-from vla_ladder.evaluation.lerobot_policy import LeRobotPolicy, parse_arg, resolve_checkpoint
+from vla_ladder.policies.lerobot import LeRobotPolicy, parse_arg, resolve_checkpoint
 from vla_ladder.policies import load_policy
+
+pytestmark = pytest.mark.slow  # the real simulator, rendering, recording or training
 
 
 def _obs(n: int, seed: int = 0) -> dict:
@@ -86,11 +88,11 @@ def test_lerobot_env_plugin_constructs_and_steps():
     from lerobot.envs.factory import make_env, make_env_config
     from lerobot.envs.utils import close_envs, preprocess_observation
 
-    load_plugin("vla_ladder.envs_lerobot")  # what `lerobot-eval --env.discover_packages_path=...` does
-    cfg = make_env_config("grasp_object", regime="small_jitter", num_objects=2)
+    load_plugin("vla_ladder.lerobot_env")  # what `lerobot-eval --env.discover_packages_path=...` does
+    cfg = make_env_config("grasp_object", condition="small_jitter/canonical/2")
     assert cfg.type == "grasp_object" and cfg.features_map["pixels/hand_camera"] == "observation.images.hand_camera"
     with pytest.raises(ValueError, match="regime"):
-        make_env_config("grasp_object", regime="nowhere")
+        make_env_config("grasp_object", condition="nowhere/canonical/5")
     envs = make_env(cfg, n_envs=1)
     vec = envs["grasp_object"][0]
     try:

@@ -8,7 +8,8 @@ from report_fixtures import make_run
 
 from vla_ladder.cli import main
 from vla_ladder.evaluation.compare import compare_runs, mcnemar_exact, two_proportion_z
-from vla_ladder.evaluation.metrics import confusion, outcomes, summarize, wilson
+from vla_ladder.evaluation.metrics import confusion, outcomes, summarize
+from vla_ladder.stats import wilson
 from vla_ladder.evaluation.rundir import load_run
 
 SJ = ("small_jitter", "canonical", 5)

@@ -1,7 +1,7 @@
 """PPO expert: the advantage and loss maths by hand, a real tiny CPU run that checkpoints, resumes and
 acts through load_policy, and clean errors for bad input."""
 
-import argparse
+import dataclasses
 import json
 import math
 
@@ -9,12 +9,16 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from vla_ladder.experts import ppo
-from vla_ladder.experts.ppo import Agent, Args, compute_gae, ppo_loss
+from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.policies import load_policy
+from vla_ladder.policies.ppo import Agent, load_agent, save_agent
+from vla_ladder.ppo.config import TRAIN_SEED_MIN, Args
+from vla_ladder.ppo.envs import TrainEnvs, slot_conditions, train_seeds
+from vla_ladder.ppo.loss import compute_gae, ppo_loss
+from vla_ladder.ppo.train import cli_config, train
 
 TINY = dict(sim_backend="physx_cpu", num_envs=1, total_timesteps=100, eval_freq=1, eval_episodes=1,
-            regimes=("small_jitter",), num_objects=(5,), target_kl=0.0, progress=False)
+            grid=ConditionGrid(("small_jitter",), num_objects=(5,)), target_kl=0.0, progress=False)
 
 
 def test_gae_matches_hand_computation():
@@ -53,21 +57,20 @@ def test_clipped_loss_matches_hand_computation():
 
 def test_mixture_slots_and_seeds():
     conds = [("small_jitter", "canonical", 5), ("full_random", "canonical", 1), ("large_jitter", "canonical", 3)]
-    seen = [c for r in range(3) for c in ppo.slot_conditions(conds, 2, r)]
+    seen = [c for r in range(3) for c in slot_conditions(conds, 2, r)]
     assert all(seen.count(c) == 2 for c in conds)  # 6 episodes over 3 conditions: even
-    seeds = ppo.train_seeds(1, 0, 1000)
-    assert min(seeds) >= ppo.TRAIN_SEED_MIN and max(seeds) < 2**32
-    assert seeds == ppo.train_seeds(1, 0, 1000) and seeds != ppo.train_seeds(1, 1, 1000)
-    args = Args(out="x", regimes=("small_jitter", "full_random"), splits=("canonical", "pairings_ood"),
-                num_objects=(5,))
-    assert args.conditions == [("small_jitter", "canonical", 5), ("small_jitter", "pairings_ood", 5),
-                               ("full_random", "canonical", 5)]
+    seeds = train_seeds(1, 0, 1000)
+    assert min(seeds) >= TRAIN_SEED_MIN and max(seeds) < 2**32
+    assert seeds == train_seeds(1, 0, 1000) and seeds != train_seeds(1, 1, 1000)
+    args = Args(out="x", grid=ConditionGrid(("small_jitter", "full_random"), ("canonical", "pairings_ood"), (5,)))
+    assert args.conditions == [Condition("small_jitter", "canonical", 5), Condition("small_jitter", "pairings_ood", 5),
+                               Condition("full_random", "canonical", 5)]
 
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("ppo") / "run"
-    state = ppo.train(Args(out=str(out), **TINY))
+    state = train(Args(out=str(out), **TINY))
     assert state["global_step"] == 100 and state["iteration"] == 2
     return out
 
@@ -77,6 +80,7 @@ def _optimizer_steps(run) -> float:
     return load_file(run / state["checkpoint"] / "optimizer.safetensors")["state.0.step"].item()
 
 
+@pytest.mark.slow
 def test_tiny_cpu_run_writes_checkpoint_that_acts(run_dir, make_env):
     state = json.loads((run_dir / "state.json").read_text())
     assert state["checkpoint"] == "checkpoints/step_000000000100"
@@ -94,8 +98,8 @@ def test_tiny_cpu_run_writes_checkpoint_that_acts(run_dir, make_env):
     assert policy.describe()["global_step"] == 100
     env = make_env(obs_mode=policy.obs_mode, sim_backend="physx_cpu", num_objects=5)
     # Per-episode conditions (used for the training mixture) override the env's own.
-    obs, _ = env.reset(seed=[ppo.TRAIN_SEED_MIN + 3], options={"conditions": [("full_random", "canonical", 2)]})
-    assert env.unwrapped.layouts[0].regime == "full_random" and int(env.unwrapped.present.sum()) == 2
+    obs, _ = env.reset(seed=[TRAIN_SEED_MIN + 3], options={"conditions": [("full_random", "canonical", 2)]})
+    assert env.unwrapped.layouts[0].condition.regime == "full_random" and int(env.unwrapped.present.sum()) == 2
     policy.reset([0])
     for _ in range(3):
         action = policy.act(obs, env.unwrapped.instructions)
@@ -105,16 +109,17 @@ def test_tiny_cpu_run_writes_checkpoint_that_acts(run_dir, make_env):
     assert again.act(obs, env.unwrapped.instructions).shape == (1, 7)
 
 
+@pytest.mark.slow
 def test_resume_continues_step_count_and_optimizer(run_dir):
     assert _optimizer_steps(run_dir) == 16  # 2 iterations x 4 epochs x 2 minibatches
-    state = ppo.train(ppo.args_from_namespace(
-        argparse.Namespace(out=str(run_dir), resume=True, total_timesteps=150)))
+    state = train(cli_config(["--out", str(run_dir), "--resume", "--total-timesteps", "150"]))
     assert state["global_step"] == 150 and state["iteration"] == 3
     # A fresh optimizer would have counted 8 steps; the restored one goes on from 16.
     assert _optimizer_steps(run_dir) == 24
     assert json.loads((run_dir / "config.json").read_text())["total_timesteps"] == 150
 
 
+@pytest.mark.slow
 def test_bad_input_errors(tmp_path, run_dir):
     with pytest.raises(ValueError, match="no PPO checkpoint"):
         load_policy(f"ppo:{tmp_path / 'missing'}")
@@ -127,51 +132,55 @@ def test_bad_input_errors(tmp_path, run_dir):
         load_policy(f"ppo:{broken}")
 
     other = tmp_path / "other"
-    ppo.save_agent(other / "model.safetensors", Agent(80, 7, (16,)))
+    save_agent(other / "model.safetensors", Agent(80, 7, (16,)))
     with pytest.raises(ValueError, match="80-d observations.*96-d observations"):
-        ppo.load_agent(other, obs_dim=96, act_dim=7)
+        load_agent(other, obs_dim=96, act_dim=7)
     policy = load_policy(f"ppo:{other}", device="cpu")
     with pytest.raises(ValueError, match=r"80-d observations; got observations of shape \(1, 96\)"):
         policy.act(torch.zeros(1, 96), ["grasp the apple"])
 
     with pytest.raises(ValueError, match="already holds a run"):
-        ppo.train(Args(out=str(run_dir), **TINY))
+        train(Args(out=str(run_dir), **TINY))
     with pytest.raises(ValueError, match="allowed: small_jitter"):
-        Args(out="x", regimes=("nowhere",))
+        Args(out="x", grid=ConditionGrid(("nowhere",)))
     with pytest.raises(ValueError, match="allowed: physx_cuda, physx_cpu"):
         Args(out="x", sim_backend="gpu")
     with pytest.raises(ValueError, match="at least one batch"):
         Args(out="x", num_envs=4, total_timesteps=10)
 
 
-def test_cli_exposes_every_field():
-    from vla_ladder.cli import build_parser, main
+def test_cli_exposes_every_field(capsys):
+    from vla_ladder.cli import main
 
-    parser, _ = build_parser("train-expert")
-    ns = parser.parse_args(["train-expert", "--out", "d", "--num-envs", "8", "--regimes", "small_jitter",
-                            "full_random", "--num-objects", "5", "--no-norm-adv", "--ent-coef", "0.05"])
-    args = ppo.args_from_namespace(ns)
-    assert (args.num_envs, args.regimes, args.num_objects, args.norm_adv, args.ent_coef) == \
+    args = cli_config(["--out", "d", "--num-envs", "8", "--regimes", "small_jitter", "full_random",
+                       "--num-objects", "5", "--no-norm-adv", "--ent-coef", "0.05"])
+    assert (args.num_envs, args.grid.regimes, args.grid.num_objects, args.norm_adv, args.ent_coef) == \
         (8, ("small_jitter", "full_random"), (5,), False, 0.05)
     assert args.learning_rate == 1e-4 and args.total_timesteps == 30_000_000  # the paper's defaults
-    help_text = parser._subparsers._group_actions[0].choices["train-expert"].format_help()
-    for f in ppo.fields(Args):
-        assert "--" + f.name.replace("_", "-") in help_text
+    with pytest.raises(SystemExit) as e:
+        main(["train-expert", "--help"])
+    assert e.value.code == 0
+    help_text = capsys.readouterr().out
+    names = [f.name for f in dataclasses.fields(Args) if f.name != "grid"]
+    names += [f.name for f in dataclasses.fields(ConditionGrid)]
+    for name in names:
+        assert "--" + name.replace("_", "-") in help_text, name
     with pytest.raises(SystemExit) as e:
         main(["train-expert", "--out", "d", "--no-such-option", "1"])
     assert e.value.code == 2
     assert main(["train-expert", "--out", "d", "--gamma", "0.9", "--splits", "sideways"]) == 2
 
 
+@pytest.mark.slow
 def test_several_cpu_envs_run_in_spawned_processes():
     args = Args(out="x", sim_backend="physx_cpu", num_envs=2, num_steps=50, total_timesteps=100)
-    envs = ppo.TrainEnvs(args, torch.device("cpu"))
+    envs = TrainEnvs(args, torch.device("cpu"))
     try:
         conds = [("small_jitter", "canonical", 5), ("full_random", "canonical", 1)]
-        obs = envs.reset([ppo.TRAIN_SEED_MIN, ppo.TRAIN_SEED_MIN + 1], conds)
+        obs = envs.reset([TRAIN_SEED_MIN, TRAIN_SEED_MIN + 1], conds)
         assert obs.shape == (2, 96) and envs.object_set == "standin"
         layouts = [lay[0] for lay in envs.env.get_attr("layouts")]
-        assert [(lay.regime, len(lay.objects)) for lay in layouts] == [("small_jitter", 5), ("full_random", 1)]
+        assert [(lay.condition.regime, len(lay.objects)) for lay in layouts] == [("small_jitter", 5), ("full_random", 1)]
         obs, reward, truncated, metrics = envs.step(torch.zeros(2, 7))
         assert obs.shape == (2, 96) and reward.shape == (2,) and not truncated.any()
         assert set(metrics) == {"success", "grasp_any", "reach"} and metrics["success"].shape == (2,)

@@ -24,7 +24,9 @@ import pytest
 from vla_ladder.cli import main
 from vla_ladder.recording import protocol as P
 from vla_ladder.recording.client import Episode
-from vla_ladder.recording.writer import read_provenance, read_recording_state
+from vla_ladder.recordings import read_provenance, read_recording_state
+
+pytestmark = pytest.mark.slow  # the real simulator, rendering, recording or training
 
 TOKEN = "s3cret"
 EPISODES = 3
@@ -73,7 +75,7 @@ def _load(root: Path, **kwargs):
 def recorded(tmp_path_factory):
     """`record` (embedded server) killed by SIGKILL after its first commit, checked, then rerun to the end."""
     root = tmp_path_factory.mktemp("rec") / "grasp"
-    cmd = _cli("record", *CONDITION, "--episodes", str(EPISODES), "--out", str(root), "--seed", str(SEED),
+    cmd = _cli("record", *CONDITION, "--episodes", str(EPISODES), "--out", str(root), "--first-seed", str(SEED),
                "--commit-every", "1")
     first = subprocess.Popen(cmd, env=ENV)
     try:
@@ -259,7 +261,8 @@ def test_malformed_episode_frames_are_rejected_by_the_client():
               "images.fixed_camera": np.zeros((50, 128, 128, 3), np.uint8),
               "state": np.zeros((50, 15), np.float32), "action": np.zeros((50, 7), np.float32)}
     header = {"type": "episode", "seed": 1, "instruction": "grasp the apple", "layout": {}, "metrics": {},
-              "expert": {}, "object_set": "standin", "num_frames": 50, "has_frames": True}
+              "expert": {}, "condition": "small_jitter/canonical/2", "object_set": "standin", "num_frames": 50,
+              "has_frames": True}
     with pytest.raises(P.ProtocolError, match="images.fixed_camera"):
         Episode.from_message(P.decode(P.encode(header, frames)), "test")
     with pytest.raises(P.ProtocolError, match="num_frames"):
@@ -280,7 +283,7 @@ def test_server_dropped_mid_episode_leaves_no_partial_episode(server, recorded, 
 
     killer = threading.Thread(target=kill_server_mid_episode)
     killer.start()
-    rc = main(["record", *CONDITION, "--episodes", str(EPISODES + 3), "--out", str(root), "--seed", str(SEED),
+    rc = main(["record", *CONDITION, "--episodes", str(EPISODES + 3), "--out", str(root), "--first-seed", str(SEED),
                "--commit-every", "1", "--server", url, "--token", TOKEN])
     killer.join()
     assert rc == 1 and "server closed the connection" in capsys.readouterr().err

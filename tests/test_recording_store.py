@@ -15,10 +15,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vla_ladder.recording.writer import DatasetStore, RecordingConfig, read_provenance, read_recording_state
+from vla_ladder.conditions import Condition
+from vla_ladder.recording.store import DatasetStore
+from vla_ladder.recordings import Recording, read_provenance, read_recording_state
+
+pytestmark = pytest.mark.slow  # the real simulator, rendering, recording or training
 
 FRAMES = 8
-CONFIG = dict(regime="small_jitter", num_objects=2)
+CONFIG = dict(policy="scripted", condition=Condition("small_jitter", num_objects=2))
 
 def synthetic_episode(seed: int, frames: int = FRAMES):
     """A well-formed successful episode without simulation: a real layout, a seed-coloured image ramp,
@@ -26,12 +30,12 @@ def synthetic_episode(seed: int, frames: int = FRAMES):
     from vla_ladder.recording.client import Episode
     from vla_ladder.task.layouts import sample_layout
 
-    layout = sample_layout("small_jitter", "canonical", 2, seed)
+    layout = sample_layout(Condition("small_jitter", "canonical", 2), seed)
     ramp = np.linspace(0, 255, 256, dtype=np.float32)
     shade = np.random.default_rng(seed).integers(0, 255, size=3)
     image = ((ramp[:, None, None] + shade) % 256).astype(np.uint8) * np.ones((1, 256, 1), np.uint8)
     header = {"seed": seed, "instruction": layout.instruction, "layout": layout.to_dict(), "target": layout.target,
-              "regime": "small_jitter", "split": "canonical", "num_objects": 2, "object_set": "standin",
+              "condition": "small_jitter/canonical/2", "object_set": "standin",
               "expert": {"spec": "scripted", "name": "scripted"}, "num_frames": frames, "has_frames": True,
               "metrics": {"success": True, "grasp_any": True, "reach": True, "lifted": True,
                           "held": layout.target, "reach_dist": 0.0}}
@@ -44,7 +48,7 @@ def write_forever(root: str) -> None:
     """The killed writer: reserve a seed, add its episode, commit (commit_every=1), report, repeat."""
     import lerobot.datasets.lerobot_dataset  # noqa: F401  (imported before 'ready': kills land in the loop)
 
-    store = DatasetStore(root, RecordingConfig(**CONFIG), commit_every=1)
+    store = DatasetStore(root, Recording(**CONFIG), commit_every=1)
     print("ready", flush=True)
     while True:
         (seed,) = store.reserve_seeds(1)
@@ -108,28 +112,28 @@ def test_kill_writer_at_random_moments(crashed):
     root, seen = crashed
     assert len(seen) >= 2, "the writer never got far enough to test resuming"
     # Leftovers of the kills are cleared by the next writer, which resumes where the dataset ends.
-    store = DatasetStore(root, RecordingConfig(**CONFIG))
+    store = DatasetStore(root, Recording(**CONFIG))
     assert not store.staging.exists() and store.saved == len(seen) and store.next_seed > max(seen)
     store.close()
 
 
 def test_resume_refuses_other_settings_and_a_second_writer(crashed, tmp_path):
     root, _ = crashed
-    with pytest.raises(ValueError, match="regime='small_jitter'"):
-        DatasetStore(root, RecordingConfig(regime="large_jitter", num_objects=2))
+    with pytest.raises(ValueError, match="condition='small_jitter/canonical/2'"):
+        DatasetStore(root, Recording("scripted", Condition("large_jitter", num_objects=2)))
     with pytest.raises(ValueError, match="video=True"):
-        DatasetStore(root, RecordingConfig(**CONFIG, video=False))
-    store = DatasetStore(root, RecordingConfig(**CONFIG))
+        DatasetStore(root, Recording(**CONFIG, video=False))
+    store = DatasetStore(root, Recording(**CONFIG))
     with pytest.raises(ValueError, match="another recorder"):
-        DatasetStore(root, RecordingConfig(**CONFIG))
+        DatasetStore(root, Recording(**CONFIG))
     store.close()
     other = tmp_path / "not_a_recording"
     other.mkdir()
     (other / "notes.txt").write_text("mine")
     with pytest.raises(ValueError, match="not a vla-ladder recording"):
-        DatasetStore(other, RecordingConfig(**CONFIG))
+        DatasetStore(other, Recording(**CONFIG))
     state = read_recording_state(root)
-    assert state["config"]["num_objects"] == 2 and state["object_set"] == "standin"
+    assert state["config"]["condition"] == "small_jitter/canonical/2" and state["object_set"] == "standin"
 
 
 def test_images_mode_and_commit_batches(tmp_path):
@@ -137,7 +141,7 @@ def test_images_mode_and_commit_batches(tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     root = tmp_path / "images"
-    store = DatasetStore(root, RecordingConfig(**CONFIG, video=False), commit_every=2)
+    store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=2)
     for seed in store.reserve_seeds(3):
         store.count(True)
         store.add(synthetic_episode(seed))

@@ -7,17 +7,20 @@ import pytest
 import torch
 
 from vla_ladder.cli import main
+from vla_ladder.conditions import ConditionGrid
 from vla_ladder.evaluation.rundir import load_run
-from vla_ladder.evaluation.runner import run_evaluation
+from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.policies import load_policy
 
 EPISODES = 6
 
 
 def evaluate(spec: str, regimes, split: str = "canonical", episodes: int = EPISODES) -> dict:
-    return run_evaluation(spec, regimes, split=split, episodes=episodes, seed=0, progress=False)["conditions"]
+    cfg = EvalConfig(spec, grid=ConditionGrid(tuple(regimes), (split,)), episodes=episodes, first_seed=0)
+    return run_evaluation(cfg, progress=False)["conditions"]
 
 
+@pytest.mark.slow
 def test_nearest_grasps_but_ignores_the_instruction():
     c = evaluate("nearest", ["full_random"])["full_random/canonical/5"]
     assert c["grasp_any"] >= 0.8
@@ -25,6 +28,7 @@ def test_nearest_grasps_but_ignores_the_instruction():
     assert c["outcomes"]["wrong_object"] >= 2  # what it holds does not depend on what it was told
 
 
+@pytest.mark.slow
 def test_layout_prior_succeeds_under_small_jitter_not_full_random():
     conds = evaluate("layout-prior", ["small_jitter", "full_random"])
     small, full = conds["small_jitter/canonical/5"], conds["full_random/canonical/5"]
@@ -32,6 +36,7 @@ def test_layout_prior_succeeds_under_small_jitter_not_full_random():
     assert small["success"] > full["success"] + 0.4
 
 
+@pytest.mark.slow
 def test_pairings_experiment_layout_prior_fails_out_of_distribution(tmp_path, capsys):
     out = tmp_path / "pairings"
     assert main(["experiment", "pairings", "--policy", "label=prior,spec=layout-prior", "--episodes", "3",
@@ -49,6 +54,7 @@ def test_pairings_experiment_layout_prior_fails_out_of_distribution(tmp_path, ca
     assert "Compositional generalization" in page and "recorded no videos" in page
 
 
+@pytest.mark.slow
 def test_random_is_the_floor_and_reproducible():
     c = evaluate("random", ["small_jitter"], episodes=3)["small_jitter/canonical/5"]
     assert c["success"] == 0.0

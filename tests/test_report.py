@@ -12,7 +12,7 @@ from vla_ladder.cli import main
 from vla_ladder.evaluation.metrics import OUTCOMES
 from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.report import plots, tables
-from vla_ladder.report.experiments import ExperimentConfig, PolicyEntry, available, plan
+from vla_ladder.experiments.experiment import ExperimentConfig, PolicyEntry, available, plan
 from vla_ladder.report.html import build_report
 
 CHROMIUM = "/usr/bin/chromium"
@@ -88,6 +88,7 @@ def test_experiment_configs_and_policy_entries():
         plan(ExperimentConfig.load("ladder"), [e])
 
 
+@pytest.mark.slow
 def test_report_is_self_contained_and_renders_in_chromium(runs, tmp_path):
     assert Path(CHROMIUM).exists(), "Debian's chromium is missing: scripts/setup.sh installs it"
     from playwright.sync_api import sync_playwright

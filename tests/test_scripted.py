@@ -3,9 +3,11 @@
 import pytest
 import torch
 
-from vla_ladder.experts.scripted import ScriptedConfig, ScriptedPolicy, make_policy
+from vla_ladder.policies.scripted import ScriptedConfig, ScriptedPolicy, make_policy
 from vla_ladder.policies import load_policy
-from vla_ladder.task.layouts import REGIMES
+from vla_ladder.conditions import REGIMES
+
+pytestmark = pytest.mark.slow  # the real simulator, rendering, recording or training
 
 # (target, seed) per regime: the mug (rim grasp) and the thin marker are the hard ones.
 CASES = [("mug", 3), ("large_marker", 4)]

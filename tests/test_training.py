@@ -9,10 +9,10 @@ import pytest
 
 import lerobot_helpers as H
 from vla_ladder.cli import main
-from vla_ladder.training.cli import TrainRequest
-from vla_ladder.training.grid import best_row
+from vla_ladder.experiments.grid import best_row
+from vla_ladder.training.train import TrainConfig
 
-EVAL = ["--regime", "small_jitter", "--num-objects", "2", "--seed", "100"]
+EVAL = ["--regimes", "small_jitter", "--num-objects", "2", "--first-seed", "100"]
 
 
 @pytest.fixture(scope="module")
@@ -25,6 +25,7 @@ def _evaluate(spec: str, out, episodes: int) -> tuple[pd.DataFrame, dict]:
     return pd.read_parquet(out / "episodes.parquet"), json.loads((out / "summary.json").read_text())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["smolvla", "act"])
 def test_tiny_policy_trains_saves_reloads_and_evaluates(kind, tmp_path_factory, tmp_path):
     run = H.trained(tmp_path_factory, kind)
@@ -47,14 +48,15 @@ def test_tiny_policy_trains_saves_reloads_and_evaluates(kind, tmp_path_factory, 
     assert cond["n"] == 1 and all(0.0 <= cond[m] <= 1.0 for m in ("success", "grasp_any", "reach"))
 
 
+@pytest.mark.slow
 def test_pi05_gets_the_paper_settings_and_a_clear_offline_error(data, tmp_path):
-    req = TrainRequest(policy_type="pi05", dataset=data, out=tmp_path / "pi05", pretrained="none")
+    req = TrainConfig(policy_type="pi05", dataset=data, out=tmp_path / "pi05", pretrained="none")
     assert (req.batch_size, req.chunk_size, req.steps) == (64, 16, 30_000)  # small_jitter data: batch 64
     policy = req.build_config().policy
     assert (policy.dtype, policy.gradient_checkpointing, policy.freeze_vision_encoder,
             policy.train_expert_only, policy.chunk_size, policy.push_to_hub) == \
         ("bfloat16", True, True, True, 16, False)
-    assert "--policy.path=lerobot/pi05_base" in TrainRequest(
+    assert "--policy.path=lerobot/pi05_base" in TrainConfig(
         policy_type="pi05", dataset=data, out=tmp_path / "p").lerobot_command()
     # Offline, LeRobot's pi05 processor cannot get its PaliGemma tokenizer: the run stops before any work.
     if os.environ.get("HF_HUB_OFFLINE") == "1":
@@ -65,6 +67,7 @@ def test_pi05_gets_the_paper_settings_and_a_clear_offline_error(data, tmp_path):
         assert rc == 2  # lerobot/pi05_base is not in the local cache
 
 
+@pytest.mark.slow
 def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     base = ["train", "--dataset", str(data), "--out", str(tmp_path / "run"), "--pretrained", "none"]
     assert main(base + ["--policy-type", "nope"]) == 2
@@ -103,12 +106,14 @@ def test_best_is_success_then_grasp_then_reach():
     assert (best["batch_size"], best["chunk_size"], best["n_action_steps"]) == (128, 16, 8)
 
 
+@pytest.mark.slow
 def test_grid_2x2_keeps_every_run_and_picks_the_best(data, tmp_path_factory, tmp_path, capsys):
     vlm = H.tiny_vlm(tmp_path_factory)
     out = tmp_path / "grid"
-    argv = ["grid", "--policy-type", "smolvla", "--dataset", str(data), "--out", str(out), "--pretrained", "none",
-            "--steps", "1", "--num-workers", "0", "--device", "cpu", "--batch-sizes", "2,4", "--chunk-sizes", "4",
-            "--horizons", "2,4", "--eval-args", " ".join(["--episodes", "1", *EVAL]),
+    argv = ["grid", "--train.policy-type", "smolvla", "--train.dataset", str(data), "--out", str(out),
+            "--train.pretrained", "none", "--train.steps", "1", "--train.num-workers", "0", "--train.device", "cpu",
+            "--batch-sizes", "2", "4", "--chunk-sizes", "4", "--horizons", "2", "4", "--eval.episodes", "1",
+            *[f"--eval.{a[2:]}" if a.startswith("--") else a for a in EVAL],
             "--", *H.tiny_policy_flags("smolvla", vlm)]
     assert main(argv) == 0
     grid = json.loads((out / "grid.json").read_text())
@@ -119,7 +124,7 @@ def test_grid_2x2_keeps_every_run_and_picks_the_best(data, tmp_path_factory, tmp
         summary = json.loads((out / "runs" / f"b{row.batch_size}_c{row.chunk_size}" /
                               f"eval_h{row.n_action_steps}" / "summary.json").read_text())
         assert summary["policy"]["n_action_steps"] == row.n_action_steps
-        assert summary["seed"] == 100  # every run sees the same seeded episodes
+        assert summary["first_seed"] == 100  # every run sees the same seeded episodes
         assert row.success == summary["conditions"]["small_jitter/canonical/2"]["success"]
     expected = best_row(df)
     assert {k: grid["best"][k] for k in ("batch_size", "chunk_size", "n_action_steps")} == \
@@ -132,6 +137,6 @@ def test_grid_2x2_keeps_every_run_and_picks_the_best(data, tmp_path_factory, tmp
     assert (out / "runs" / "b2_c4" / "eval_h2" / "summary.json").stat().st_mtime_ns == stamp
     # Other settings in the same directory are refused.
     other = list(argv)
-    other[other.index("--steps") + 1] = "2"
+    other[other.index("--train.steps") + 1] = "2"
     assert main(other) == 2
     assert "other settings" in capsys.readouterr().err

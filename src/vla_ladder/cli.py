@@ -1,56 +1,82 @@
-"""`vla-ladder` command line: one subcommand per pipeline stage.
+"""`vla-ladder` command line: one subcommand per pipeline stage, each a config dataclass parsed by tyro.
 
-Each subcommand lives next to the code it drives and exposes `add_arguments(parser)` and `run(args)`;
-they are imported only when invoked so `vla-ladder placements` never loads the simulator.
+A command's config dataclass is its command line: its fields are the flags and their docstrings the help,
+validated in __post_init__, so a bad value ends in one line naming what is allowed (exit 2) before any
+work. Each command module defines that dataclass and `run(config) -> int`; modules are imported only when
+their command runs, so `vla-ladder placements` never loads the simulator.
 """
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import sys
 
-# name -> (module, one-line help). Module defines add_arguments(parser) and run(args) -> int | None.
+from vla_ladder.commandline import parse_config
+
+# name -> ("module:ConfigClass", one-line help). The module defines run(config) -> int.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "placements": ("vla_ladder.task.cli", "sample layouts of the placement ladder (no simulator)"),
-    "render": ("vla_ladder.task.render_cli", "render both cameras of an episode's first frame"),
-    "eval": ("vla_ladder.evaluation.cli", "evaluate a policy on seeded episodes"),
-    "train-expert": ("vla_ladder.experts.ppo", "train the PPO privileged-state expert"),
-    "serve": ("vla_ladder.recording.serve_cli", "serve expert episodes over WebSockets"),
-    "record": ("vla_ladder.recording.record_cli", "record successful episodes into a LeRobotDataset"),
-    "train": ("vla_ladder.training.cli", "train a LeRobot policy on a recorded dataset"),
-    "grid": ("vla_ladder.training.grid", "grid search over batch, chunk size and execution horizon"),
-    "compare": ("vla_ladder.evaluation.compare", "test whether two evaluation runs differ"),
-    "experiment": ("vla_ladder.report.experiments", "run one of the paper's experiments"),
-    "report": ("vla_ladder.report.html", "write a self-contained HTML report of runs"),
+    "placements": ("vla_ladder.report.placements:PlacementsConfig",
+                   "sample layouts of the placement ladder (no simulator)"),
+    "render": ("vla_ladder.task.render:RenderConfig", "render both cameras of an episode's first frame"),
+    "train-expert": ("vla_ladder.ppo.train:Args", "train the PPO privileged-state expert"),
+    "serve": ("vla_ladder.recording.server:ServeConfig", "serve expert episodes over WebSockets"),
+    "record": ("vla_ladder.recording.record:RecordConfig", "record successful episodes into a LeRobotDataset"),
+    "train": ("vla_ladder.training.train:TrainConfig", "train a LeRobot policy on a recorded dataset"),
+    "eval": ("vla_ladder.evaluation.runner:EvalConfig", "evaluate a policy on seeded episodes"),
+    "compare": ("vla_ladder.evaluation.compare:CompareConfig", "test whether two evaluation runs differ"),
+    "grid": ("vla_ladder.experiments.grid:GridConfig", "grid search over batch, chunk size and execution horizon"),
+    "experiment": ("vla_ladder.experiments.experiment:ExperimentCommand", "run one of the paper's experiments"),
+    "report": ("vla_ladder.report.html:ReportConfig", "write a self-contained HTML report of runs"),
 }
+# Commands that pass everything after `--` to lerobot-train.
+LEROBOT_FLAGS_AFTER_DASHES = ("train", "grid")
+# Commands whose run() lives in another module than their config.
+RUNNERS = {"serve": "vla_ladder.recording.serve"}
 
 
-def build_parser(only: str | None = None) -> tuple[argparse.ArgumentParser, dict]:
-    parser = argparse.ArgumentParser(prog="vla-ladder", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    modules = {}
-    for name, (module, help_) in COMMANDS.items():
-        p = sub.add_parser(name, help=help_, description=help_)
-        if only in (None, name):
-            mod = importlib.import_module(module)
-            mod.add_arguments(p)
-            modules[name] = mod
-    return parser, modules
+def usage() -> str:
+    width = max(map(len, COMMANDS))
+    lines = ["usage: vla-ladder COMMAND [OPTIONS]   (vla-ladder COMMAND --help for its options)", "",
+             __doc__.splitlines()[0], "", "commands:"]
+    lines += [f"  {name:<{width}}  {help_}" for name, (_, help_) in COMMANDS.items()]
+    return "\n".join(lines)
+
+
+def parse(name: str, argv: list[str]):
+    """The config of command `name` from its arguments (tyro; extra LeRobot flags after `--` for train)."""
+    target, help_ = COMMANDS[name]
+    module_name, _, cls_name = target.partition(":")
+    module = importlib.import_module(module_name)
+    if hasattr(module, "cli_config"):  # a command with its own parsing (train-expert's --resume)
+        return module.cli_config(argv)
+    tail: list[str] = []
+    if name in LEROBOT_FLAGS_AFTER_DASHES and "--" in argv:
+        cut = argv.index("--")
+        argv, tail = argv[:cut], argv[cut + 1:]
+    cfg = parse_config(getattr(module, cls_name), argv, prog=f"vla-ladder {name}", description=help_)
+    if tail:  # raw lerobot-train flags: handed over untouched (tyro would read them as its own)
+        from dataclasses import replace
+        train = cfg.train if name == "grid" else cfg
+        train = replace(train, lerobot_args=(*train.lerobot_args, *tail))
+        cfg = replace(cfg, train=train) if name == "grid" else train
+    return cfg
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    only = argv[0] if argv and argv[0] in COMMANDS else None
-    parser, modules = build_parser(only)
-    args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(usage())
+        return 0 if argv else 2
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"vla-ladder: error: unknown command {name!r}; allowed: {', '.join(COMMANDS)}", file=sys.stderr)
         return 2
     try:
-        return int(modules[args.command].run(args) or 0)
+        cfg = parse(name, rest)
+        runner = importlib.import_module(RUNNERS.get(name, COMMANDS[name][0].partition(":")[0]))
+        return int(runner.run(cfg) or 0)
     except ValueError as e:  # bad input: one clear line, no traceback
-        print(f"vla-ladder {args.command}: error: {e}", file=sys.stderr)
+        print(f"vla-ladder {name}: error: {e}", file=sys.stderr)
         return 2
 
 

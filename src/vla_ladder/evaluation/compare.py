@@ -8,16 +8,20 @@ readers usually compute from two published rates.
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
+from dataclasses import dataclass
+from pathlib import Path
 
 import pandas as pd
+import tyro
 from statsmodels.stats.contingency_tables import mcnemar
 
-from vla_ladder.evaluation.metrics import CONDITION_KEYS, METRICS, condition_key, wilson
+from vla_ladder.contract import METRICS
+from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
 from vla_ladder.evaluation.rundir import Run, load_run
-from vla_ladder.io import write_json
+from vla_ladder.files import write_json
+from vla_ladder.stats import wilson
 
 PAIR_KEYS = (*CONDITION_KEYS, "episode")
 
@@ -56,7 +60,7 @@ def pair_episodes(a: Run, b: Run) -> pd.DataFrame:
     if len(bad):
         ex = "; ".join(f"{_describe(r)}: seed {r.seed_a} vs {r.seed_b}" for _, r in bad.head(3).iterrows())
         raise ValueError(f"the runs used different seeds on {len(bad)} of {len(merged)} episodes ({ex}); "
-                         f"evaluate both with the same --seed so they play the same layouts")
+                         f"evaluate both with the same --first-seed so they play the same layouts")
     return merged.drop(columns="_merge")
 
 
@@ -106,20 +110,28 @@ def format_table(result: dict, alpha: float = 0.05) -> str:
     return "\n".join(lines)
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("run_a", help="first run directory (from `vla-ladder eval --out`)")
-    p.add_argument("run_b", help="second run directory, evaluated on the same seeds")
-    p.add_argument("--json", default=None, metavar="PATH", help="also write the comparison as JSON here")
-    p.add_argument("--alpha", type=float, default=0.05, help="significance level for the * marks")
+@dataclass
+class CompareConfig:
+    """Test whether two evaluation runs of the same seeded episodes differ, metric by metric."""
+
+    run_a: tyro.conf.Positional[Path]
+    """first run directory (from `vla-ladder eval --out`)"""
+    run_b: tyro.conf.Positional[Path]
+    """second run directory, evaluated on the same seeds"""
+    json: Path | None = None
+    """also write the comparison as JSON here"""
+    alpha: float = 0.05
+    """significance level for the * marks"""
+
+    def __post_init__(self):
+        if not 0 < self.alpha < 1:
+            raise ValueError(f"--alpha must be in (0, 1), got {self.alpha}")
 
 
-def run(args: argparse.Namespace) -> int:
-    if not 0 < args.alpha < 1:
-        raise ValueError(f"--alpha must be in (0, 1), got {args.alpha}")
-    result = compare_runs(load_run(args.run_a), load_run(args.run_b))
-    print(format_table(result, args.alpha))
-    if args.json:
-        write_json(args.json, result)
-        print(f"wrote {args.json}", file=sys.stderr)
+def run(cfg: CompareConfig) -> int:
+    result = compare_runs(load_run(cfg.run_a), load_run(cfg.run_b))
+    print(format_table(result, cfg.alpha))
+    if cfg.json:
+        write_json(cfg.json, result)
+        print(f"wrote {cfg.json}", file=sys.stderr)
     return 0
-

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
-from statsmodels.stats.proportion import proportion_confint
 
+from vla_ladder.conditions import Condition
+from vla_ladder.stats import rates
 from vla_ladder.task.objects import OBJECT_NAMES
 
-METRICS = ("success", "grasp_any", "reach")
 CONDITION_KEYS = ("regime", "split", "num_objects")
-CONFIDENCE = 0.95
+"""The columns of episodes.parquet that make up an episode's Condition."""
 NONE = "none"
 HELD_COLUMNS = (*OBJECT_NAMES, NONE)
 # Each episode ends in exactly one of these; the order is from best to worst.
@@ -27,27 +27,6 @@ OUTCOME_TEXT = {
     "reached_no_grasp": "the gripper ends within 5 cm of the instructed object, nothing was ever grasped",
     "nothing": "no grasp and the gripper ends away from the instructed object",
 }
-
-
-def wilson(k: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
-    """Wilson score interval of k successes in n trials (nan, nan for n = 0)."""
-    if n == 0:
-        return float("nan"), float("nan")
-    lo, hi = proportion_confint(int(k), int(n), alpha=1 - confidence, method="wilson")
-    return float(lo), float(hi)
-
-
-def rates(df: pd.DataFrame) -> dict:
-    """n, the rate of each metric over the episodes in df, and its Wilson interval under "ci95"."""
-    n = int(len(df))
-    out: dict = {"n": n}
-    ci = {}
-    for m in METRICS:
-        k = int(df[m].astype(bool).sum()) if n else 0
-        out[m] = k / n if n else float("nan")
-        ci[m] = list(wilson(k, n))
-    out["ci95"] = ci
-    return out
 
 
 def outcome(row) -> str:
@@ -97,7 +76,8 @@ def summarize(episodes: pd.DataFrame) -> dict:
 
 
 def condition_key(regime: str, split: str, num_objects: int) -> str:
-    return f"{regime}/{split}/{int(num_objects)}"
+    """The Condition key of an episodes.parquet row's condition columns."""
+    return Condition(regime, split, int(num_objects)).key
 
 
 def _plain(values) -> list:

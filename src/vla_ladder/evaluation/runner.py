@@ -1,6 +1,6 @@
 """Seeded evaluation of a policy in GraspObject-v1, one condition (regime, split, object count) at a time.
 
-Episode j of every condition plays seed `seed + j`, so every policy meets the same layouts. Episodes run
+Episode j of every condition plays seed `first_seed + j`, so every policy meets the same layouts. Episodes run
 `num_envs` at a time (physx_cuda batches them; physx_cpu runs one env) and the final step's decomposed
 metrics become one row each. `iter_episodes` yields those rows for any caller (recording, experiments);
 `run_evaluation` writes the run directory: episodes.parquet, summary.json, config.json, videos/.
@@ -11,63 +11,59 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Annotated, Iterator, Sequence
 
 import numpy as np
 import torch
+import tyro
 
-from vla_ladder import io
-from vla_ladder.policies import Policy, load_policy, parse_spec
-from vla_ladder.task.layouts import REGIMES, check_args, parse_regimes
+from vla_ladder import files
+from vla_ladder.conditions import Condition, ConditionGrid
+from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
+from vla_ladder.contract import CAMERA_NAMES, CONTROL_HZ, ENV_ID, EPISODE_STEPS
+from vla_ladder.policies import POLICY_KINDS, Policy, load_policy, parse_spec
 from vla_ladder.task.objects import OBJECT_NAMES
 
 SIM_BACKENDS = ("physx_cpu", "physx_cuda")
-EPISODE_COLUMNS = ("policy", "regime", "split", "num_objects", "episode", "seed", "target", "instruction",
-                   "held", "success", "grasp_any", "reach", "reach_dist", "object_set", "layout", "video")
-VIDEO_FPS = 20  # the control frequency: videos play in real time
+OBJECT_SETS = ("auto", "ycb", "standin")
 
 
 @dataclass
 class EvalConfig:
-    """What to evaluate; validated before any simulator starts."""
+    """Evaluate a policy on seeded episodes of every condition and write a run directory (`vla-ladder eval`)."""
 
-    policy: str
-    """Policy spec for `load_policy` ("scripted", "ppo:PATH", "lerobot:DIR", ...)."""
-    regimes: tuple[str, ...] = ("small_jitter",)
-    """Placement regimes to evaluate, in order."""
-    split: str = "canonical"
-    """Object-region pairing split."""
-    num_objects: int = 5
-    """Objects on the table (1-5)."""
+    policy: str | None = None
+    """policy spec: scripted, ppo:PATH, lerobot:DIR[?n_action_steps=H], nearest, layout-prior, random (required on
+    the command line; the grid and the study set it per model)"""
+    out: Path | None = None
+    """run directory to write: episodes.parquet, summary.json, config.json, videos/ (required on the command line)"""
+    grid: Annotated[ConditionGrid, tyro.conf.arg(name="")] = field(default_factory=ConditionGrid)
+    """the conditions evaluated (every regime of the ladder, canonical, five objects by default)"""
     episodes: int = 100
-    """Episodes per condition; episode j uses seed `seed + j`."""
-    seed: int = 0
-    """First episode seed."""
+    """episodes per condition"""
+    first_seed: int = 0
+    """episode j of every condition plays seed first_seed + j, so every policy meets the same layouts"""
     num_envs: int = 1
-    """Episodes simulated at once (more than one needs physx_cuda)."""
+    """episodes simulated at once (more than one needs physx_cuda)"""
     sim_backend: str = "physx_cpu"
-    """ManiSkill physics backend."""
+    """physx_cpu or physx_cuda"""
     videos: int = 0
-    """Write MP4s of both cameras for the first `videos` episodes of each condition."""
+    """write MP4s of both cameras for the first K episodes of each condition"""
     object_set: str = "auto"
-    """"ycb", "standin", or "auto" (YCB when its meshes are on disk)."""
-    policy_kwargs: dict = field(default_factory=dict)
-    """Extra keyword arguments for the policy factory."""
+    """ycb, standin, or auto (YCB when its meshes are on disk)"""
 
     def __post_init__(self):
-        if isinstance(self.regimes, str):
-            self.regimes = parse_regimes(self.regimes)
-        self.regimes = tuple(self.regimes)
-        if not self.regimes:
-            raise ValueError(f"no regime given; allowed: {', '.join(REGIMES)} or all")
-        for regime in self.regimes:
-            check_args(regime, self.split, self.num_objects)
+        self.out = None if self.out is None else Path(self.out)
+        if not isinstance(self.grid, ConditionGrid):
+            self.grid = ConditionGrid(**self.grid)
         for name in ("episodes", "num_envs"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if isinstance(self.videos, bool) or not isinstance(self.videos, (int, np.integer)) or self.videos < 0:
             raise ValueError(f"videos must be an integer >= 0, got {self.videos!r}")
+        if self.first_seed < 0:
+            raise ValueError(f"first_seed must be >= 0, got {self.first_seed}")
         if self.sim_backend not in SIM_BACKENDS:
             raise ValueError(f"unknown sim_backend {self.sim_backend!r}; allowed: {', '.join(SIM_BACKENDS)}")
         if self.sim_backend == "physx_cpu" and self.num_envs != 1:
@@ -75,16 +71,20 @@ class EvalConfig:
                              "use sim_backend=physx_cuda for batched evaluation")
         if self.sim_backend == "physx_cuda" and not torch.cuda.is_available():
             raise ValueError("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")
-        if self.object_set not in ("auto", "ycb", "standin"):
-            raise ValueError(f"unknown object_set {self.object_set!r}; allowed: auto, ycb, standin")
+        if self.object_set not in OBJECT_SETS:
+            raise ValueError(f"unknown object_set {self.object_set!r}; allowed: {', '.join(OBJECT_SETS)}")
 
     @property
-    def conditions(self) -> list[tuple[str, str, int]]:
-        return [(r, self.split, self.num_objects) for r in self.regimes]
+    def conditions(self) -> list[Condition]:
+        return self.grid.conditions
+
+    @property
+    def seeds(self) -> list[int]:
+        return [self.first_seed + j for j in range(self.episodes)]
 
 
-def make_env(policy: Policy, regime: str, split: str, num_objects: int, num_envs: int = 1,
-             sim_backend: str = "physx_cpu", render: bool = False, object_set: str = "auto"):
+def make_env(policy: Policy, condition: Condition, num_envs: int = 1, sim_backend: str = "physx_cpu",
+             render: bool = False, object_set: str = "auto"):
     """GraspObject-v1 in the policy's obs_mode; `render` adds a renderer so videos can be taken on demand
     (state policies pay for pictures only in the episodes that are filmed)."""
     import gymnasium as gym
@@ -94,9 +94,9 @@ def make_env(policy: Policy, regime: str, split: str, num_objects: int, num_envs
     kwargs = {}
     if render:
         kwargs["render_backend"] = "gpu" if sim_backend == "physx_cuda" else "cpu"
-    return gym.make("GraspObject-v1", obs_mode=policy.obs_mode, regime=regime, split=split,
-                    num_objects=num_objects, num_envs=num_envs, sim_backend=sim_backend, object_set=object_set,
-                    **kwargs)
+    return gym.make(ENV_ID, obs_mode=policy.obs_mode, regime=condition.regime, split=condition.split,
+                    num_objects=condition.num_objects, num_envs=num_envs, sim_backend=sim_backend,
+                    object_set=object_set, **kwargs)
 
 
 def camera_frames(env, obs, rows: Sequence[int]) -> np.ndarray:
@@ -105,7 +105,7 @@ def camera_frames(env, obs, rows: Sequence[int]) -> np.ndarray:
     data = obs.get("sensor_data") if isinstance(obs, dict) else None
     if not data or "rgb" not in data.get("hand_camera", {}):
         data = env.unwrapped.get_sensor_images()
-    return torch.cat([data["hand_camera"]["rgb"][rows], data["fixed_camera"]["rgb"][rows]], dim=2).cpu().numpy()
+    return torch.cat([data[cam]["rgb"][rows] for cam in CAMERA_NAMES], dim=2).cpu().numpy()
 
 
 def iter_episodes(env, policy: Policy, seeds: Sequence[int], film: int = 0) -> Iterator[dict]:
@@ -114,7 +114,7 @@ def iter_episodes(env, policy: Policy, seeds: Sequence[int], film: int = 0) -> I
     (None for the others). The env's episode length (50 steps) ends each batch."""
     u = env.unwrapped
     n = u.num_envs
-    horizon = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else 50
+    horizon = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else EPISODE_STEPS
     seeds = [int(s) for s in seeds]
     for start in range(0, len(seeds), n):
         chunk = seeds[start:start + n]
@@ -144,67 +144,69 @@ def iter_episodes(env, policy: Policy, seeds: Sequence[int], film: int = 0) -> I
             )
 
 
-def write_video(path: str | Path, frames: np.ndarray, fps: int = VIDEO_FPS) -> Path:
+def write_video(path: str | Path, frames: np.ndarray, fps: int = CONTROL_HZ) -> Path:
     """(T, H, W, 3) uint8 frames -> H.264 MP4 (yuv420p, plays in browsers), written atomically."""
     import imageio.v3 as iio
     # Encoded in memory: the encoder picks its container from the file name, which a temp file lacks.
     data = iio.imwrite("<bytes>", frames, extension=".mp4", plugin="pyav", codec="libx264", fps=fps,
                        out_pixel_format="yuv420p")
-    with io.atomic_path(path) as tmp:
+    with files.atomic_path(path) as tmp:
         tmp.write_bytes(data)
     return Path(path)
 
 
-def run_evaluation(policy: str | Policy, regimes: Sequence[str] | str = ("small_jitter",),
-                   split: str = "canonical", num_objects: int = 5, episodes: int = 100, seed: int = 0,
-                   out: str | Path | None = None, num_envs: int = 1, sim_backend: str = "physx_cpu",
-                   videos: int = 0, object_set: str = "auto", progress: bool = True,
-                   policy_kwargs: dict | None = None) -> dict:
-    """Evaluate `policy` (a spec or a Policy) on every condition and return the summary dict; with `out`,
-    also write the run directory (results are rewritten atomically after each condition, so an
+def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool = True) -> dict:
+    """Evaluate cfg.policy (or `policy`, labelled cfg.policy) on every condition and return the summary dict;
+    with cfg.out, also write the run directory (results are rewritten atomically after each condition, so an
     interrupted run leaves the finished conditions readable)."""
-    spec = policy if isinstance(policy, str) else getattr(policy, "spec", policy.name)
-    if isinstance(policy, str):
-        parse_spec(policy)  # fail on an unknown spec before any simulator starts
-    cfg = EvalConfig(policy=spec, regimes=regimes, split=split, num_objects=num_objects, episodes=episodes,
-                     seed=seed, num_envs=num_envs, sim_backend=sim_backend, videos=videos,
-                     object_set=object_set, policy_kwargs=dict(policy_kwargs or {}))
-    if isinstance(policy, str):
-        policy = load_policy(policy, **cfg.policy_kwargs)
-    out = Path(out) if out is not None else None
-    if out is not None:
-        io.write_json(out / "config.json", asdict(cfg))
-
     import pandas as pd
     from tqdm.auto import tqdm
 
     from vla_ladder.evaluation.metrics import summarize
 
+    if policy is None:
+        if not cfg.policy:
+            raise ValueError("--policy SPEC is required; allowed: " + ", ".join(POLICY_KINDS))
+        parse_spec(cfg.policy)  # an unknown spec fails before any simulator starts or file is written
+        policy = load_policy(cfg.policy)
+    spec, out = cfg.policy or policy.name, cfg.out
+    if out is not None:
+        files.write_json(out / "config.json", asdict(cfg))
     rows: list[dict] = []
     summary: dict = {}
     bar = tqdm(total=len(cfg.conditions) * cfg.episodes, desc=f"eval {spec}", unit="ep", disable=not progress)
-    for regime, split_, k in cfg.conditions:
-        env = make_env(policy, regime, split_, k, cfg.num_envs, cfg.sim_backend, render=cfg.videos > 0,
-                       object_set=cfg.object_set)
+    for cond in cfg.conditions:
+        env = make_env(policy, cond, cfg.num_envs, cfg.sim_backend, render=cfg.videos > 0, object_set=cfg.object_set)
         try:
-            seeds = [cfg.seed + j for j in range(cfg.episodes)]
-            for j, ep in enumerate(iter_episodes(env, policy, seeds, film=cfg.videos)):
+            for j, ep in enumerate(iter_episodes(env, policy, cfg.seeds, film=cfg.videos)):
                 frames, layout = ep.pop("frames"), ep.pop("layout")
                 video = ""
                 if frames is not None and out is not None:
-                    video = f"videos/{regime}-{split_}-{k}obj-ep{j:03d}-seed{ep['seed']}.mp4"
+                    video = f"videos/{cond.slug}-ep{j:03d}-seed{ep['seed']}.mp4"
                     write_video(out / video, frames)
-                rows.append(dict(policy=spec, regime=regime, split=split_, num_objects=k, episode=j, **ep,
-                                 layout=json.dumps(layout.to_dict()), video=video))
+                rows.append(dict(policy=spec, regime=cond.regime, split=cond.split, num_objects=cond.num_objects,
+                                 episode=j, **ep, layout=json.dumps(layout.to_dict()), video=video))
                 bar.update(1)
-                bar.set_postfix(regime=regime, success=f"{np.mean([r['success'] for r in rows]):.2f}")
+                bar.set_postfix(condition=cond.key, success=f"{np.mean([r['success'] for r in rows]):.2f}")
         finally:
             env.close()
         df = pd.DataFrame(rows, columns=list(EPISODE_COLUMNS))
-        summary = {"policy": policy.describe(), "provenance": io.provenance(df["object_set"].iloc[0]),
-                   "seed": cfg.seed, "episodes_per_condition": cfg.episodes, "conditions": summarize(df)}
+        summary = {"policy": policy.describe(), "provenance": files.provenance(df["object_set"].iloc[0]),
+                   "first_seed": cfg.first_seed, "episodes_per_condition": cfg.episodes,
+                   "conditions": summarize(df)}
         if out is not None:
-            io.write_parquet(out / "episodes.parquet", df)
-            io.write_json(out / "summary.json", summary)
+            files.write_parquet(out / "episodes.parquet", df)
+            files.write_json(out / "summary.json", summary)
     bar.close()
     return summary
+
+
+def run(cfg: EvalConfig) -> int:
+    if cfg.out is None:
+        raise ValueError("--out DIR is required: the run directory to write")
+    summary = run_evaluation(cfg)
+    for key, c in summary["conditions"].items():
+        print(f"{key}: n={c['n']} success={c['success']:.3f} grasp_any={c['grasp_any']:.3f} "
+              f"reach={c['reach']:.3f}")
+    print(f"wrote {cfg.out}/episodes.parquet, summary.json, config.json")
+    return 0

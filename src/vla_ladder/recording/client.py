@@ -15,8 +15,8 @@ from typing import Callable
 
 import numpy as np
 
+from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, IMAGE_SHAPE, STATE_DIM
 from vla_ladder.recording import protocol as P
-from vla_ladder.recording.server import ACTION_DIM, CAMERAS, IMAGE_SHAPE, STATE_DIM
 
 log = logging.getLogger(__name__)
 # Close codes after which reconnecting cannot help: the server refused this client or its messages.
@@ -66,12 +66,12 @@ class Episode:
         h = msg.header
         seed = P.require(h, "seed", int)
         for key, kind in (("instruction", str), ("layout", dict), ("metrics", dict), ("expert", dict),
-                          ("object_set", str), ("num_frames", int), ("has_frames", bool)):
+                          ("condition", str), ("object_set", str), ("num_frames", int), ("has_frames", bool)):
             P.require(h, key, kind)
         if not h["has_frames"]:
             return cls(seed, h, {}, None, None, server)
         T = h["num_frames"]
-        expected = {**{f"images.{c}": ((T, *IMAGE_SHAPE), np.uint8) for c in CAMERAS},
+        expected = {**{f"images.{c}": ((T, *IMAGE_SHAPE), np.uint8) for c in CAMERA_NAMES},
                     "state": ((T, STATE_DIM), np.float32), "action": ((T, ACTION_DIM), np.float32)}
         for name, (shape, dtype) in expected.items():
             a = msg.arrays.get(name)
@@ -79,7 +79,7 @@ class Episode:
                 got = None if a is None else (a.shape, a.dtype.name)
                 raise P.ProtocolError(f"episode {seed}: array {name!r} should be {shape} {np.dtype(dtype).name}, "
                                       f"got {got}")
-        return cls(seed, h, {c: msg.arrays[f"images.{c}"] for c in CAMERAS}, msg.arrays["state"],
+        return cls(seed, h, {c: msg.arrays[f"images.{c}"] for c in CAMERA_NAMES}, msg.arrays["state"],
                    msg.arrays["action"], server)
 
 

@@ -1,4 +1,4 @@
-"""The vla-ladder episode protocol (version 1): msgpack headers with raw numpy buffers over WebSockets.
+"""The vla-ladder episode protocol (version 2): msgpack headers with raw numpy buffers over WebSockets.
 
 Every message is one binary WebSocket message laid out as
 
@@ -19,8 +19,8 @@ from typing import Any
 import msgpack
 import numpy as np
 
-PROTOCOL_VERSION = 1
-SUBPROTOCOL = "vla-ladder.v1"
+PROTOCOL_VERSION = 2
+SUBPROTOCOL = "vla-ladder.v2"
 
 # Close codes: 1000-1011 are the WebSocket standard ones, 4000-4999 are left to applications.
 CLOSE_NORMAL = 1000

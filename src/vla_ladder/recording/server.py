@@ -13,26 +13,25 @@ import contextlib
 import hmac
 import ipaddress
 import logging
+import os
 import queue
 import threading
 import time
 import traceback
-from dataclasses import asdict, dataclass, field
-from typing import Any, Callable
+from dataclasses import dataclass, field
+from typing import Annotated, Any, Callable
 
 import numpy as np
+import tyro
 
+from vla_ladder import contract
+from vla_ladder.conditions import Condition
+from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, CONTROL_HZ, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
 from vla_ladder.recording import protocol as P
-from vla_ladder.task.layouts import check_args
 from vla_ladder.task.objects import OBJECT_NAMES
 
 log = logging.getLogger(__name__)
-CAMERAS = ("hand_camera", "fixed_camera")
-# GraspObject-v1's fixed episode length and camera resolution, kept here so that the protocol side never
-# imports the simulator (the Simulator checks they still match the env).
-EPISODE_STEPS = 50
-IMAGE_SHAPE = (256, 256, 3)
-STATE_DIM, ACTION_DIM, FPS = 15, 7, 20
+TOKEN_ENV = "VLA_LADDER_TOKEN"
 
 
 def is_loopback(host: str) -> bool:
@@ -45,30 +44,34 @@ def is_loopback(host: str) -> bool:
 
 
 @dataclass
-class ServerConfig:
-    """What a server simulates and how it listens."""
+class ServeConfig:
+    """Serve expert episodes of GraspObject-v1 over WebSockets (`vla-ladder serve`)."""
 
+    condition: Annotated[Condition, tyro.conf.arg(name="")] = field(default_factory=Condition)
+    """the condition every episode is played in"""
     policy: str = "scripted"
-    """Expert spec for `load_policy` ("scripted", "ppo:PATH", ...)."""
-    regime: str = "small_jitter"
-    split: str = "canonical"
-    num_objects: int = 5
-    seed: int = 0
-    """Seeds the server's global torch/numpy RNGs; episode seeds always come from the client."""
+    """expert spec for load_policy: scripted, ppo:PATH, ..."""
+    rng_seed: int = 0
+    """seeds the server's global torch/numpy RNGs (stochastic experts); episode seeds always come from clients"""
     num_envs: int = 1
-    """Parallel envs simulated in lock step; > 1 needs a GPU (physx_cuda)."""
+    """parallel envs simulated in lock step; more than one needs a GPU (physx_cuda)"""
     host: str = "127.0.0.1"
+    """address to bind; anything but loopback needs --token"""
     port: int = 8765
-    """0 picks a free port (the actual URL is reported once listening)."""
-    token: str | None = None
-    """Shared secret every client must send in its hello; required off loopback."""
+    """port; 0 picks a free one (the URL is printed once listening)"""
+    token: str | None = field(default_factory=lambda: os.environ.get(TOKEN_ENV))
+    """shared secret every client must send in its hello; required off loopback (default: $VLA_LADDER_TOKEN)"""
     max_outstanding: int = 0
-    """Episodes one client may have requested but not yet received (0: 4 x num_envs, at least 8)."""
+    """episodes one client may have requested but not yet received (0: 4 x num_envs, at least 8)"""
     lazy: bool = False
-    """Build the simulator on the first request instead of at start (cheap start for protocol checks)."""
+    """build the simulator on the first request instead of at start (cheap start for protocol checks)"""
+    exit_on_stdin_close: bool = False
+    """exit when stdin closes (how `record` ties the local server it starts to its own life)"""
 
     def __post_init__(self):
-        check_args(self.regime, self.split, self.num_objects)
+        self.condition = Condition.of(self.condition)
+        from vla_ladder.policies import parse_spec
+        parse_spec(self.policy)
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
         if self.num_envs > 1:
@@ -95,15 +98,15 @@ class EpisodeResult:
 class Simulator:
     """GraspObject-v1 with both cameras plus the expert; `run(seeds)` plays whole episodes."""
 
-    def __init__(self, cfg: ServerConfig):
+    def __init__(self, cfg: ServeConfig):
         import gymnasium as gym
         import torch
 
         import vla_ladder.task.env  # noqa: F401  (registers GraspObject-v1)
         from vla_ladder.policies import load_policy
 
-        torch.manual_seed(cfg.seed)
-        np.random.seed(cfg.seed % 2**32)
+        torch.manual_seed(cfg.rng_seed)
+        np.random.seed(cfg.rng_seed % 2**32)
         self.cfg = cfg
         self.policy = load_policy(cfg.policy)
         # The expert reads privileged state, the dataset needs pixels: ManiSkill renders both in one obs
@@ -112,13 +115,11 @@ class Simulator:
         obs_mode = "rgb" if mode == "rgb" else "state_dict+rgb"
         self._flatten = mode == "state"
         backend = "physx_cuda" if cfg.num_envs > 1 else "physx_cpu"
-        self.env = gym.make("GraspObject-v1", obs_mode=obs_mode, regime=cfg.regime, split=cfg.split,
-                            num_objects=cfg.num_objects, num_envs=cfg.num_envs, sim_backend=backend)
+        c = cfg.condition
+        self.env = gym.make(contract.ENV_ID, obs_mode=obs_mode, regime=c.regime, split=c.split,
+                            num_objects=c.num_objects, num_envs=cfg.num_envs, sim_backend=backend)
         self.base = self.env.unwrapped
-        from mani_skill.utils.registration import REGISTERED_ENVS
-        self.steps = int(REGISTERED_ENVS["GraspObject-v1"].max_episode_steps)
-        if self.steps != EPISODE_STEPS or self.base.control_freq != FPS:
-            raise RuntimeError("GraspObject-v1 changed its episode length or control rate; update server.py")
+        self.steps = EPISODE_STEPS
         self.object_set = self.base.object_set
         self.expert = {"spec": cfg.policy, **self.policy.describe()}
 
@@ -139,15 +140,13 @@ class Simulator:
         instructions = self.base.instructions
         layouts = [lay.to_dict() for lay in self.base.layouts]
         T = self.steps
-        if any(tuple(obs["sensor_data"][cam]["rgb"].shape[1:]) != IMAGE_SHAPE for cam in CAMERAS):
-            raise RuntimeError(f"cameras no longer render {IMAGE_SHAPE}; update server.py")
-        frames = {cam: np.empty((n, T, *IMAGE_SHAPE), np.uint8) for cam in CAMERAS}
+        frames = {cam: np.empty((n, T, *IMAGE_SHAPE), np.uint8) for cam in CAMERA_NAMES}
         state = np.empty((n, T, obs["extra"]["proprio"].shape[1]), np.float32)
-        action = np.empty((n, T, 7), np.float32)
+        action = np.empty((n, T, ACTION_DIM), np.float32)
         t0 = time.perf_counter()
         with torch.no_grad():
             for t in range(T):
-                for cam in CAMERAS:
+                for cam in CAMERA_NAMES:
                     frames[cam][:, t] = obs["sensor_data"][cam]["rgb"].cpu().numpy()
                 state[:, t] = obs["extra"]["proprio"].cpu().numpy()
                 a = self.policy.act(self._policy_obs(obs), instructions).to(torch.float32)
@@ -165,11 +164,10 @@ class Simulator:
             }
             header = {
                 "type": "episode", "seed": int(seed), "instruction": instructions[i], "layout": layouts[i],
-                "target": layouts[i]["target"], "regime": self.cfg.regime, "split": self.cfg.split,
-                "num_objects": self.cfg.num_objects, "object_set": self.object_set, "expert": self.expert,
-                "metrics": metrics, "num_frames": T, "sim_seconds": sim_s,
+                "target": layouts[i]["target"], "condition": self.cfg.condition.key, "object_set": self.object_set,
+                "expert": self.expert, "metrics": metrics, "num_frames": T, "sim_seconds": sim_s,
             }
-            arrays = {**{f"images.{cam}": frames[cam][i] for cam in CAMERAS},
+            arrays = {**{f"images.{cam}": frames[cam][i] for cam in CAMERA_NAMES},
                       "state": state[i], "action": action[i]}
             results.append(EpisodeResult(int(seed), header, arrays))
         return results
@@ -201,7 +199,7 @@ class _Connection:
 class EpisodeServer:
     """The WebSocket front end and the simulation thread behind it."""
 
-    def __init__(self, cfg: ServerConfig):
+    def __init__(self, cfg: ServeConfig):
         self.cfg = cfg
         self._work: queue.Queue[_Work] = queue.Queue()
         self._stop = threading.Event()
@@ -261,20 +259,21 @@ class EpisodeServer:
             log.error("simulator could not start:\n%s", traceback.format_exc())
             raise
         log.info("simulator ready in %.1f s (%s, %s, object set %s)", time.perf_counter() - t0,
-                 self.cfg.policy, self.cfg.regime, self._sim.object_set)
+                 self.cfg.policy, self.cfg.condition, self._sim.object_set)
 
     # ------------------------------------------------------------------ protocol
     def _welcome(self) -> bytes:
-        server = {k: v for k, v in asdict(self.cfg).items() if k not in ("token", "host", "port", "lazy")}
-        server.update(object_set=self.object_set, fps=FPS, episode_steps=EPISODE_STEPS,
-                      cameras=list(CAMERAS), image_shape=list(IMAGE_SHAPE), state_dim=STATE_DIM,
-                      action_dim=ACTION_DIM)
+        # What the server simulates: a recorder takes its dataset's condition and expert from here.
+        server = {"policy": self.cfg.policy, "condition": self.cfg.condition.key, "num_envs": self.cfg.num_envs,
+                  "object_set": self.object_set, "fps": CONTROL_HZ, "episode_steps": EPISODE_STEPS,
+                  "cameras": list(CAMERA_NAMES), "image_shape": list(IMAGE_SHAPE), "state_dim": STATE_DIM,
+                  "action_dim": ACTION_DIM}
         limits = {"max_client_message": P.MAX_CLIENT_MESSAGE, "max_outstanding": self.cfg.max_outstanding,
                   "max_seeds_per_request": P.MAX_SEEDS_PER_REQUEST}
         return P.encode({"type": "welcome", "protocol": P.PROTOCOL_VERSION, "server": server, "limits": limits})
 
     def _episode_bytes(self) -> int:
-        return P.episode_message_size(EPISODE_STEPS, {c: IMAGE_SHAPE for c in CAMERAS}, STATE_DIM, ACTION_DIM)
+        return P.episode_message_size(EPISODE_STEPS, {c: IMAGE_SHAPE for c in CAMERA_NAMES}, STATE_DIM, ACTION_DIM)
 
     async def _handshake(self, ws) -> None:
         try:

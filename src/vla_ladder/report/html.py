@@ -9,47 +9,73 @@ video plus a frame strip every 300 ms (every 6th step at 20 Hz, as in the paper'
 
 from __future__ import annotations
 
-import argparse
 import base64
 import html
 import tempfile
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
+import tyro
+
 import numpy as np
 
-from vla_ladder.evaluation.metrics import METRICS, OUTCOME_TEXT, OUTCOMES, outcomes
+from vla_ladder.contract import CONTROL_HZ, METRICS
+from vla_ladder.evaluation.metrics import OUTCOME_TEXT, OUTCOMES, outcomes
 from vla_ladder.evaluation.rundir import Run, load_runs
-from vla_ladder.io import write_text
+from vla_ladder.files import write_text
 from vla_ladder.report import plots, tables
 
-CONTROL_HZ = 20
 STRIP_EVERY = 6  # steps: 300 ms at 20 Hz
 VIDEO_MAX_BYTES = 4_000_000  # larger videos are shown as frame strips only, to keep the page loadable
 
-# (policy kind, success, grasp-any, reach, meaning, measured on the ladder: 20 episodes per regime, seed 0,
-# stand-in objects, success/grasp-any/reach % for small -> medium -> large jitter -> full random).
+# (policy kind, the policies measured for it, success, grasp-any, reach, meaning). The measured figures come
+# from data/reference_ladder.json (written by benchmarks/reference_ladder.py) and data/paper.json.
 SIGNATURES = [
-    ("Instruction-following expert (scripted, PPO)", "high", "high", "high",
-     "Reaches, grasps and holds the instructed object: the upper bound of the setting.",
-     "scripted: 100/100/100 in every regime"),
-    ("Nearest object (ignores the instruction)", "≈ 1/#objects", "high", "≈ success",
+    ("Instruction-following expert (scripted, PPO)", ("scripted",), "high", "high", "high",
+     "Reaches, grasps and holds the instructed object: the upper bound of the setting."),
+    ("Nearest object (ignores the instruction)", ("nearest",), "≈ 1/#objects", "high", "≈ success",
      "Grasping works, object selection does not: grasp-any far above success, wrong-object grasps fill "
-     "the confusion matrix's off-diagonal.",
-     "nearest: success 25, 20, 20, 25; grasp-any 100 everywhere; reach = success"),
-    ("Layout prior (ignores perception)", "high under small jitter, → 0 under full random / OOD pairings",
-     "follows success", "follows success",
+     "the confusion matrix's off-diagonal."),
+    ("Layout prior (ignores perception)", ("layout-prior",),
+     "high under small jitter, → 0 under full random / OOD pairings", "follows success", "follows success",
      "A location shortcut: it goes where the instructed object usually is. Success collapses as soon as "
      "objects leave their regions; on held-out pairings it grasps whatever sits in the target's usual "
-     "region (wrong object) or nothing.",
-     "layout-prior: success 90, 35, 20, 0; grasp-any 100, 80, 40, 15; reach 90, 40, 20, 0"),
-    ("Random actions", "≈ 0", "≈ 0", "≈ 0", "The floor: no motor skill at all.",
-     "random: success 0; grasp-any and reach ≤ 5"),
-    ("Paper's VLA failure (e.g. SmolVLA, full random)", "low", "above success", "low",
+     "region (wrong object) or nothing."),
+    ("Random actions", ("random",), "≈ 0", "≈ 0", "≈ 0", "The floor: no motor skill at all."),
+    ("Paper's VLA failure (e.g. SmolVLA, full random)", ("paper: SmolVLA",), "low", "above success", "low",
      "Confident reach-and-grasp motions to arbitrary places: the grasping primitive is learned, the "
-     "binding of the motion to the instructed object is not.",
-     "paper, SmolVLA: success 90, 37, 41, 2; grasp-any 98, 48, 50, 12; reach 100, 93, 100, 4"),
+     "binding of the motion to the instructed object is not."),
 ]
+LADDER = ("small_jitter", "medium_jitter", "large_jitter", "full_random")
+
+
+def reference_data(name: str) -> dict:
+    """A data file shipped with the report: reference_ladder.json (measured) or paper.json (the paper's tables)."""
+    import json
+    from importlib import resources
+    return json.loads(resources.files("vla_ladder.report").joinpath("data", name).read_text())
+
+
+def _ladder_text(label: str, conditions: dict) -> str:
+    """"label: success a, b, c, d; grasp-any ...; reach ..." along the ladder, in %."""
+    parts = []
+    for m, name in (("success", "success"), ("grasp_any", "grasp-any"), ("reach", "reach")):
+        vals = [conditions.get(f"{r}/canonical/5", {}).get(m) for r in LADDER]
+        parts.append(name + " " + ", ".join("–" if v is None else f"{100 * v:.0f}" for v in vals))
+    return f"{label}: " + "; ".join(parts)
+
+
+def _measured(labels: tuple[str, ...]) -> str:
+    ref, paper = reference_data("reference_ladder.json"), reference_data("paper.json")
+    out = []
+    for label in labels:
+        if label.startswith("paper: "):
+            model = label.removeprefix("paper: ")
+            out.append(_ladder_text(f"paper, {model}", paper["ladder"][model]))
+        elif label in ref["results"]:
+            out.append(_ladder_text(label, ref["results"][label]))
+    return " | ".join(out)
 
 
 def _data_uri(data: bytes, mime: str) -> str:
@@ -167,7 +193,7 @@ def _placement_figure(runs: list[Run], tmp: Path) -> tuple[str, str] | None:
         from vla_ladder.report.placements import plot_placements
     except ImportError:
         return None
-    from vla_ladder.task.layouts import REGIMES
+    from vla_ladder.conditions import REGIMES
     present = {r for run in runs for r in run.episodes["regime"].unique()}
     regimes = [r for r in REGIMES if r in present] or list(REGIMES)
     path = tmp / "placements.png"
@@ -219,7 +245,9 @@ def _rollouts(runs: list[Run], labels: list[str], samples: int, with_video: bool
 
 
 def _signatures() -> str:
-    rows = "".join("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in row) + "</tr>" for row in SIGNATURES)
+    rows = "".join("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in (kind, *cells, _measured(labels)))
+                   + "</tr>" for kind, labels, *cells in SIGNATURES)
+    ref = reference_data("reference_ladder.json")["experiment"]
     kinds = "".join(f"<li><b>{k.replace('_', ' ')}</b>: {html.escape(v)}</li>" for k, v in OUTCOME_TEXT.items())
     return (
         "<p><b>Success</b>: the instructed object is grasped at the final step. <b>Grasp-any</b>: some object "
@@ -227,8 +255,9 @@ def _signatures() -> str:
         "the instructed object (the policy at least went to the right object).</p>"
         "<table><tr><th>policy kind</th><th>success</th><th>grasp-any</th><th>reach</th><th>what it means</th>"
         "<th>measured along the ladder (small → medium → large jitter → full random, %)</th>"
-        f"</tr>{rows}</table><p class=note>Reference policies measured with 20 episodes per regime, seeds 0-19, "
-        "stand-in objects (docs/diagnostics.md); the last row is the paper's Table 2.</p>"
+        f"</tr>{rows}</table><p class=note>Reference policies measured with {ref['episodes']} episodes per regime, "
+        f"seeds {ref['first_seed']}-{ref['first_seed'] + ref['episodes'] - 1}, five objects (docs/diagnostics.md); "
+        "the last row is the paper's Table 2.</p>"
         "<p>Reading a result: <i>grasp-any ≫ success</i> means the policy can grasp but picks the wrong object "
         "(look at the confusion matrix: which object instead?); <i>reach ≫ grasp-any</i> means it goes to the "
         "right object and fumbles the grasp; <i>success high under small jitter but not on OOD pairings</i> "
@@ -285,20 +314,31 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
     return write_text(out, page)
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories from `vla-ladder eval --out`")
-    p.add_argument("--out", required=True, help="HTML file to write")
-    p.add_argument("--title", default="vla-ladder evaluation report")
-    p.add_argument("--samples", type=int, default=2, help="recorded episodes shown per outcome kind and run")
-    p.add_argument("--no-video", action="store_true", help="frame strips only (a smaller page)")
-    p.add_argument("--no-placements", action="store_true", help="leave out the placement figure")
+@dataclass
+class ReportConfig:
+    """Write one self-contained HTML page of evaluation runs (`vla-ladder report RUN_DIR... --out report.html`)."""
+
+    runs: tyro.conf.Positional[tuple[Path, ...]]
+    """run directories from `vla-ladder eval --out`"""
+    out: Path
+    """HTML file to write"""
+    title: str = "vla-ladder evaluation report"
+    """page title"""
+    samples: int = 2
+    """recorded episodes shown per outcome kind and run"""
+    video: bool = True
+    """embed rollout videos (--no-video: frame strips only, a smaller page)"""
+    placements: bool = True
+    """include the placement figure"""
+
+    def __post_init__(self):
+        if self.samples < 0:
+            raise ValueError(f"--samples must be >= 0, got {self.samples}")
+        if not self.runs:
+            raise ValueError("give at least one run directory")
 
 
-def run(args: argparse.Namespace) -> int:
-    if args.samples < 0:
-        raise ValueError(f"--samples must be >= 0, got {args.samples}")
-    out = build_report(load_runs(args.runs), args.out, args.title, args.samples, not args.no_video,
-                       not args.no_placements)
+def run(cfg: ReportConfig) -> int:
+    out = build_report(load_runs(cfg.runs), cfg.out, cfg.title, cfg.samples, cfg.video, cfg.placements)
     print(out.resolve())
     return 0
-

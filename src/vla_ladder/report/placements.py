@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from vla_ladder.io import atomic_path
-from vla_ladder.task.layouts import REGIMES, REGION_CENTERS, WORKSPACE_CENTER, WORKSPACE_SIZE, Layout
+from vla_ladder.files import atomic_path
+from vla_ladder.conditions import REGIMES, Condition, parse_regimes
+from vla_ladder.report.tables import REGIME_NAMES
+from vla_ladder.task.layouts import REGION_CENTERS, WORKSPACE_CENTER, WORKSPACE_SIZE, Layout, sample_layouts
 from vla_ladder.task.objects import OBJECT_NAMES, OBJECTS
 
-TITLES = {"small_jitter": "Small jitter", "medium_jitter": "Medium jitter", "large_jitter": "Large jitter",
-          "full_random": "Full random"}
 
 
 def plot_layouts(layouts_by_regime: dict[str, Sequence[Layout]], path: str | Path) -> Path:
@@ -39,7 +40,7 @@ def plot_layouts(layouts_by_regime: dict[str, Sequence[Layout]], path: str | Pat
                 # Plot as seen from the robot: +y (robot's left) to the left.
                 ax.scatter(-pts[:, 1], pts[:, 0], s=6, alpha=0.6, color=spec.rgba[:3] if i != 2 else (0.1, 0.6, 0.2),
                            label=spec.phrase, edgecolors="none")
-        ax.set_title(TITLES.get(regime, regime))
+        ax.set_title(REGIME_NAMES.get(regime, regime))
         ax.set_aspect("equal")
         ax.set_xlim(-lo[1] - WORKSPACE_SIZE[1] - 0.03, -lo[1] + 0.03)
         ax.set_ylim(lo[0] - 0.03, lo[0] + WORKSPACE_SIZE[0] + 0.03)
@@ -57,5 +58,58 @@ def plot_layouts(layouts_by_regime: dict[str, Sequence[Layout]], path: str | Pat
 
 def plot_placements(regimes: Sequence[str], n: int, seed: int, path: str | Path, split: str = "canonical",
                     num_objects: int = 5) -> Path:
-    from vla_ladder.task.layouts import sample_layouts
-    return plot_layouts({r: sample_layouts(r, split, num_objects, range(seed, seed + n)) for r in regimes}, path)
+    return plot_layouts({r: sample_layouts(Condition(r, split, num_objects), range(seed, seed + n)) for r in regimes},
+                        path)
+
+
+@dataclass
+class PlacementsConfig:
+    """Sample layouts of the placement ladder (no simulator): print them, write JSON, draw the paper's Figure 1."""
+
+    n: int
+    """layouts per regime"""
+    regimes: tuple[str, ...] = ("all",)
+    """regimes, or all"""
+    split: str = "canonical"
+    """object-region split: canonical, pairings_id, pairings_ood"""
+    num_objects: int = 5
+    """objects per scene, 1-5 (target included)"""
+    target: str | None = None
+    """instructed object (default: uniform)"""
+    first_seed: int = 0
+    """episode j uses seed first_seed + j"""
+    json: Path | None = None
+    """write the layouts here (JSON)"""
+    plot: Path | None = None
+    """write the placement figure here (PNG/PDF/SVG)"""
+
+    def __post_init__(self):
+        self.regimes = parse_regimes(self.regimes)
+        self.conditions = [Condition(r, self.split, self.num_objects) for r in self.regimes]
+        if self.target is not None:
+            from vla_ladder.task.objects import object_index
+            object_index(self.target)
+        if self.n < 1:
+            raise ValueError(f"--n must be at least 1, got {self.n}")
+        if self.first_seed < 0:
+            raise ValueError(f"--first-seed must be >= 0, got {self.first_seed}")
+
+
+def run(cfg: PlacementsConfig) -> int:
+    from vla_ladder.files import write_json
+
+    seeds = range(cfg.first_seed, cfg.first_seed + cfg.n)
+    layouts = {c.regime: sample_layouts(c, seeds, cfg.target) for c in cfg.conditions}
+    if cfg.json:
+        write_json(cfg.json, {"split": cfg.split, "num_objects": cfg.num_objects, "units": "metres",
+                              "episodes": [lay.to_dict() for r in cfg.regimes for lay in layouts[r]]})
+        print(f"wrote {cfg.n * len(cfg.regimes)} layouts to {cfg.json}")
+    if cfg.plot:
+        plot_layouts(layouts, cfg.plot)
+        print(f"wrote placement figure to {cfg.plot}")
+    if not cfg.json and not cfg.plot:
+        for r in cfg.regimes:
+            for lay in layouts[r]:
+                pos = ", ".join(f"{n} ({x:+.3f}, {y:+.3f})" for n, (x, y) in zip(lay.objects, lay.xy))
+                print(f"{r} seed {lay.seed}: {lay.instruction!r}: {pos}")
+    return 0

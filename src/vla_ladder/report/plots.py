@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vla_ladder.evaluation.metrics import METRICS
-from vla_ladder.io import atomic_path
+from vla_ladder.contract import METRICS
+from vla_ladder.files import atomic_path
 from vla_ladder.report.tables import METRIC_NAMES, REGIME_NAMES, REGIME_SHORT, SPLIT_NAMES
 from vla_ladder.task.objects import OBJECTS
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
-from vla_ladder.evaluation.metrics import METRICS
+from vla_ladder.contract import METRICS
 
 METRIC_NAMES = {"success": "Success", "grasp_any": "Grasp-any", "reach": "Reach"}
 REGIME_NAMES = {"small_jitter": "Small jitter", "medium_jitter": "Medium jitter", "large_jitter": "Large jitter",

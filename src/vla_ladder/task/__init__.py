@@ -1,9 +1,4 @@
-"""GraspObject-v1: the ManiSkill3 task, its objects and the placement ladder."""
-
-from vla_ladder.task.layouts import REGIMES, SPLITS, Layout, sample_layout  # noqa: F401
-from vla_ladder.task.objects import OBJECT_NAMES, OBJECTS  # noqa: F401
-
-ENV_ID = "GraspObject-v1"
+"""GraspObject-v1: the ManiSkill3 task (env.py), its objects and the placement ladder (pure numpy)."""
 
 
 def register() -> None:

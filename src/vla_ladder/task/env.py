@@ -23,48 +23,61 @@ from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs.pose import Pose
 from mani_skill.utils.structs.types import GPUMemoryConfig, SimConfig
 
+from vla_ladder import contract
+from vla_ladder.conditions import Condition
+from vla_ladder.contract import CAMERAS, CONTROL_HZ, EPISODE_STEPS, REACH_THRESHOLD, SIM_HZ
 from vla_ladder.task import assets
-from vla_ladder.task.layouts import WORKSPACE_CENTER, Layout, check_args, sample_layout
-from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, OBJECTS
+from vla_ladder.task.layouts import WORKSPACE_CENTER, Layout, sample_layout
+from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, object_index
 
-REACH_THRESHOLD = 0.05  # metres from the TCP to the instructed object's bounding box
 LIFT_HEIGHT = 0.05
 ROBOT_BASE = (-0.615, 0.0, 0.0)
 # Where absent objects wait: a collision-only shelf beside the table, out of both cameras' view and
 # well inside ManiSkill's 5 m spacing between parallel sub-scenes.
 PARK_XY = np.array([[-0.6 + 0.3 * i, 1.8] for i in range(NUM_OBJECTS)])
-CAMERA_SIZE = 256
-WRIST_FOV_DEG, FRONT_FOV_DEG = 58.0, 45.0
+HAND_CAMERA, FIXED_CAMERA = CAMERAS
 REST_QPOS = np.array([0.0, np.pi / 8, 0, -np.pi * 5 / 8, 0, np.pi * 3 / 4, np.pi / 4, 0.04, 0.04])
 
 
-@register_env("GraspObject-v1", max_episode_steps=50)
+@register_env(contract.ENV_ID, max_episode_steps=EPISODE_STEPS)
 class GraspObjectEnv(BaseEnv):
-    """Grasp the instructed object. Episodes always run 50 steps (2.5 s at 20 Hz); success is the
-    instructed object being held at the final step, as in the paper."""
+    """Grasp the instructed object among up to five: "grasp the <object>".
 
-    SUPPORTED_ROBOTS = ["panda_wristcam"]
+    Randomisations, all from the episode seed (env i reset with seed s plays seed s + i):
+    - the condition's layout (`layouts.sample_layout`): which objects, where, their yaw, and the target;
+    - the robot's initial joint positions (Gaussian noise, `robot_init_qpos_noise` rad).
+
+    Success: the instructed object is grasped (both fingers push on it) at the final step. Episodes
+    always run 50 steps (2.5 s at 20 Hz, physics at 100 Hz) and never terminate early. `info` also holds
+    grasp_any (some object grasped at some step), reach (TCP within 5 cm of the target's box at the end),
+    held (index of the object grasped now, -1 for none), reach_dist, lift and lifted.
+    """
+
+    SUPPORTED_ROBOTS = [contract.ROBOT]
     agent: PandaWristCam
 
     def __init__(self, *args, regime: str = "small_jitter", split: str = "canonical", num_objects: int = 5,
                  target: str | None = None, object_set: str = "auto", robot_init_qpos_noise: float = 0.02,
-                 robot_uids="panda_wristcam", render_backend: str = "auto", obs_mode: str | None = None,
+                 robot_uids=contract.ROBOT, render_backend: str = "auto", obs_mode: str | None = None,
                  render_mode: str | None = None, sensor_configs: dict | None = None,
                  reconfiguration_freq: int | None = None, **kwargs):
-        check_args(regime, split, num_objects, target)
-        self.regime, self.split, self.num_objects, self.target = regime, split, int(num_objects), target
+        self.condition = Condition(regime, split, num_objects)
+        if target is not None:
+            object_index(target)
+        self.target = target
         self.object_set = assets.resolve_object_set(object_set)
         self.robot_init_qpos_noise = robot_init_qpos_noise
         self.layouts: list[Layout | None] = []
         self._layout_seeds = np.zeros(0, dtype=np.int64)
         self._seed_rng = np.random.default_rng()
         obs_mode = obs_mode or "state"
-        kwargs.setdefault("control_mode", "pd_ee_delta_pose")
+        kwargs.setdefault("control_mode", contract.CONTROL_MODE)
         if render_backend == "auto":
             needs_render = obs_mode not in ("state", "state_dict", "none") or render_mode is not None
             render_backend = ("gpu" if torch.cuda.is_available() else "cpu") if needs_render else "none"
-        # The paper's cameras: 58 deg wrist, 256x256; the fixed front one is defined below.
-        cams = {"hand_camera": dict(width=CAMERA_SIZE, height=CAMERA_SIZE, fov=np.deg2rad(WRIST_FOV_DEG))}
+        # The contract's cameras: the wrist one is the robot's own (resized here), the front one is below.
+        cams = {HAND_CAMERA.name: dict(width=HAND_CAMERA.width, height=HAND_CAMERA.height,
+                                       fov=np.deg2rad(HAND_CAMERA.fov_deg))}
         for k, v in (sensor_configs or {}).items():
             cams[k] = {**cams.get(k, {}), **v} if isinstance(v, dict) else v
         if reconfiguration_freq is None:
@@ -79,17 +92,34 @@ class GraspObjectEnv(BaseEnv):
                          render_mode=render_mode, sensor_configs=cams, reconfiguration_freq=reconfiguration_freq,
                          **kwargs)
         self.metadata = {**self.metadata, "object_set": self.object_set}
+        self._check_contract()
+
+    def _check_contract(self) -> None:
+        """Every stage reads the episode's shape from vla_ladder.contract: make sure this env is that."""
+        problems = []
+        if (self.sim_freq, self.control_freq) != (SIM_HZ, CONTROL_HZ):
+            problems.append(f"rates {self.sim_freq}/{self.control_freq} Hz, contract {SIM_HZ}/{CONTROL_HZ}")
+        if self.single_action_space.shape != (contract.ACTION_DIM,):
+            problems.append(f"action {self.single_action_space.shape}, contract ({contract.ACTION_DIM},)")
+        sensors = getattr(self, "_sensor_configs", None)  # only set up when the scene renders
+        for cam in CAMERAS if sensors is not None else ():
+            cfg = sensors.get(cam.name)
+            if cfg is None or (cfg.height, cfg.width) != (cam.height, cam.width):
+                problems.append(f"camera {cam.name} missing or not {cam.height}x{cam.width}")
+        if problems:
+            raise RuntimeError("GraspObject-v1 no longer matches vla_ladder.contract: " + "; ".join(problems))
 
     # ------------------------------------------------------------------ configuration
     @property
     def _default_sim_config(self):
-        return SimConfig(sim_freq=100, control_freq=20, gpu_memory_config=GPUMemoryConfig(
+        return SimConfig(sim_freq=SIM_HZ, control_freq=CONTROL_HZ, gpu_memory_config=GPUMemoryConfig(
             max_rigid_contact_count=2**21, max_rigid_patch_count=2**19, found_lost_pairs_capacity=2**25))
 
     @property
     def _default_sensor_configs(self):
         pose = sapien_utils.look_at(eye=[0.5, 0.0, 0.45], target=[WORKSPACE_CENTER[0] - 0.04, 0.0, 0.02])
-        return [CameraConfig("fixed_camera", pose, CAMERA_SIZE, CAMERA_SIZE, np.deg2rad(FRONT_FOV_DEG), 0.01, 100)]
+        return [CameraConfig(FIXED_CAMERA.name, pose, FIXED_CAMERA.width, FIXED_CAMERA.height,
+                             np.deg2rad(FIXED_CAMERA.fov_deg), 0.01, 100)]
 
     @property
     def _default_human_render_camera_configs(self):
@@ -126,8 +156,8 @@ class GraspObjectEnv(BaseEnv):
     # ------------------------------------------------------------------ episodes
     def reset(self, seed: None | int | Sequence[int] = None, options: dict | None = None):
         """seed=s (int) gives env i the episode seed s + i; a list gives one seed per reset env.
-        options["conditions"], a list of (regime, split, num_objects) per reset env, overrides the env's own
-        condition for these episodes (one GPU env can then train on a mixture of conditions)."""
+        options["conditions"], one Condition (or key) per reset env, overrides the env's own condition for
+        these episodes (one GPU env can then train on a mixture of conditions)."""
         options = dict(options or {})
         env_idx = options.get("env_idx")
         idx = np.arange(self.num_envs) if env_idx is None else np.asarray(
@@ -144,13 +174,12 @@ class GraspObjectEnv(BaseEnv):
             seeds = int(seed) + np.arange(len(idx))
             self._seed_rng = np.random.default_rng(int(seed))
         self._layout_seeds[idx] = seeds
-        if "target" in options:
-            check_args(self.regime, self.split, self.num_objects, options["target"])
+        if options.get("target") is not None:
+            object_index(options["target"])
         if "conditions" in options:
             if len(options["conditions"]) != len(idx):
                 raise ValueError(f"got {len(options['conditions'])} conditions for {len(idx)} envs being reset")
-            for cond in options["conditions"]:
-                check_args(*cond)
+            options["conditions"] = [Condition.of(c) for c in options["conditions"]]
         return super().reset(seed=None if seed is None else [int(s) for s in seeds] if env_idx is None
                              else None, options=options)
 
@@ -166,10 +195,10 @@ class GraspObjectEnv(BaseEnv):
         qpos = np.tile(REST_QPOS, (b, 1)).astype(np.float32)
         present = np.zeros((b, NUM_OBJECTS), dtype=bool)
         tgt = np.zeros(b, dtype=np.int64)
-        conditions = options.get("conditions") or [(self.regime, self.split, self.num_objects)] * b
+        conditions = options.get("conditions") or [self.condition] * b
         for row, i in enumerate(ids):
             seed = int(self._layout_seeds[i])
-            lay = sample_layout(*conditions[row], seed, target)
+            lay = sample_layout(conditions[row], seed, target)
             self.layouts[i] = lay
             tgt[row] = lay.target_index
             for name, xy, yaw in zip(lay.objects, lay.xy, lay.yaw):

@@ -1,6 +1,6 @@
 """The placement ladder: seeded, simulator-free sampling of object layouts.
 
-A layout is a pure function of (regime, split, num_objects, seed[, target]), so the same seed gives the
+A layout is a pure function of (condition, seed[, target]), so the same seed gives the
 same scene, target and instruction on the CPU and GPU backends and for any number of parallel envs.
 
 Frame: world metres, robot base at x = -0.615 facing +x, table top at z = 0 (ManiSkill convention).
@@ -17,6 +17,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, OBJECTS, instruction_for, object_index
 
 WORKSPACE_CENTER = np.array([-0.12, 0.0])
@@ -26,16 +27,8 @@ REGION_OFFSETS = np.array([[0.105, 0.16], [0.105, -0.16], [0.0, 0.0], [-0.105, 0
 REGION_CENTERS = WORKSPACE_CENTER + REGION_OFFSETS
 CENTER_REGION = 2
 
-REGIMES: dict[str, tuple[float, float] | None] = {
-    # (x extent, y extent) of each region in metres; None = the whole workspace.
-    "small_jitter": (0.04, 0.06),
-    "medium_jitter": (0.08, 0.12),
-    "large_jitter": (0.12, 0.16),
-    "full_random": None,
-}
 # Yaw jitter grows with the ladder so that small jitter stays benchmark-like (LIBERO rotates little).
 YAW_RANGE = {"small_jitter": np.pi / 12, "medium_jitter": np.pi / 6, "large_jitter": np.pi / 4, "full_random": np.pi}
-SPLITS = ("canonical", "pairings_id", "pairings_ood")
 # Object i trains in regions i, i+1, i+2 (mod 5) and is held out of i+3, i+4: every object and every
 # region is seen three times in training, yet 10 of the 25 object-region pairs are never shown.
 TRAIN_REGIONS: tuple[frozenset[int], ...] = tuple(
@@ -50,8 +43,7 @@ MAX_TRIES = 2000
 class Layout:
     """One episode's scene: which objects, where, and which one is instructed."""
 
-    regime: str
-    split: str
+    condition: Condition
     seed: int
     objects: tuple[str, ...]
     """Present objects; the target is objects[0]."""
@@ -76,39 +68,12 @@ class Layout:
 
     def to_dict(self) -> dict:
         return {
-            "seed": self.seed, "regime": self.regime, "split": self.split, "target": self.target,
+            "seed": self.seed, "regime": self.condition.regime, "split": self.condition.split, "target": self.target,
             "instruction": self.instruction,
             "positions": {n: [round(float(v), 5) for v in p] for n, p in zip(self.objects, self.xy)},
             "yaw": {n: round(float(a), 5) for n, a in zip(self.objects, self.yaw)},
             "regions": None if self.regions is None else dict(zip(self.objects, self.regions)),
         }
-
-
-def check_args(regime: str, split: str = "canonical", num_objects: int = 5, target: str | None = None) -> None:
-    """Raise ValueError naming what is allowed for any bad argument."""
-    if regime not in REGIMES:
-        raise ValueError(f"unknown regime {regime!r}; allowed: {', '.join(REGIMES)}")
-    if split not in SPLITS:
-        raise ValueError(f"unknown split {split!r}; allowed: {', '.join(SPLITS)}")
-    if split != "canonical" and REGIMES[regime] is None:
-        raise ValueError(f"split {split!r} needs a jitter regime (regions); allowed: "
-                         f"{', '.join(r for r, e in REGIMES.items() if e is not None)}")
-    if isinstance(num_objects, bool) or not isinstance(num_objects, (int, np.integer)) \
-            or not 1 <= num_objects <= NUM_OBJECTS:
-        raise ValueError(f"num_objects must be an integer from 1 to {NUM_OBJECTS}, got {num_objects!r}")
-    if target is not None:
-        object_index(target)
-
-
-def parse_regimes(text: str) -> tuple[str, ...]:
-    """"all" or a comma-separated list of regimes; unknown names raise ValueError listing the allowed ones."""
-    names = tuple(REGIMES) if text.strip() == "all" else tuple(r.strip() for r in text.split(",") if r.strip())
-    if not names:
-        raise ValueError(f"no regime given; allowed: {', '.join(REGIMES)} or all")
-    for r in names:
-        if r not in REGIMES:
-            raise ValueError(f"unknown regime {r!r}; allowed: {', '.join(REGIMES)} or all")
-    return names
 
 
 @lru_cache(maxsize=None)
@@ -136,10 +101,13 @@ def _collides(xy: np.ndarray, radii: np.ndarray, i: int) -> bool:
     return bool(np.any(d < radii[:i] + radii[i] + MIN_GAP))
 
 
-def sample_layout(regime: str, split: str = "canonical", num_objects: int = 5, seed: int = 0,
-                  target: str | None = None) -> Layout:
-    """Sample one layout; a given seed always gives the same layout."""
-    check_args(regime, split, num_objects, target)
+def sample_layout(condition: Condition, seed: int = 0, target: str | None = None) -> Layout:
+    """Sample one layout; a given condition and seed always give the same layout."""
+    if not isinstance(condition, Condition):
+        raise TypeError(f"sample_layout takes a Condition, got {type(condition).__name__}")
+    regime, split, num_objects = condition.regime, condition.split, condition.num_objects
+    if target is not None:
+        object_index(target)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFFFFFFFFFF, 0x1ADDE2]))
     t = object_index(target) if target is not None else int(rng.integers(NUM_OBJECTS))
     others = [i for i in range(NUM_OBJECTS) if i != t]
@@ -177,9 +145,8 @@ def sample_layout(regime: str, split: str = "canonical", num_objects: int = 5, s
     else:  # pragma: no cover - the regions are sized so this cannot happen with the shipped objects
         raise RuntimeError(f"no collision-free layout after {MAX_TRIES} tries ({regime}, seed {seed})")
     yaw = rng.uniform(-YAW_RANGE[regime], YAW_RANGE[regime], size=num_objects)
-    return Layout(regime, split, int(seed), names, xy, yaw, regions)
+    return Layout(condition, int(seed), names, xy, yaw, regions)
 
 
-def sample_layouts(regime: str, split: str = "canonical", num_objects: int = 5, seeds=(0,),
-                   target: str | None = None) -> list[Layout]:
-    return [sample_layout(regime, split, num_objects, int(s), target) for s in seeds]
+def sample_layouts(condition: Condition, seeds=(0,), target: str | None = None) -> list[Layout]:
+    return [sample_layout(condition, int(s), target) for s in seeds]

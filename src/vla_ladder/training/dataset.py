@@ -5,13 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-# What the recording pipeline writes and what a policy for GraspObject-v1 must consume (paper, appendix
-# "Dataset format"): two 256x256 RGB cameras, the 15-d proprioceptive state, the 7-d ee-delta action.
-CAMERA_KEYS = ("observation.images.hand_camera", "observation.images.fixed_camera")
-IMAGE_SHAPE = (256, 256, 3)
-STATE_KEY, STATE_DIM = "observation.state", 15
-ACTION_KEY, ACTION_DIM = "action", 7
-EXPECTED = {**{k: IMAGE_SHAPE for k in CAMERA_KEYS}, STATE_KEY: (STATE_DIM,), ACTION_KEY: (ACTION_DIM,)}
+from vla_ladder.conditions import Condition
+from vla_ladder.contract import CAMERA_KEYS, FEATURE_SHAPES
+from vla_ladder.recordings import read_recording
 
 
 def read_info(root: str | Path) -> dict:
@@ -34,7 +30,7 @@ def check_features(info: dict, root: str | Path = "") -> None:
     """ValueError listing every feature that is missing or has the wrong shape."""
     features = info.get("features", {})
     problems = []
-    for key, shape in EXPECTED.items():
+    for key, shape in FEATURE_SHAPES.items():
         if key not in features:
             problems.append(f"{key} missing")
         elif tuple(features[key]["shape"]) != shape:
@@ -43,36 +39,13 @@ def check_features(info: dict, root: str | Path = "") -> None:
         if key in features and features[key]["dtype"] not in ("video", "image"):
             problems.append(f"{key} has dtype {features[key]['dtype']!r}, expected video or image")
     if problems:
-        expected = ", ".join(f"{k} {s}" for k, s in EXPECTED.items())
+        expected = ", ".join(f"{k} {s}" for k, s in FEATURE_SHAPES.items())
         raise ValueError(f"dataset {str(root)!r} does not match GraspObject-v1: " + "; ".join(problems)
                          + f". Expected: {expected}")
 
 
-def dataset_regime(root: str | Path) -> str | None:
-    """The placement regime the dataset was recorded in, when its provenance says so (else None).
-
-    The recorder stamps a provenance JSON next to LeRobot's metadata; every regime in it must agree."""
-    root = Path(root)
-    regimes: set[str] = set()
-    for path in sorted((root / "meta").glob("*.json")) + sorted(root.glob("*.json")):
-        if path.name in ("info.json", "stats.json"):
-            continue
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError):
-            continue
-        regimes |= _find_regimes(data)
-    return regimes.pop() if len(regimes) == 1 else None
-
-
-def _find_regimes(data, depth: int = 0) -> set[str]:
-    if depth > 4:
-        return set()
-    if isinstance(data, dict):
-        found = {data["regime"]} if isinstance(data.get("regime"), str) else set()
-        for v in data.values():
-            found |= _find_regimes(v, depth + 1)
-        return found
-    if isinstance(data, list):
-        return set().union(*(_find_regimes(v, depth + 1) for v in data[:1000])) if data else set()
-    return set()
+def dataset_condition(root: str | Path) -> Condition | None:
+    """The condition the dataset was recorded in, from the recording metadata the recorder writes (None for a
+    dataset vla-ladder did not record)."""
+    recording = read_recording(root)
+    return None if recording is None else recording.condition

@@ -1,4 +1,4 @@
-"""`vla-ladder train`: fine-tune a LeRobot policy on a recorded GraspObject-v1 dataset with LeRobot's own
+"""`vla-ladder train`: train or fine-tune a LeRobot policy on a recorded GraspObject-v1 dataset with LeRobot's own
 training loop (lerobot.scripts.lerobot_train), the paper's defaults and fully offline.
 
 The command composes `lerobot-train` flags, parses them with LeRobot's own config parser into a
@@ -9,19 +9,18 @@ through an `accelerate` Accelerator, so `accelerate launch -m vla_ladder.cli tra
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import logging
 import os
 import shlex
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from vla_ladder import io
-from vla_ladder.task.layouts import REGIMES
-from vla_ladder.training.dataset import check_features, dataset_regime, read_info
+from vla_ladder import files
+from vla_ladder.contract import CAMERA_KEYS
+from vla_ladder.training.dataset import check_features, dataset_condition, read_info
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +41,7 @@ TOKENIZER_OF = {"pi0": lambda cfg: PALIGEMMA_TOKENIZER, "pi05": lambda cfg: PALI
                 "pi0_fast": lambda cfg: PALIGEMMA_TOKENIZER, "smolvla": lambda cfg: cfg.vlm_model_name}
 # Dataset camera -> pretrained camera slot when a checkpoint names its cameras differently
 # (lerobot/smolvla_base and pi05_base: observation.images.camera1/2/3; the paper feeds camera1 and camera2).
-CAMERA_ORDER = ("observation.images.fixed_camera", "observation.images.hand_camera")
+CAMERA_ORDER = (CAMERA_KEYS[1], CAMERA_KEYS[0])  # fixed camera first, then the wrist camera
 PAPER_RENAME = dict(zip(CAMERA_ORDER, ("observation.images.camera1", "observation.images.camera2")))
 
 
@@ -55,53 +54,68 @@ def policy_types() -> list[str]:
 
 
 @dataclass
-class TrainRequest:
-    """One training run; validated on construction, before anything slow happens."""
+class TrainConfig:
+    """Train a LeRobot policy on a recorded GraspObject-v1 dataset with LeRobot's own training loop.
+
+    Further lerobot-train flags go after `--` (they win), e.g. `-- --policy.optimizer_lr=5e-5`."""
 
     policy_type: str
+    """LeRobot policy type: smolvla, pi05, act, diffusion, ... (every type LeRobot registers)"""
     dataset: Path
-    out: Path
+    """local LeRobotDataset v3 directory"""
+    out: Path | None = None
+    """run directory, new or empty (required on the command line; the grid sets one per model)"""
     pretrained: str | None = "default"
-    """Local checkpoint dir or hub id; "default" = the paper's checkpoint for the type; None = from scratch."""
+    """local checkpoint dir or hub id to fine-tune; none trains from scratch (default: lerobot/smolvla_base for
+    smolvla, lerobot/pi05_base for pi05, else none)"""
     batch_size: int | None = None
-    """None: from the dataset's regime (128 full random, else 64)."""
-    regime: str | None = None
-    """Overrides the regime read from the dataset's provenance (only used to pick the batch size)."""
+    """default: the paper's, from the dataset's recorded regime (128 full random, else 64)"""
     chunk_size: int = 16
+    """action chunk length"""
     n_action_steps: int | None = None
-    """Execution horizon stored with the checkpoint (None: the chunk size, or LeRobot's default for policies
-    with observation history such as diffusion); evaluation can override it."""
+    """execution horizon stored with the checkpoint (default: the chunk size, or LeRobot's default for policies
+    with observation history such as diffusion); evaluation can override it"""
     steps: int = 30_000
+    """training steps"""
     save_freq: int = 20_000
+    """checkpoint every N steps (and at the end)"""
     log_freq: int = 200
+    """log every N steps"""
     num_workers: int = 4
-    seed: int = 1000
+    """data-loader worker processes"""
+    train_seed: int = 1000
+    """seed of the training run (initialisation, data order, augmentation)"""
     device: str | None = None
+    """cuda, cpu, mps (default: LeRobot picks)"""
     wandb: bool = False
+    """log to Weights & Biases"""
     rename_map: dict[str, str] | None = None
-    extra: list[str] = field(default_factory=list)
-    """Raw lerobot-train flags appended last (they win), e.g. --policy.optimizer_lr=5e-5."""
+    """dataset key -> checkpoint key, e.g. observation.images.hand_camera observation.images.camera2 (default:
+    the fixed camera -> the checkpoint's first image slot)"""
+    print_command: bool = False
+    """print the equivalent lerobot-train command and exit"""
+    lerobot_args: tuple[str, ...] = ()
+    """raw lerobot-train flags appended last (they win); on the command line, everything after --"""
 
     def __post_init__(self):
         allowed = policy_types()
         if self.policy_type not in allowed:
             raise ValueError(f"unknown policy type {self.policy_type!r}; allowed: {', '.join(allowed)}")
-        self.dataset, self.out = Path(self.dataset), Path(self.out)
+        self.dataset = Path(self.dataset)
+        self.out = None if self.out is None else Path(self.out)
+        self.lerobot_args = tuple(self.lerobot_args)
         self.info = read_info(self.dataset)
         check_features(self.info, self.dataset)
         if self.pretrained == "default":
             self.pretrained = DEFAULT_PRETRAINED.get(self.policy_type)
         if self.pretrained in ("", "none", "None"):
             self.pretrained = None
-        if self.regime is None:
-            self.regime = dataset_regime(self.dataset)
-        if self.regime is not None and self.regime not in REGIMES:
-            raise ValueError(f"unknown regime {self.regime!r}; allowed: {', '.join(REGIMES)}")
+        self.condition = dataset_condition(self.dataset)
         if self.batch_size is None:
-            if self.regime is None:
-                raise ValueError(f"{str(self.dataset)!r} does not say which regime it was recorded in; pass "
-                                 "--regime (full_random -> batch 128, else 64) or --batch-size")
-            self.batch_size = BATCH_FOR_REGIME.get(self.regime, DEFAULT_BATCH)
+            if self.condition is None:
+                raise ValueError(f"{str(self.dataset)!r} is not a vla-ladder recording, so its regime is unknown; "
+                                 "pass --batch-size (the paper: 128 for full_random, else 64)")
+            self.batch_size = BATCH_FOR_REGIME.get(self.condition.regime, DEFAULT_BATCH)
         if self.n_action_steps is None and self.policy_type not in CHUNK_FIELD:
             self.n_action_steps = self.chunk_size
         for name in ("batch_size", "chunk_size", "n_action_steps", "steps"):
@@ -110,8 +124,10 @@ class TrainRequest:
         if self.n_action_steps is not None and self.n_action_steps > self.chunk_size:
             raise ValueError(f"--n-action-steps ({self.n_action_steps}) cannot exceed --chunk-size "
                              f"({self.chunk_size})")
-        if self.out.exists() and any(self.out.iterdir()):
-            raise ValueError(f"output directory {str(self.out)!r} exists and is not empty; pick a new --out")
+        if self.train_seed < 0:
+            raise ValueError(f"--train-seed must be >= 0, got {self.train_seed}")
+        if self.out is not None:
+            check_new_dir(self.out)
 
     # ------------------------------------------------------------------ lerobot-train flags
     def _config_class(self):
@@ -145,7 +161,7 @@ class TrainRequest:
             f"--save_freq={self.save_freq}",
             f"--log_freq={self.log_freq}",
             f"--num_workers={self.num_workers}",
-            f"--seed={self.seed}",
+            f"--seed={self.train_seed}",
             f"--wandb.enable={'true' if self.wandb else 'false'}",
         ]
         rename = self.camera_rename_map()
@@ -167,7 +183,7 @@ class TrainRequest:
         policy = ([f"--policy.path={self.pretrained}"] if self.pretrained
                   else [f"--policy.type={self.policy_type}"])
         return ["lerobot-train", *self.pipeline_flags(), *policy,
-                *(f"--policy.{f[2:]}" for f in self.policy_flags()), *self.extra]
+                *(f"--policy.{f[2:]}" for f in self.policy_flags()), *self.lerobot_args]
 
     def build_config(self):
         """LeRobot's TrainPipelineConfig, parsed by LeRobot's own parser from the flags above."""
@@ -184,8 +200,8 @@ class TrainRequest:
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.configs.train import TrainPipelineConfig
 
-        extra_policy = [f"--{a[len('--policy.'):]}" for a in self.extra if a.startswith("--policy.")]
-        extra_other = [a for a in self.extra if not a.startswith("--policy.")]
+        extra_policy = [f"--{a[len('--policy.'):]}" for a in self.lerobot_args if a.startswith("--policy.")]
+        extra_other = [a for a in self.lerobot_args if not a.startswith("--policy.")]
         policy_flags = self.policy_flags() + extra_policy
         if self.pretrained:
             cfg = draccus.parse(TrainPipelineConfig, args=self.pipeline_flags() + extra_other)
@@ -246,10 +262,13 @@ def checkpoint_dir(out: str | Path) -> Path:
     return Path(out) / "checkpoints" / "last" / "pretrained_model"
 
 
-def train(req: TrainRequest) -> Path:
+def train(req: TrainConfig) -> Path:
     """Run LeRobot training for `req`; returns the final checkpoint's pretrained_model directory."""
     from lerobot.scripts.lerobot_train import train as lerobot_train
 
+    if req.out is None:
+        raise ValueError("a training run needs an output directory (out)")
+    check_new_dir(req.out)
     cfg = req.build_config()
     check_offline_assets(cfg.policy)
     if req.out.exists():
@@ -259,59 +278,31 @@ def train(req: TrainRequest) -> Path:
     start = time.time()
     lerobot_train(cfg)
     if int(os.environ.get("RANK", "0")) == 0:
-        io.write_json(req.out / "vla_ladder_train.json", {
+        files.write_json(req.out / "vla_ladder_train.json", {
             "request": asdict(req),
             "lerobot_train_command": shlex.join(req.lerobot_command()),
-            "dataset": {"root": str(req.dataset), "regime": req.regime,
+            "dataset": {"root": str(req.dataset), "condition": req.condition and req.condition.key,
                         "episodes": req.info.get("total_episodes"), "frames": req.info.get("total_frames")},
             "checkpoint": str(checkpoint_dir(req.out)),
             "wall_s": round(time.time() - start, 1),
-            "provenance": io.provenance(),
+            "provenance": files.provenance(),
         })
     return checkpoint_dir(req.out)
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--policy-type", required=True,
-                   help="LeRobot policy type: smolvla, pi05, act, diffusion, ... (all LeRobot types)")
-    p.add_argument("--dataset", required=True, type=Path, help="local LeRobotDataset v3 directory")
-    p.add_argument("--out", required=True, type=Path, help="run directory (new or empty)")
-    p.add_argument("--pretrained", default="default",
-                   help="local checkpoint dir or hub id to fine-tune; 'none' trains from scratch "
-                        "(default: lerobot/smolvla_base for smolvla, lerobot/pi05_base for pi05, else none)")
-    p.add_argument("--batch-size", type=int, help="default: 128 for full_random datasets, else 64")
-    p.add_argument("--regime", help="regime of the dataset when its provenance does not say (picks the batch)")
-    p.add_argument("--chunk-size", type=int, default=16)
-    p.add_argument("--n-action-steps", type=int, help="execution horizon saved with the policy (default: chunk)")
-    p.add_argument("--steps", type=int, default=30_000)
-    p.add_argument("--save-freq", type=int, default=20_000)
-    p.add_argument("--log-freq", type=int, default=200)
-    p.add_argument("--num-workers", type=int, default=4, help="data-loader worker processes")
-    p.add_argument("--seed", type=int, default=1000)
-    p.add_argument("--device", help="cuda, cpu, mps (default: LeRobot picks)")
-    p.add_argument("--wandb", action="store_true", help="log to Weights & Biases (off by default)")
-    p.add_argument("--rename-map", type=json.loads,
-                   help='JSON dataset key -> checkpoint key, e.g. \'{"observation.images.hand_camera": '
-                        '"observation.images.camera2"}\' (default: fixed camera -> first image slot)')
-    p.add_argument("--print-command", action="store_true",
-                   help="print the equivalent lerobot-train command and exit")
-    p.add_argument("extra", nargs="*", metavar="-- LEROBOT_FLAG",
-                   help="further lerobot-train flags after --, e.g. -- --policy.optimizer_lr=5e-5")
+def check_new_dir(out: Path) -> None:
+    """ValueError unless `out` is absent or an empty directory that can be written (checked before training)."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {str(out)!r} is a file; give a directory")
+    if out.is_dir() and any(out.iterdir()):
+        raise ValueError(f"output directory {str(out)!r} exists and is not empty; pick a new --out")
 
 
-def request_from_args(args: argparse.Namespace) -> TrainRequest:
-    return TrainRequest(
-        policy_type=args.policy_type, dataset=args.dataset, out=args.out, pretrained=args.pretrained,
-        batch_size=args.batch_size, regime=args.regime, chunk_size=args.chunk_size,
-        n_action_steps=args.n_action_steps, steps=args.steps, save_freq=args.save_freq, log_freq=args.log_freq,
-        num_workers=args.num_workers, seed=args.seed, device=args.device, wandb=args.wandb,
-        rename_map=args.rename_map, extra=list(args.extra))
-
-
-def run(args: argparse.Namespace) -> int:
-    req = request_from_args(args)
-    if args.print_command:
-        print(shlex.join(req.lerobot_command()))
+def run(cfg: TrainConfig) -> int:
+    if cfg.out is None:
+        raise ValueError("--out DIR is required: the training run directory")
+    if cfg.print_command:
+        print(shlex.join(cfg.lerobot_command()))
         return 0
-    print(train(req))
+    print(train(cfg))
     return 0

@@ -31,72 +31,27 @@ import os
 import shutil
 import threading
 import time
-from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterator
 
 import pandas as pd
 
-from vla_ladder import io
-from vla_ladder.recording.server import ACTION_DIM, CAMERAS, EPISODE_STEPS, FPS, IMAGE_SHAPE, STATE_DIM
+from vla_ladder import files
+from vla_ladder.conditions import Condition
+from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, Recording, read_recording_state)
+from vla_ladder.contract import CAMERAS, CONTROL_HZ, EPISODE_STEPS, STATE_KEY, ACTION_KEY, dataset_features
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
-RECORDING_FILE = "meta/vla_ladder_recording.json"
-PROVENANCE_DIR = "meta/vla_ladder_episodes"
 # Directories whose files LeRobot never modifies after writing them (resume opens new chunk files).
 IMMUTABLE_DIRS = ("data", "videos", "meta/episodes", PROVENANCE_DIR)
-STATE_NAMES = [f"joint_pos_{i}" for i in range(7)] + [f"joint_vel_{i}" for i in range(7)] + ["gripper_width"]
-ACTION_NAMES = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
-
-
-def features(video: bool = True) -> dict[str, dict]:
-    """The dataset schema of the paper's appendix ("Dataset format")."""
-    cam = {"dtype": "video" if video else "image", "shape": IMAGE_SHAPE, "names": ["height", "width", "channels"]}
-    return {
-        **{f"observation.images.{c}": dict(cam) for c in CAMERAS},
-        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": STATE_NAMES},
-        "action": {"dtype": "float32", "shape": (ACTION_DIM,), "names": ACTION_NAMES},
-    }
-
-
-@dataclass(frozen=True)
-class RecordingConfig:
-    """What a dataset is a recording of; resuming requires the same values."""
-
-    policy: str = "scripted"
-    regime: str = "small_jitter"
-    split: str = "canonical"
-    num_objects: int = 5
-    seed: int = 0
-    """First episode seed; later ones follow without repeats."""
-    video: bool = True
-    """Cameras stored as MP4 video (LeRobot's default) or as PNG images inside the Parquet files."""
-
-    def differences(self, other: dict) -> list[str]:
-        return [f"{k}={other.get(k)!r} (this command: {v!r})" for k, v in asdict(self).items() if other.get(k) != v]
-
-
-def read_provenance(root: str | os.PathLike) -> pd.DataFrame:
-    """Per-episode provenance of a recorded dataset (seed, layout, expert, metrics...), by episode_index."""
-    shards = sorted((Path(root) / PROVENANCE_DIR).glob("*.parquet"))
-    if not shards:
-        return pd.DataFrame()
-    return pd.concat([pd.read_parquet(p) for p in shards], ignore_index=True).sort_values(
-        "episode_index", ignore_index=True)
-
-
-def read_recording_state(root: str | os.PathLike) -> dict | None:
-    path = Path(root) / RECORDING_FILE
-    return json.loads(path.read_text()) if path.exists() else None
 
 
 class DatasetStore:
     """Owns DATASET_DIR while recording: reserve seeds, add successful episodes, commit atomically."""
 
-    def __init__(self, root: str | os.PathLike, config: RecordingConfig, commit_every: int = 50,
+    def __init__(self, root: str | os.PathLike, config: Recording, commit_every: int = 50,
                  commit_seconds: float = 600.0, repo_id: str | None = None):
         if commit_every < 1:
             raise ValueError(f"commit_every must be >= 1, got {commit_every}")
@@ -137,10 +92,10 @@ class DatasetStore:
         state = read_recording_state(self.root)
         if state is None or not (self.root / "meta/info.json").exists():
             raise ValueError(f"{self.root} exists and is not a vla-ladder recording; choose a new --out")
-        if state.get("format") != FORMAT_VERSION:
+        if state.get("format") not in (1, FORMAT_VERSION):
             raise ValueError(f"{self.root} was written by recording format {state.get('format')}; this version "
-                             f"reads format {FORMAT_VERSION}")
-        diff = self.config.differences(state["config"])
+                             f"reads formats 1 and {FORMAT_VERSION}")
+        diff = self.config.differences(Recording.from_dict(state["config"], state["format"]))
         if diff:
             raise ValueError(f"{self.root} was recorded with " + ", ".join(diff) +
                              "; resume with the same arguments or record into a new --out")
@@ -151,13 +106,13 @@ class DatasetStore:
         return state
 
     def _load_next_seed(self, state: dict | None) -> int:
-        next_seed = self.config.seed
+        next_seed = self.config.first_seed
         if state:
             next_seed = max(next_seed, int(state["next_seed"]))
         path = self.work / "seeds.json"
         if path.exists():
             reserved = json.loads(path.read_text())
-            if reserved.get("config") == asdict(self.config):
+            if reserved.get("config") == self.config.to_dict():
                 next_seed = max(next_seed, int(reserved["next_seed"]))
         return next_seed
 
@@ -167,7 +122,7 @@ class DatasetStore:
             raise ValueError(f"reserve at least one seed, got {n}")
         with self._seed_lock:
             seeds = list(range(self.next_seed, self.next_seed + n))
-            io.write_json(self.work / "seeds.json", {"config": asdict(self.config), "next_seed": seeds[-1] + 1})
+            files.write_json(self.work / "seeds.json", {"config": self.config.to_dict(), "next_seed": seeds[-1] + 1})
             self.next_seed = seeds[-1] + 1
             return seeds
 
@@ -193,8 +148,8 @@ class DatasetStore:
         task = episode.header["instruction"]
         self._writing = True
         for t in range(episode.num_frames):
-            ds.add_frame({**{f"observation.images.{c}": episode.images[c][t] for c in CAMERAS},
-                          "observation.state": episode.state[t], "action": episode.action[t], "task": task})
+            ds.add_frame({**{c.key: episode.images[c.name][t] for c in CAMERAS},
+                          STATE_KEY: episode.state[t], ACTION_KEY: episode.action[t], "task": task})
         with SuppressProgressBars():
             ds.save_episode()
         self._writing = False
@@ -217,7 +172,7 @@ class DatasetStore:
         opts = dict(streaming_encoding=self.config.video, encoder_queue_maxsize=4 * EPISODE_STEPS,
                     image_writer_threads=0 if self.config.video else 2)
         if self.saved == 0:
-            self._ds = LeRobotDataset.create(self.repo_id, fps=FPS, features=features(self.config.video),
+            self._ds = LeRobotDataset.create(self.repo_id, fps=CONTROL_HZ, features=dataset_features(self.config.video),
                                              root=self.staging, robot_type="panda", use_videos=self.config.video,
                                              **opts)
         else:
@@ -235,10 +190,10 @@ class DatasetStore:
         self._ds = None
         self.counters["commits"] += 1
         self.counters["saved"] = self.saved + self.pending
-        io.write_parquet(self.staging / PROVENANCE_DIR / f"commit-{self.counters['commits']:06d}.parquet",
+        files.write_parquet(self.staging / PROVENANCE_DIR / f"commit-{self.counters['commits']:06d}.parquet",
                          pd.DataFrame(self._rows))
         with self._seed_lock:
-            io.write_json(self.staging / RECORDING_FILE, self._state())
+            files.write_json(self.staging / RECORDING_FILE, self._state())
         _fsync_tree(self.staging)
         if self.root.exists():
             if not any(self.root.iterdir()):
@@ -256,10 +211,10 @@ class DatasetStore:
         log.info("committed: %d episodes in %s (%.2f s)", self.saved, self.root, time.perf_counter() - t0)
 
     def _state(self) -> dict:
-        return {"format": FORMAT_VERSION, "config": asdict(self.config), "next_seed": self.next_seed,
+        return {"format": FORMAT_VERSION, "config": self.config.to_dict(), "next_seed": self.next_seed,
                 "counters": self.counters, "object_set": self.object_set,
                 "updated": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                "provenance": io.provenance(self.object_set)}
+                "provenance": files.provenance(self.object_set)}
 
     def close(self, commit: bool = True) -> None:
         """Commit what is pending (or drop it) and release the dataset. Episodes pending when an exception
@@ -284,9 +239,9 @@ def _provenance_row(index: int, episode) -> dict[str, Any]:
     h, m = episode.header, episode.header["metrics"]
     return {
         "episode_index": index, "seed": int(episode.seed), "policy": h["expert"]["spec"],
-        "regime": h["regime"], "split": h["split"], "num_objects": int(h["num_objects"]), "target": h["target"],
-        "instruction": h["instruction"], "layout": json.dumps(h["layout"], default=io._default),
-        "expert": json.dumps(h["expert"], default=io._default), "object_set": h["object_set"],
+        **_condition_columns(Condition.parse(h["condition"])), "target": h["target"],
+        "instruction": h["instruction"], "layout": json.dumps(h["layout"], default=files._default),
+        "expert": json.dumps(h["expert"], default=files._default), "object_set": h["object_set"],
         "success": bool(m["success"]), "grasp_any": bool(m["grasp_any"]), "reach": bool(m["reach"]),
         "lifted": bool(m["lifted"]), "held": m["held"], "reach_dist": float(m["reach_dist"]),
         "num_frames": int(episode.num_frames), "server": episode.server,
@@ -294,21 +249,25 @@ def _provenance_row(index: int, episode) -> dict[str, Any]:
     }
 
 
+def _condition_columns(c: Condition) -> dict[str, Any]:
+    return {"regime": c.regime, "split": c.split, "num_objects": c.num_objects}
+
+
 # ---------------------------------------------------------------------- filesystem primitives
 def _link_copy(src: Path, dst: Path) -> None:
     """dst = src with immutable files hard-linked and the rest copied."""
-    for dirpath, _, files in os.walk(src):
+    for dirpath, _, names in os.walk(src):
         rel = Path(dirpath).relative_to(src)
         (dst / rel).mkdir(parents=True, exist_ok=True)
         immutable = any(rel == Path(d) or Path(d) in rel.parents for d in IMMUTABLE_DIRS)
-        for f in files:
+        for f in names:
             (os.link if immutable else shutil.copy2)(Path(dirpath) / f, dst / rel / f)
 
 
 def _fsync_tree(root: Path) -> None:
     """Flush what this batch wrote (files with one link: new or copied) and every directory entry."""
-    for dirpath, _, files in os.walk(root):
-        for f in files:
+    for dirpath, _, names in os.walk(root):
+        for f in names:
             path = Path(dirpath) / f
             if path.stat().st_nlink == 1:
                 fd = os.open(path, os.O_RDONLY)

@@ -1,4 +1,7 @@
-"""Result files that are whole or absent: every writer goes through a temp file and os.replace."""
+"""Result files that are whole or absent: every writer goes through a temp file and os.replace.
+
+Named `files` rather than `io` so that it never shadows the standard library module.
+"""
 
 from __future__ import annotations
 

@@ -16,10 +16,10 @@ from urllib.parse import parse_qsl
 
 import torch
 
+from vla_ladder.contract import ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IMAGE_SHAPE, STATE_DIM, STATE_KEY
 from vla_ladder.policies import Policy
-from vla_ladder.training.dataset import ACTION_DIM, CAMERA_KEYS, STATE_DIM, STATE_KEY
 
-ENV_IMAGE_SHAPE = (3, 256, 256)
+ENV_IMAGE_SHAPE = (IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1])  # CHW, as LeRobot declares visual features
 # Policies that resize images themselves and pad cameras a batch lacks (LeRobot's VLAs).
 FLEXIBLE_CAMERAS = {"smolvla", "pi0", "pi05", "pi0_fast"}
 QUERY_KEYS = {"n_action_steps": int, "device": str}
@@ -57,7 +57,7 @@ def check_env_compatible(cfg, rename_map: dict[str, str]) -> None:
     for key, ft in cfg.input_features.items():
         if ft.type not in (FeatureType.VISUAL, FeatureType.STATE):
             problems.append(f"input {key} ({ft.type.value}) is not provided")
-    action = cfg.output_features.get("action")
+    action = cfg.output_features.get(ACTION_KEY)
     if action is None or tuple(action.shape) != (ACTION_DIM,):
         problems.append(f"action has shape {None if action is None else tuple(action.shape)}, the env takes "
                         f"({ACTION_DIM},)")
@@ -124,9 +124,9 @@ class LeRobotPolicy(Policy):
     def batch(self, obs: Any, instructions: Sequence[str]) -> dict[str, Any]:
         """Env observation -> LeRobot's raw observation dict (before the saved preprocessor)."""
         out: dict[str, Any] = {}
-        for key in CAMERA_KEYS:
-            rgb = obs["sensor_data"][key.rsplit(".", 1)[1]]["rgb"]
-            out[key] = torch.as_tensor(rgb).permute(0, 3, 1, 2).to(self.device, torch.float32) / 255.0
+        for cam in CAMERAS:
+            rgb = obs["sensor_data"][cam.name]["rgb"]
+            out[cam.key] = torch.as_tensor(rgb).permute(0, 3, 1, 2).to(self.device, torch.float32) / 255.0
         out[STATE_KEY] = torch.as_tensor(obs["extra"]["proprio"]).to(self.device, torch.float32)
         out["task"] = [str(t) for t in instructions]
         return out

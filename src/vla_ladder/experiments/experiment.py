@@ -13,35 +13,23 @@ both of its configured sizes have a policy.
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from importlib import resources
 from pathlib import Path
 
+import tyro
+
+from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.evaluation.rundir import Run, load_run
-from vla_ladder.io import provenance, write_json, write_text
+from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
+from vla_ladder.files import provenance, write_json, write_text
 from vla_ladder.policies import parse_spec
 from vla_ladder.report import plots, tables
-from vla_ladder.task.layouts import check_args
 
 TABLES = ("ladder", "pairings", "data_scaling", "object_count")
 ENTRY_KEYS = ("label", "spec", "regime", "size")
-
-
-@dataclass(frozen=True)
-class Condition:
-    regime: str
-    split: str = "canonical"
-    num_objects: int = 5
-
-    def __post_init__(self):
-        check_args(self.regime, self.split, self.num_objects)
-
-    @property
-    def key(self) -> str:
-        return f"{self.regime}/{self.split}/{self.num_objects}"
 
 
 @dataclass
@@ -54,8 +42,8 @@ class ExperimentConfig:
     conditions: list[Condition]
     episodes: int = 100
     """Episodes per condition (the paper uses 100)."""
-    seed: int = 0
-    """Episode j of every condition uses seed + j, so every policy sees the same layouts."""
+    first_seed: int = 0
+    """Episode j of every condition uses seed first_seed + j, so every policy sees the same layouts."""
     description: str = ""
     sizes: dict[str, list[str]] = field(default_factory=dict)
     """data_scaling only: regime -> [smaller, larger] dataset size labels."""
@@ -63,7 +51,7 @@ class ExperimentConfig:
     def __post_init__(self):
         if self.table not in TABLES:
             raise ValueError(f"unknown table {self.table!r}; allowed: {', '.join(TABLES)}")
-        self.conditions = [c if isinstance(c, Condition) else Condition(**c) for c in self.conditions]
+        self.conditions = [Condition.of(c) for c in self.conditions]
         if not self.conditions:
             raise ValueError(f"experiment {self.name!r} has no conditions")
         if self.episodes < 1:
@@ -121,7 +109,7 @@ class PolicyEntry:
             raise ValueError(f"bad --policy {text!r}: needs spec=SPEC")
         parse_spec(fields["spec"])
         if "regime" in fields:
-            check_args(fields["regime"])
+            Condition(fields["regime"])
         return cls(fields["spec"], fields.get("label", fields["spec"]), fields.get("regime"), fields.get("size"))
 
     @property
@@ -150,31 +138,31 @@ def plan(cfg: ExperimentConfig, entries: list[PolicyEntry]) -> list[tuple[Policy
     return out
 
 
-def evaluate(entry: PolicyEntry, conditions: list[Condition], episodes: int, seed: int, out: Path,
-             videos: int, num_envs: int, sim_backend: str) -> list[Run]:
-    """Evaluate one policy on the conditions with the evaluation runner, one run directory per
-    (split, object count) under `out` (a run covers several regimes); finished run dirs are reused."""
-    from vla_ladder.evaluation.runner import run_evaluation
+def eval_configs(entry: PolicyEntry, conditions: list[Condition], base: EvalConfig, out: Path) -> list[EvalConfig]:
+    """One evaluation run per (split, object count) of the conditions (a run covers several regimes)."""
     groups: dict[tuple[str, int], list[str]] = {}
     for c in conditions:
         groups.setdefault((c.split, c.num_objects), []).append(c.regime)
-    runs = []
-    for (split, k), regimes in groups.items():
-        run_dir = out / f"{split}-{k}obj"
-        want = {Condition(r, split, k).key for r in regimes}
-        if (run_dir / "summary.json").is_file():
-            old = load_run(run_dir)
-            if old.summary.get("seed") == seed and old.summary.get("episodes_per_condition") == episodes \
-                    and set(old.summary.get("conditions", {})) == want and old.label == entry.spec:
-                print(f"[experiment] reusing {run_dir}")
-                runs.append(old)
-                continue
-        print(f"[experiment] {entry.label}: {', '.join(regimes)} / {split} / {k} objects, {episodes} episodes "
-              f"-> {run_dir}")
-        run_evaluation(entry.spec, regimes, split=split, num_objects=k, episodes=episodes, seed=seed, out=run_dir,
-                       num_envs=num_envs, sim_backend=sim_backend, videos=videos)
-        runs.append(load_run(run_dir))
-    return runs
+    return [EvalConfig(policy=entry.spec, out=out / f"{split}-{k}obj",
+                       grid=ConditionGrid(tuple(regimes), (split,), (k,)), episodes=base.episodes,
+                       first_seed=base.first_seed, num_envs=base.num_envs, sim_backend=base.sim_backend,
+                       videos=base.videos, object_set=base.object_set)
+            for (split, k), regimes in groups.items()]
+
+
+def evaluate(entry: PolicyEntry, cfg: EvalConfig) -> Run:
+    """Evaluate one policy with the evaluation runner; a finished run directory of the same request is reused."""
+    if (cfg.out / "summary.json").is_file():
+        old = load_run(cfg.out)
+        if old.summary.get("first_seed") == cfg.first_seed and old.summary.get("episodes_per_condition") == \
+                cfg.episodes and set(old.summary.get("conditions", {})) == {c.key for c in cfg.conditions} \
+                and old.label == entry.spec:
+            print(f"[experiment] reusing {cfg.out}")
+            return old
+    print(f"[experiment] {entry.label}: {', '.join(c.key for c in cfg.conditions)}, {cfg.episodes} episodes "
+          f"-> {cfg.out}")
+    run_evaluation(cfg)
+    return load_run(cfg.out)
 
 
 def build_outputs(cfg: ExperimentConfig, runs: list[tuple[PolicyEntry, Run]], out: Path) -> dict:
@@ -211,21 +199,54 @@ def build_outputs(cfg: ExperimentConfig, runs: list[tuple[PolicyEntry, Run]], ou
     return summary
 
 
-def run_experiment(cfg: ExperimentConfig, entries: list[PolicyEntry], out: str | Path, videos: int = 0,
-                   num_envs: int = 1, sim_backend: str = "physx_cpu", report: bool = True) -> Path:
+@dataclass
+class ExperimentCommand:
+    """Run one of the paper's experiments end to end: evaluate every policy, then the table, figure and report."""
+
+    name: tyro.conf.Positional[str]
+    """experiment: ladder, pairings, data_scaling, object_count, or a path to a JSON config"""
+    out: Path
+    """output directory"""
+    policy: tuple[str, ...] = ()
+    """SPEC or label=NAME,spec=SPEC[,regime=R,size=S], one per policy (at least one)"""
+    episodes: int | None = None
+    """episodes per condition (default: the config's)"""
+    first_seed: int | None = None
+    """first episode seed (default: the config's)"""
+    videos: int = 0
+    """record videos of the first N episodes per condition"""
+    num_envs: int = 1
+    """episodes simulated at once (needs physx_cuda)"""
+    sim_backend: str = "physx_cpu"
+    """physx_cpu or physx_cuda"""
+    report: bool = True
+    """write report.html"""
+
+    def __post_init__(self):
+        self.out = Path(self.out)
+        self.config = ExperimentConfig.load(self.name)
+        if self.episodes is not None:
+            self.config.episodes = self.episodes
+        if self.first_seed is not None:
+            self.config.first_seed = self.first_seed
+        self.config.__post_init__()
+        self.entries = [PolicyEntry.parse(t) for t in self.policy]
+        todo = plan(self.config, self.entries)
+        # Every evaluation is configured (and so checked) before a simulator starts.
+        self.evals = [(e, ec) for e, conds in todo
+                      for ec in eval_configs(e, conds, self.base_eval(), self.out / "runs" / e.slug)]
+
+    def base_eval(self) -> EvalConfig:
+        return EvalConfig(episodes=self.config.episodes, first_seed=self.config.first_seed, num_envs=self.num_envs,
+                          sim_backend=self.sim_backend, videos=self.videos)
+
+
+def run_experiment(cmd: ExperimentCommand) -> Path:
     """Evaluate every entry, then write table.md, table.tex, the figure, results.json and report.html."""
-    from vla_ladder.evaluation.runner import EvalConfig
-    out = Path(out)
-    todo = plan(cfg, entries)
-    for e, conds in todo:  # every argument is checked before a simulator starts
-        for c in conds:
-            EvalConfig(policy=e.spec, regimes=(c.regime,), split=c.split, num_objects=c.num_objects,
-                       episodes=cfg.episodes, seed=cfg.seed, num_envs=num_envs, sim_backend=sim_backend, videos=videos)
-    runs = [(e, r) for e, conds in todo
-            for r in evaluate(e, conds, cfg.episodes, cfg.seed, out / "runs" / e.slug, videos, num_envs,
-                                 sim_backend)]
+    cfg, out = cmd.config, cmd.out
+    runs = [(e, evaluate(e, ec)) for e, ec in cmd.evals]
     build_outputs(cfg, runs, out)
-    if report:
+    if cmd.report:
         from vla_ladder.report.html import build_report
         build_report([r for _, r in runs], out / "report.html", title=f"vla-ladder experiment: {cfg.name}",
                      labels=[e.label for e, _ in runs])
@@ -233,24 +254,7 @@ def run_experiment(cfg: ExperimentConfig, entries: list[PolicyEntry], out: str |
     return out
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("name", help=f"experiment: {', '.join(available())}, or a JSON config path")
-    p.add_argument("--policy", action="append", default=[], required=True,
-                   help="SPEC or label=NAME,spec=SPEC[,regime=R,size=S] (repeatable)")
-    p.add_argument("--episodes", type=int, default=None, help="episodes per condition (default: the config's)")
-    p.add_argument("--seed", type=int, default=None, help="first episode seed (default: the config's)")
-    p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--videos", type=int, default=0, help="record videos of the first N episodes per condition")
-    p.add_argument("--num-envs", type=int, default=1, help="episodes simulated at once (needs physx_cuda)")
-    p.add_argument("--sim-backend", default="physx_cpu", help="physx_cpu or physx_cuda")
-    p.add_argument("--no-report", action="store_true", help="skip report.html")
-
-
-def run(args: argparse.Namespace) -> int:
-    cfg = ExperimentConfig.load(args.name)
-    cfg = replace(cfg, episodes=cfg.episodes if args.episodes is None else args.episodes,
-                  seed=cfg.seed if args.seed is None else args.seed)
-    out = run_experiment(cfg, [PolicyEntry.parse(t) for t in args.policy], args.out, args.videos, args.num_envs,
-                         args.sim_backend, not args.no_report)
-    print(out.resolve() / ("results.json" if args.no_report else "report.html"))
+def run(cmd: ExperimentCommand) -> int:
+    out = run_experiment(cmd)
+    print(out.resolve() / ("report.html" if cmd.report else "results.json"))
     return 0

@@ -20,6 +20,7 @@ from mani_skill.utils.geometry.rotation_conversions import (
     quaternion_to_matrix,
 )
 
+from vla_ladder.contract import ACTION_DIM, EPISODE_STEPS
 from vla_ladder.policies import Policy
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECTS, object_index
 
@@ -62,15 +63,15 @@ class ScriptedConfig:
     mug_min_angle_deg: float = 100.0
     """Smallest angle between the handle and the rim point the mug is grasped at (degrees)."""
     latest_close: int = 42
-    """Step by which the gripper closes whatever the error, so the lift ends inside 50 steps."""
+    """Step by which the gripper closes whatever the error, so the lift ends inside the episode."""
 
     def __post_init__(self):
         for name in ("approach_height", "lift_height", "gain"):
             lo, hi = getattr(self, name)
             if not 0 < lo <= hi:
                 raise ValueError(f"{name} must be a range 0 < lo <= hi, got {(lo, hi)}")
-        if self.close_steps < 1 or not 0 < self.latest_close < 50 - self.close_steps:
-            raise ValueError("need close_steps >= 1 and latest_close + close_steps < 50")
+        if self.close_steps < 1 or not 0 < self.latest_close < EPISODE_STEPS - self.close_steps:
+            raise ValueError(f"need close_steps >= 1 and latest_close + close_steps < {EPISODE_STEPS}")
 
 
 def _gripper_action(width: torch.Tensor) -> torch.Tensor:
@@ -222,7 +223,7 @@ class ScriptedPolicy(Policy):
         r_des = _yaw_down(yaw_des)
         rot = matrix_to_axis_angle(r_des @ r_cur.transpose(1, 2))
 
-        action = torch.zeros(n, 7, device=self.device)
+        action = torch.zeros(n, ACTION_DIM, device=self.device)
         action[:, :3] = (err * self.gain[:, None] / ACTION_SCALE).clamp(-1, 1)
         # Measured on ManiSkill 3.0.1: a positive rotation action turns the TCP the negative way about
         # the root axes, hence the minus sign.

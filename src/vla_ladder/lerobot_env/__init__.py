@@ -1,7 +1,7 @@
 """GraspObject-v1 as a LeRobot env plugin, so LeRobot's own tools run on it:
 
-    lerobot-eval --env.discover_packages_path=vla_ladder.envs_lerobot --env.type=grasp_object \
-        --env.regime=full_random --policy.path=RUN/checkpoints/last/pretrained_model \
+    lerobot-eval --env.discover_packages_path=vla_ladder.lerobot_env --env.type=grasp_object \
+        --env.condition=full_random/canonical/5 --policy.path=RUN/checkpoints/last/pretrained_model \
         --eval.n_episodes=10 --eval.batch_size=1
 
 Importing this module registers `GraspObjectEnvConfig` under the type "grasp_object" in LeRobot's
@@ -20,29 +20,27 @@ import torch
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 
-from vla_ladder.task.layouts import check_args
-from vla_ladder.training.dataset import ACTION_DIM, ACTION_KEY, CAMERA_KEYS, IMAGE_SHAPE, STATE_DIM, STATE_KEY
+from vla_ladder.conditions import Condition
+from vla_ladder.contract import (ACTION_DIM, ACTION_KEY, CAMERAS, CONTROL_HZ, ENV_ID, EPISODE_STEPS, STATE_DIM,
+                                 STATE_KEY)
 
-GYM_ID = "vla_ladder/GraspObject-v1"
-EPISODE_STEPS = 50
-FPS = 20
-CAMERAS = tuple(k.rsplit(".", 1)[1] for k in CAMERA_KEYS)
+GYM_ID = f"vla_ladder/{ENV_ID}"
 
 
 class LeRobotGraspObject(gym.Env):
     """One GraspObject-v1 episode at a time with LeRobot's observation and info conventions."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": FPS}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
 
     def __init__(self, regime: str = "small_jitter", split: str = "canonical", num_objects: int = 5,
                  object_set: str = "auto", sim_backend: str = "physx_cpu", render_mode: str = "rgb_array"):
         import vla_ladder.task.env  # noqa: F401  (registers the ManiSkill env)
 
-        self.env = gym.make("GraspObject-v1", regime=regime, split=split, num_objects=num_objects,
+        self.env = gym.make(ENV_ID, regime=regime, split=split, num_objects=num_objects,
                             object_set=object_set, obs_mode="rgb", sim_backend=sim_backend, num_envs=1)
         self.render_mode = render_mode
         self.observation_space = gym.spaces.Dict({
-            "pixels": gym.spaces.Dict({c: gym.spaces.Box(0, 255, IMAGE_SHAPE, np.uint8) for c in CAMERAS}),
+            "pixels": gym.spaces.Dict({c.name: gym.spaces.Box(0, 255, c.shape, np.uint8) for c in CAMERAS}),
             "agent_pos": gym.spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32),
         })
         self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
@@ -58,7 +56,7 @@ class LeRobotGraspObject(gym.Env):
 
     def _convert(self, obs) -> dict:
         self._last = {
-            "pixels": {c: obs["sensor_data"][c]["rgb"][0].cpu().numpy() for c in CAMERAS},
+            "pixels": {c.name: obs["sensor_data"][c.name]["rgb"][0].cpu().numpy() for c in CAMERAS},
             "agent_pos": obs["extra"]["proprio"][0].cpu().numpy().astype(np.float32),
         }
         return self._last
@@ -97,27 +95,26 @@ if GYM_ID not in gym.registry:
 class GraspObjectEnvConfig(EnvConfig):
     """GraspObject-v1 for lerobot-eval / lerobot-train's env evaluation."""
 
-    task: str | None = "GraspObject-v1"
-    fps: int = FPS
+    task: str | None = ENV_ID
+    fps: int = CONTROL_HZ
     episode_length: int = EPISODE_STEPS
-    regime: str = "small_jitter"
-    split: str = "canonical"
-    num_objects: int = 5
+    condition: str = Condition().key
+    """the condition, as its key regime/split/num_objects, e.g. --env.condition=full_random/canonical/5"""
     object_set: str = "auto"
     sim_backend: str = "physx_cpu"
     features: dict[str, PolicyFeature] = field(default_factory=lambda: {
         ACTION_KEY: PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,)),
         "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(STATE_DIM,)),
-        **{f"pixels/{c}": PolicyFeature(type=FeatureType.VISUAL, shape=IMAGE_SHAPE) for c in CAMERAS},
+        **{f"pixels/{c.name}": PolicyFeature(type=FeatureType.VISUAL, shape=c.shape) for c in CAMERAS},
     })
     features_map: dict[str, str] = field(default_factory=lambda: {
         ACTION_KEY: ACTION_KEY,
         "agent_pos": STATE_KEY,
-        **{f"pixels/{c}": k for c, k in zip(CAMERAS, CAMERA_KEYS)},
+        **{f"pixels/{c.name}": c.key for c in CAMERAS},
     })
 
     def __post_init__(self):
-        check_args(self.regime, self.split, self.num_objects, None)
+        Condition.parse(self.condition)
 
     @property
     def package_name(self) -> str:
@@ -129,6 +126,7 @@ class GraspObjectEnvConfig(EnvConfig):
 
     @property
     def gym_kwargs(self) -> dict:
-        return {"regime": self.regime, "split": self.split, "num_objects": self.num_objects,
-                "object_set": self.object_set, "sim_backend": self.sim_backend,
+        c = Condition.parse(self.condition)
+        return {"regime": c.regime, "split": c.split, "num_objects": c.num_objects, "object_set": self.object_set,
+                "sim_backend": self.sim_backend,
                 "max_episode_steps": self.episode_length}

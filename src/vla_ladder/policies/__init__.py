@@ -1,7 +1,10 @@
-"""One interface for every policy: an observation batch and instructions in, an action batch out.
+"""Every policy vla-ladder runs, behind one interface: an observation batch and instructions in, actions out.
 
-Experts, reference policies and LeRobot checkpoints all implement `Policy`, so recording and evaluation
-never care which kind they run. `load_policy("kind[:arg]")` builds one from a command-line spec.
+The interface and the registry live here (the ground floor every stage may import); each kind lives in its
+own module of this package: scripted.py (the scripted expert), reference.py (nearest, layout-prior,
+random), ppo.py (the PPO expert's network, checkpoint format and policy), lerobot.py (any LeRobot
+checkpoint). Recording and evaluation never care which kind they run. `load_policy("kind[:arg]")` builds
+one from a command-line spec; a kind's module is imported only when that kind is asked for.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import torch
 
 
 class Policy(ABC):
-    """A batched policy for GraspObject-v1 (7-d pd_ee_delta_pose actions in [-1, 1])."""
+    """A batched policy for GraspObject-v1 (contract.ACTION_DIM pd_ee_delta_pose actions in [-1, 1])."""
 
     obs_mode: str = "state_dict"
     """The env obs_mode it needs: "state_dict" (privileged experts) or "rgb" (VLAs)."""
@@ -36,12 +39,12 @@ class Policy(ABC):
 # kind -> "module:factory"; factory(arg: str | None, **kwargs) -> Policy. Imported lazily so that a
 # command pays only for the policy it runs.
 POLICY_KINDS: dict[str, str] = {
-    "scripted": "vla_ladder.experts.scripted:make_policy",
-    "ppo": "vla_ladder.experts.ppo_policy:make_policy",
-    "lerobot": "vla_ladder.evaluation.lerobot_policy:make_policy",
-    "nearest": "vla_ladder.experts.reference:make_nearest",
-    "layout-prior": "vla_ladder.experts.reference:make_layout_prior",
-    "random": "vla_ladder.experts.reference:make_random",
+    "scripted": "vla_ladder.policies.scripted:make_policy",
+    "ppo": "vla_ladder.policies.ppo:make_policy",
+    "lerobot": "vla_ladder.policies.lerobot:make_policy",
+    "nearest": "vla_ladder.policies.reference:make_nearest",
+    "layout-prior": "vla_ladder.policies.reference:make_layout_prior",
+    "random": "vla_ladder.policies.reference:make_random",
 }
 NEEDS_ARG = {"ppo", "lerobot"}
 

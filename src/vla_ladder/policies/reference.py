@@ -20,7 +20,8 @@ import numpy as np
 import torch
 from mani_skill.utils.geometry.rotation_conversions import quaternion_apply
 
-from vla_ladder.experts.scripted import ScriptedPolicy
+from vla_ladder.policies.scripted import ScriptedPolicy
+from vla_ladder.contract import ACTION_DIM
 from vla_ladder.policies import Policy
 from vla_ladder.task import assets
 from vla_ladder.task.layouts import REGION_CENTERS
@@ -146,7 +147,7 @@ class RandomPolicy(Policy):
                 self.rngs[int(i)] = rng
 
     def act(self, obs: Any, instructions: Sequence[str] | None = None) -> torch.Tensor:
-        a = np.stack([rng.uniform(-1.0, 1.0, 7) for rng in self.rngs]).astype(np.float32)
+        a = np.stack([rng.uniform(-1.0, 1.0, ACTION_DIM) for rng in self.rngs]).astype(np.float32)
         return torch.from_numpy(a).to(self.device)
 
 

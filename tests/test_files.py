@@ -2,7 +2,7 @@ import os
 
 import pytest
 
-from vla_ladder.io import atomic_path, write_json
+from vla_ladder.files import atomic_path, write_json
 
 
 def test_atomic_write_leaves_nothing_on_failure(tmp_path):

@@ -1,0 +1,44 @@
+"""A config dataclass from its command line: tyro parses the flags, __post_init__ validates, errors fit on one line.
+
+Every command's config is a dataclass whose fields are its flags and whose field docstrings are the help.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from typing import TypeVar
+
+T = TypeVar("T")
+
+
+def parse_config(cls: type[T], argv: list[str], prog: str, description: str | None = None,
+                 default: T | None = None) -> T:
+    """`cls` from `argv` (flags not given take their defaults, or `default`'s values); a value its __post_init__
+    rejects raises ValueError with the message that names what is allowed."""
+    import tyro
+
+    with _one_line_value_errors():
+        return tyro.cli(cls, args=argv, prog=prog, description=description, default=default)
+
+
+@contextmanager
+def _one_line_value_errors():
+    """A config's __post_init__ rejects bad values with a ValueError that names what is allowed; tyro would draw
+    it in a box. Hand it back as a ValueError so main() prints it on one line, like every other bad input.
+    (tyro's parse-error hook is marked experimental: without it, tyro's own box still says the same, exit 2.)"""
+    import tyro
+
+    errors = getattr(tyro, "_errors", None)
+    hook = getattr(errors, "on_parse_error", None)
+    if hook is None:
+        yield
+        return
+
+    def handle(event):
+        if isinstance(event, errors.InstantiationFailure):
+            arg = event.argument
+            flag = "/".join(arg.lowered.name_or_flags) if arg is not None and arg.lowered.name_or_flags else ""
+            raise ValueError(f"{flag}: {event.message}" if flag else event.message)
+
+    with hook(handle):
+        yield

@@ -1,0 +1,131 @@
+"""Conditions: which placement regime, which object-region split, how many objects.
+
+A `Condition` is validated once, when it is made, and has one text form, its key "regime/split/k"
+(`Condition.parse` reads it back). A `ConditionGrid` is the set of conditions a command runs over:
+regimes x splits x object counts, where "all" stands for every regime. Simulator-free.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+REGIMES: dict[str, tuple[float, float] | None] = {
+    # (x extent, y extent) of each region in metres; None = the whole workspace.
+    "small_jitter": (0.04, 0.06),
+    "medium_jitter": (0.08, 0.12),
+    "large_jitter": (0.12, 0.16),
+    "full_random": None,
+}
+JITTER_REGIMES: tuple[str, ...] = tuple(r for r, e in REGIMES.items() if e is not None)
+SPLITS: tuple[str, ...] = ("canonical", "pairings_id", "pairings_ood")
+MAX_OBJECTS = 5
+ALL = "all"
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One evaluation or training condition of GraspObject-v1."""
+
+    regime: str = "small_jitter"
+    """placement regime: small_jitter, medium_jitter, large_jitter or full_random"""
+    split: str = "canonical"
+    """object-region split: canonical (object i in region i), pairings_id or pairings_ood (held-out pairs)"""
+    num_objects: int = MAX_OBJECTS
+    """objects on the table, 1-5 (the instructed one and its distractors)"""
+
+    def __post_init__(self):
+        if self.regime not in REGIMES:
+            raise ValueError(f"unknown regime {self.regime!r}; allowed: {', '.join(REGIMES)}")
+        if self.split not in SPLITS:
+            raise ValueError(f"unknown split {self.split!r}; allowed: {', '.join(SPLITS)}")
+        if self.split != "canonical" and REGIMES[self.regime] is None:
+            raise ValueError(f"split {self.split!r} needs a jitter regime (regions); allowed: "
+                             f"{', '.join(JITTER_REGIMES)}")
+        k = self.num_objects
+        if isinstance(k, bool) or not hasattr(k, "__index__") or not 1 <= k <= MAX_OBJECTS:
+            raise ValueError(f"num_objects must be an integer from 1 to {MAX_OBJECTS}, got {k!r}")
+        object.__setattr__(self, "num_objects", int(k))
+
+    @property
+    def key(self) -> str:
+        """"regime/split/num_objects", the one text form of a condition (file names, result keys)."""
+        return f"{self.regime}/{self.split}/{self.num_objects}"
+
+    def __str__(self) -> str:
+        return self.key
+
+    @property
+    def slug(self) -> str:
+        """The key as a file name: regime-split-Kobj."""
+        return f"{self.regime}-{self.split}-{self.num_objects}obj"
+
+    @classmethod
+    def parse(cls, key: str) -> "Condition":
+        """The inverse of `key`: "full_random/canonical/5" -> Condition("full_random", "canonical", 5)."""
+        parts = str(key).split("/")
+        if len(parts) != 3 or not parts[2].strip().isdigit():
+            raise ValueError(f"bad condition {key!r}; expected regime/split/num_objects, e.g. small_jitter/canonical/5")
+        return cls(parts[0].strip(), parts[1].strip(), int(parts[2]))
+
+    @classmethod
+    def of(cls, value: "Condition | str | dict | tuple") -> "Condition":
+        """A condition from a Condition, a key, a {regime, split, num_objects} dict or a tuple."""
+        if isinstance(value, Condition):
+            return value
+        if isinstance(value, str):
+            return cls.parse(value)
+        if isinstance(value, dict):
+            unknown = set(value) - {"regime", "split", "num_objects"}
+            if unknown:
+                raise ValueError(f"unknown condition fields {sorted(unknown)}; allowed: regime, split, num_objects")
+            return cls(**value)
+        return cls(*value)
+
+
+def parse_regimes(names) -> tuple[str, ...]:
+    """Regime names, or "all" for every regime (a comma list in one string is accepted too)."""
+    if isinstance(names, str):
+        names = [names]
+    flat = [r.strip() for n in names for r in str(n).split(",") if r.strip()]
+    if flat == [ALL]:
+        return tuple(REGIMES)
+    if not flat:
+        raise ValueError(f"no regime given; allowed: {', '.join(REGIMES)} or {ALL}")
+    for r in flat:
+        if r not in REGIMES:
+            raise ValueError(f"unknown regime {r!r}; allowed: {', '.join(REGIMES)} or {ALL}")
+    return tuple(dict.fromkeys(flat))
+
+
+@dataclass(frozen=True)
+class ConditionGrid:
+    """Every (regime, split, num_objects) of regimes x splits x object counts. Pairing splits need regions,
+    so they pair with the jitter regimes only (full_random x pairings_* is left out, not an error)."""
+
+    regimes: tuple[str, ...] = (ALL,)
+    """placement regimes, or all"""
+    splits: tuple[str, ...] = ("canonical",)
+    """object-region splits: canonical, pairings_id, pairings_ood"""
+    num_objects: tuple[int, ...] = (MAX_OBJECTS,)
+    """objects on the table, 1-5 (several give several conditions)"""
+
+    def __post_init__(self):
+        object.__setattr__(self, "regimes", parse_regimes(self.regimes))
+        object.__setattr__(self, "splits", tuple(self.splits))
+        object.__setattr__(self, "num_objects", tuple(self.num_objects))
+        if not self.splits or not self.num_objects:
+            raise ValueError("a condition grid needs at least one split and one object count")
+        for s in self.splits:
+            Condition(JITTER_REGIMES[0], s)
+        for k in self.num_objects:
+            Condition(num_objects=k)
+        if not self.conditions:
+            raise ValueError(f"no valid condition: splits {', '.join(self.splits)} need a jitter regime "
+                             f"({', '.join(JITTER_REGIMES)})")
+
+    @property
+    def conditions(self) -> list[Condition]:
+        """The conditions in order: regime-major, then split, then object count."""
+        return [Condition(r, s, k) for r, s, k in itertools.product(self.regimes, self.splits, self.num_objects)
+                if s == "canonical" or REGIMES[r] is not None]

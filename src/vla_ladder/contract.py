@@ -1,0 +1,81 @@
+"""The GraspObject-v1 data contract: the one place that says what an episode is made of.
+
+Episode length, rates, the two cameras, the 15-d state, the 7-d action, the decomposed metrics, and the
+LeRobot feature keys (LeRobot's own constants) and dataset features built from them. Every stage reads
+these names from here: the env asserts it matches them, the recorder writes these features, training
+checks a dataset against them, and the LeRobot adapters feed policies with them. Simulator-free.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
+
+ENV_ID = "GraspObject-v1"
+ROBOT = "panda_wristcam"
+CONTROL_MODE = "pd_ee_delta_pose"
+SIM_HZ = 100
+CONTROL_HZ = 20
+EPISODE_STEPS = 50
+"""2.5 s at 20 Hz; episodes never end early, success is judged at the final step."""
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """One RGB camera the policy sees."""
+
+    name: str
+    fov_deg: float
+    """Vertical field of view."""
+    height: int = 256
+    width: int = 256
+
+    @property
+    def key(self) -> str:
+        """LeRobot feature key, e.g. observation.images.hand_camera."""
+        return f"{OBS_IMAGES}.{self.name}"
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """(H, W, 3): how the env renders it and the dataset stores it."""
+        return (self.height, self.width, 3)
+
+
+# The paper's cameras: a 58 degree wrist camera and a 45 degree fixed front camera, 256x256 RGB.
+CAMERAS: tuple[CameraSpec, ...] = (CameraSpec("hand_camera", 58.0), CameraSpec("fixed_camera", 45.0))
+CAMERA_NAMES: tuple[str, ...] = tuple(c.name for c in CAMERAS)
+CAMERA_KEYS: tuple[str, ...] = tuple(c.key for c in CAMERAS)
+IMAGE_SHAPE: tuple[int, int, int] = CAMERAS[0].shape
+assert all(c.shape == IMAGE_SHAPE for c in CAMERAS), "the pipeline assumes one image size for both cameras"
+
+STATE_NAMES: tuple[str, ...] = (*(f"joint_pos_{i}" for i in range(7)), *(f"joint_vel_{i}" for i in range(7)),
+                                "gripper_width")
+"""The proprioceptive state: 7 arm joint positions, 7 joint velocities, the gripper's opening (m)."""
+STATE_DIM = len(STATE_NAMES)
+ACTION_NAMES: tuple[str, ...] = ("dx", "dy", "dz", "drx", "dry", "drz", "gripper")
+"""pd_ee_delta_pose, normalised to [-1, 1]: root-frame translation and axis-angle rotation (x 0.1 m / 0.1 rad),
+then the gripper (-1 closed, +1 open)."""
+ACTION_DIM = len(ACTION_NAMES)
+
+STATE_KEY = OBS_STATE
+ACTION_KEY = ACTION
+
+METRICS: tuple[str, ...] = ("success", "grasp_any", "reach")
+"""success: the instructed object is held at the final step; grasp_any: some object was grasped at some step;
+reach: the TCP ends within REACH_THRESHOLD of the instructed object's bounding box."""
+REACH_THRESHOLD = 0.05
+
+FEATURE_SHAPES: dict[str, tuple[int, ...]] = {
+    **{c.key: c.shape for c in CAMERAS}, STATE_KEY: (STATE_DIM,), ACTION_KEY: (ACTION_DIM,)}
+"""Every LeRobot feature a GraspObject-v1 dataset holds, and its shape."""
+
+
+def dataset_features(video: bool = True) -> dict[str, dict]:
+    """The LeRobotDataset schema of a recording (paper, appendix "Dataset format")."""
+    cam = {"dtype": "video" if video else "image", "names": ["height", "width", "channels"]}
+    return {
+        **{c.key: {**cam, "shape": c.shape} for c in CAMERAS},
+        STATE_KEY: {"dtype": "float32", "shape": (STATE_DIM,), "names": list(STATE_NAMES)},
+        ACTION_KEY: {"dtype": "float32", "shape": (ACTION_DIM,), "names": list(ACTION_NAMES)},
+    }

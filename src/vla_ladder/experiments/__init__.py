@@ -1,0 +1,1 @@
+"""Orchestration above the stages: the paper's experiments, the grid search, the study and the probes."""

@@ -1,1 +1,0 @@
-"""experts stage of vla-ladder."""

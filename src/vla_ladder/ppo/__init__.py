@@ -1,0 +1,1 @@
+"""Training the PPO privileged-state expert (`vla-ladder train-expert`)."""

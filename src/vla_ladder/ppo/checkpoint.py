@@ -1,0 +1,54 @@
+"""Training checkpoints of the PPO expert: the network (the policy's own format), the optimizer state and the
+run state, written so that a crash leaves the previous checkpoint in charge and `--resume` continues exactly."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import safe_open, save_file
+
+from vla_ladder import files
+from vla_ladder.policies.ppo import Agent, save_agent
+
+
+def save_optimizer(path: Path, optimizer: torch.optim.Optimizer) -> None:
+    sd = optimizer.state_dict()
+    tensors = {f"state.{pid}.{k}": torch.as_tensor(v).detach().cpu().contiguous()
+               for pid, st in sd["state"].items() for k, v in st.items()}
+    with files.atomic_path(path) as tmp:
+        save_file(tensors, str(tmp), {"param_groups": json.dumps(sd["param_groups"])})
+
+
+def load_optimizer(path: Path, optimizer: torch.optim.Optimizer) -> None:
+    try:
+        with safe_open(str(path), framework="pt") as sf:
+            groups = json.loads(sf.metadata()["param_groups"])
+            state: dict[int, dict] = {}
+            for key in sf.keys():
+                _, pid, name = key.split(".", 2)
+                state.setdefault(int(pid), {})[name] = sf.get_tensor(key)
+        optimizer.load_state_dict({"state": state, "param_groups": groups})
+    except (SafetensorError, OSError, KeyError, ValueError, RuntimeError) as e:
+        raise ValueError(f"unreadable optimizer state {path}: {e}") from e
+
+
+def save_checkpoint(out: Path, agent: Agent, optimizer: torch.optim.Optimizer, state: dict, keep: int,
+                    best: bool) -> None:
+    """Write checkpoints/step_N/ in full, then point state.json at it: a crash leaves the previous
+    checkpoint in charge."""
+    name = f"checkpoints/step_{state['global_step']:012d}"
+    ck = out / name
+    save_agent(ck / "model.safetensors", agent)
+    save_optimizer(ck / "optimizer.safetensors", optimizer)
+    files.write_json(ck / "state.json", state)
+    if best:
+        best_dir = out / "checkpoints" / "best"
+        save_agent(best_dir / "model.safetensors", agent)
+        files.write_json(best_dir / "state.json", state)
+    files.write_json(out / "state.json", {**state, "checkpoint": name})
+    for old in sorted((out / "checkpoints").glob("step_*"))[:-keep]:
+        shutil.rmtree(old)

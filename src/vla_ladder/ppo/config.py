@@ -1,0 +1,139 @@
+"""`Args` of the PPO expert trainer: every field is a command-line flag (`vla-ladder train-expert --help`).
+
+Defaults are the paper's appendix table; the ones it does not list are ManiSkill's PPO baseline values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from vla_ladder.conditions import Condition, ConditionGrid
+from vla_ladder.contract import EPISODE_STEPS
+
+# Training episodes take seeds in [TRAIN_SEED_MIN, 2**32) (numpy's seed limit); evaluation seeds stay
+# below, so `vla-ladder eval --first-seed S` with any S + episodes <= TRAIN_SEED_MIN is held out.
+TRAIN_SEED_MIN = 2**30
+SIM_BACKENDS = ("physx_cuda", "physx_cpu")
+
+
+@dataclass
+class Args:
+    """Train the PPO privileged-state expert (CleanRL-style PPO on GraspObject-v1)."""
+
+    out: Path
+    """directory of the run: config.json, state.json, checkpoints/, evals.json, tb/ (TensorBoard)"""
+    resume: bool = False
+    """continue the run in --out from its last checkpoint (same step count and optimizer state); flags given
+    with --resume override the run's saved ones"""
+    train_seed: int = 1
+    """seed of the experiment (network init, action sampling, training episode seeds)"""
+    cuda: bool = True
+    """run the networks on CUDA when available (always the case with physx_cuda)"""
+    progress: bool = True
+    """show a progress bar"""
+    torch_threads: int = 1
+    """CPU threads for the networks when they run on the CPU (their batches are small and the simulator
+    needs the cores: 2 threads on a busy 2-core machine made each forward pass ~50x slower)"""
+
+    # Environment
+    sim_backend: str = "physx_cuda"
+    """physx_cuda (GPU-parallel envs) or physx_cpu (one env in-process, several through AsyncVectorEnv)"""
+    num_envs: int = 1024
+    """the number of parallel environments"""
+    max_episode_steps: int = EPISODE_STEPS
+    """episode length in control steps (20 Hz)"""
+    grid: Annotated[ConditionGrid, tyro.conf.arg(name="")] = field(
+        default_factory=lambda: ConditionGrid(splits=("canonical",), num_objects=(1, 3, 5)))
+    """conditions trained on, as a mixture (env slots cycle through every condition)"""
+
+    # Algorithm (the paper's appendix table)
+    total_timesteps: int = 30_000_000
+    """total env steps of training"""
+    learning_rate: float = 1e-4
+    """AdamW learning rate"""
+    weight_decay: float = 1e-5
+    """AdamW weight decay"""
+    num_steps: int = 50
+    """steps per env in each rollout"""
+    num_minibatches: int = 2
+    """minibatches per update epoch"""
+    update_epochs: int = 4
+    """passes over each rollout"""
+    gamma: float = 0.8
+    """discount factor"""
+    gae_lambda: float = 0.9
+    """lambda of generalised advantage estimation"""
+    clip_coef: float = 0.2
+    """surrogate clipping coefficient"""
+    ent_coef: float = 0.1
+    """entropy coefficient"""
+    # The table does not list these; ManiSkill's PPO baseline values.
+    vf_coef: float = 0.5
+    """value loss coefficient"""
+    max_grad_norm: float = 0.5
+    """gradient norm clip"""
+    norm_adv: bool = True
+    """normalise advantages per minibatch"""
+    target_kl: float = 0.1
+    """stop an update's epochs early once the approximate KL exceeds this (0 disables)"""
+    hidden_sizes: tuple[int, ...] = (256, 256, 256)
+    """hidden layer widths of the actor and of the critic (tanh MLPs)"""
+    init_logstd: float = -0.5
+    """initial log standard deviation of the Gaussian policy"""
+
+    # Evaluation and checkpoints
+    eval_freq: int = 25
+    """evaluate (and checkpoint) every this many iterations, and at the end"""
+    eval_episodes: int = 100
+    """evaluation episodes per training condition (deterministic actions)"""
+    eval_first_seed: int = 0
+    """episode j of every condition is evaluated with seed eval_first_seed + j (as `vla-ladder eval` does)"""
+    keep_checkpoints: int = 3
+    """how many recent checkpoints to keep (checkpoints/best is always kept)"""
+
+    def __post_init__(self):
+        self.out = Path(self.out)
+        self.hidden_sizes = tuple(self.hidden_sizes)
+        if not isinstance(self.grid, ConditionGrid):
+            self.grid = ConditionGrid(**self.grid)
+        if self.sim_backend not in SIM_BACKENDS:
+            raise ValueError(f"unknown sim backend {self.sim_backend!r}; allowed: {', '.join(SIM_BACKENDS)}")
+        positive = ("num_envs", "max_episode_steps", "num_steps", "num_minibatches", "update_epochs",
+                    "eval_freq", "eval_episodes", "keep_checkpoints", "learning_rate", "torch_threads")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ValueError(f"--{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
+        if not self.hidden_sizes or min(self.hidden_sizes) <= 0:
+            raise ValueError(f"--hidden-sizes must be positive widths, got {self.hidden_sizes}")
+        if self.train_seed < 0:
+            raise ValueError(f"--train-seed must be >= 0, got {self.train_seed}")
+        if self.minibatch_size < 1:
+            raise ValueError(f"--num-minibatches {self.num_minibatches} exceeds the batch of "
+                             f"{self.batch_size} (num_envs x num_steps)")
+        if self.total_timesteps < self.batch_size:
+            raise ValueError(f"--total-timesteps must be at least one batch (num_envs x num_steps = "
+                             f"{self.batch_size}), got {self.total_timesteps}")
+        if not 0 <= self.eval_first_seed <= TRAIN_SEED_MIN - self.eval_episodes:
+            raise ValueError(f"evaluation seeds must stay below the training seeds ({TRAIN_SEED_MIN}): "
+                             f"need 0 <= eval_first_seed <= {TRAIN_SEED_MIN - self.eval_episodes}")
+
+    @property
+    def conditions(self) -> list[Condition]:
+        """Every condition trained on (pairing splits skip full_random)."""
+        return self.grid.conditions
+
+    @property
+    def batch_size(self) -> int:
+        return self.num_envs * self.num_steps
+
+    @property
+    def minibatch_size(self) -> int:
+        return self.batch_size // self.num_minibatches
+
+    @property
+    def num_iterations(self) -> int:
+        return self.total_timesteps // self.batch_size

@@ -1,0 +1,239 @@
+"""`vla-ladder record`: draw expert episodes from simulation servers, keep the successful ones in a
+LeRobotDataset v3. Rerunning the same command resumes; see docs/recording.md."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from vla_ladder.conditions import Condition
+from vla_ladder.recording.client import Episode, EpisodeClient, EpisodeSource, ServerError
+from vla_ladder.recording.serve import setup_logging
+from vla_ladder.recording.server import TOKEN_ENV
+from vla_ladder.recording.store import DatasetStore, Recording
+
+log = logging.getLogger(__name__)
+SERVER_START_TIMEOUT_S = 900
+
+
+@dataclass
+class RecordConfig:
+    """Record successful expert episodes into a LeRobotDataset v3 (rerunning the same command resumes)."""
+
+    out: Path
+    """dataset directory (created, or resumed when it exists)"""
+    episodes: int
+    """successful episodes the dataset should hold"""
+    server: tuple[str, ...] = ()
+    """ws://HOST:PORT of running `vla-ladder serve`s to draw from; the dataset records the condition and expert
+    they serve (all must serve the same). Without it, a local server is started with the options below."""
+    condition: Annotated[Condition, tyro.conf.arg(name="")] = field(default_factory=Condition)
+    """condition of the local server (with --server, the servers' condition; a different one given here is an
+    error)"""
+    policy: str = "scripted"
+    """expert spec of the local server: scripted, ppo:PATH, ... (with --server, the servers' expert)"""
+    num_envs: int = 1
+    """parallel envs of the local server (more than one needs a GPU)"""
+    first_seed: int = 0
+    """first episode seed; later ones follow and never repeat, across servers and resumes"""
+    video: bool = True
+    """store camera frames as MP4 video (LeRobot's default); --no-video stores PNG images"""
+    token: str | None = field(default_factory=lambda: os.environ.get(TOKEN_ENV))
+    """server token (default: $VLA_LADDER_TOKEN)"""
+    commit_every: int = 50
+    """commit to the dataset every N saved episodes"""
+    commit_seconds: float = 600.0
+    """... or, at the next saved episode, when the open batch is older than this"""
+
+    def __post_init__(self):
+        self.out = Path(self.out)
+        self.condition = Condition.of(self.condition)
+        self.server = tuple(self.server)
+        if self.episodes < 1:
+            raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
+        if self.first_seed < 0:
+            raise ValueError(f"--first-seed must be >= 0, got {self.first_seed}")
+        for url in self.server:
+            if not url.startswith(("ws://", "wss://")):
+                raise ValueError(f"--server {url!r}: expected ws://HOST:PORT or wss://HOST:PORT")
+        from vla_ladder.policies import parse_spec
+        parse_spec(self.policy)
+
+
+def recording_of(cfg: RecordConfig) -> Recording:
+    """What the dataset will be a recording of: the local server's settings, or what the servers say they
+    serve (from their welcome messages)."""
+    if not cfg.server:
+        return Recording(cfg.policy, cfg.condition, cfg.first_seed, cfg.video)
+    served = {url: asyncio.run(_welcome(url, cfg.token)) for url in cfg.server}
+    kinds = {(info["policy"], info["condition"]) for info in served.values()}
+    if len(kinds) > 1:
+        raise ValueError("the servers serve different things: " + "; ".join(
+            f"{url}: {info['policy']} on {info['condition']}" for url, info in served.items()))
+    policy, key = kinds.pop()
+    condition = Condition.parse(key)
+    if cfg.condition not in (Condition(), condition):
+        raise ValueError(f"--server {cfg.server[0]} serves {condition} but the command asks for {cfg.condition}; "
+                         "drop the condition flags (the servers' condition is recorded) or start matching servers")
+    return Recording(policy, condition, cfg.first_seed, cfg.video)
+
+
+async def _welcome(url: str, token: str | None) -> dict:
+    client = EpisodeClient(url, token)
+    try:
+        return (await client.connect())["server"]
+    finally:
+        await client.close()
+
+
+def run(cfg: RecordConfig) -> int:
+    setup_logging("record")
+    os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its whole configuration per video otherwise
+    try:
+        recording = recording_of(cfg)
+    except ServerError as e:
+        raise ValueError(f"cannot reach the server: {e}") from None
+    store = DatasetStore(cfg.out, recording, commit_every=cfg.commit_every, commit_seconds=cfg.commit_seconds)
+    if store.saved >= cfg.episodes:
+        log.info("%s already holds %d episodes (asked for %d); nothing to do", cfg.out, store.saved, cfg.episodes)
+        store.close()
+        return 0
+    if store.saved:
+        log.info("resuming %s at %d/%d episodes, next seed %d", cfg.out, store.saved, cfg.episodes,
+                 store.next_seed)
+    local = None
+    source = None
+    try:
+        if cfg.server:
+            urls = list(cfg.server)
+        else:
+            local = LocalServer(recording, cfg.num_envs)
+            urls = [local.url]
+        source = EpisodeSource(urls, store.reserve_seeds, cfg.episodes - store.saved,
+                               check_server=lambda url, info: check_server(recording, url, info),
+                               token=cfg.token).start()
+        progress = Progress(cfg.episodes, store.saved)
+        while store.saved + store.pending < cfg.episodes:
+            episode = source.get()
+            store.count(episode.success)
+            if episode.success and episode.has_frames:
+                store.add(episode)
+            progress.update(episode, store)
+        store.close()
+        progress.report(store, final=True)
+        return 0
+    except KeyboardInterrupt:
+        log.info("interrupted: committing the %d pending episodes", store.pending)
+        store.close()
+        return 130
+    except ServerError as e:
+        log.error("%s", e)
+        log.info("committing the %d episodes received complete; rerun the same command to continue",
+                  store.pending)
+        store.close()
+        return 1
+    except BaseException:
+        store.close(commit=False)
+        raise
+    finally:
+        if source is not None:
+            source.stop()
+        if local is not None:
+            local.stop()
+
+
+def check_server(recording: Recording, url: str, info: dict) -> None:
+    """A server must simulate exactly the condition and expert this dataset records."""
+    want = {"policy": recording.policy, "condition": recording.condition.key}
+    wrong = [f"{k}={info.get(k)!r} (recording: {v!r})" for k, v in want.items() if info.get(k) != v]
+    if wrong:
+        raise ValueError(f"server {url} runs " + ", ".join(wrong) + "; start it with the recording's arguments")
+
+
+@dataclass
+class Progress:
+    """Episodes saved / attempted, the expert's success rate, frames/s and ETA, logged every few seconds."""
+
+    target: int
+    start_saved: int
+    every_s: float = 10.0
+    attempted: int = 0
+    successes: int = 0
+    frames: int = 0
+    started: float = field(default_factory=time.monotonic)
+    last: float = 0.0
+
+    def update(self, episode: Episode, store: DatasetStore) -> None:
+        self.attempted += 1
+        self.successes += episode.success
+        self.frames += episode.num_frames
+        if time.monotonic() - self.last >= self.every_s:
+            self.report(store)
+
+    def report(self, store: DatasetStore, final: bool = False) -> None:
+        self.last = now = time.monotonic()
+        elapsed = max(now - self.started, 1e-9)
+        done = store.saved + store.pending - self.start_saved
+        rate = done / elapsed
+        left = self.target - store.saved - store.pending
+        eta = time.strftime("%H:%M:%S", time.gmtime(left / rate)) if rate > 0 else "?"
+        log.info("%s %d/%d saved (+%d pending) | attempted %d, expert success %.0f%% | %.1f frames/s simulated, "
+                 "%.3f demos/s saved | ETA %s", "done:" if final else "progress:", store.saved, self.target,
+                 store.pending, self.attempted, 100 * self.successes / max(self.attempted, 1),
+                 self.frames / elapsed, rate, eta)
+
+
+class LocalServer:
+    """`vla-ladder serve` as a child process on 127.0.0.1 with a free port, tied to this process: it exits
+    when our end of its stdin closes, so even a kill -9 of the recorder does not leave it behind."""
+
+    def __init__(self, recording: Recording, num_envs: int = 1):
+        c = recording.condition
+        cmd = [sys.executable, "-m", "vla_ladder.cli", "serve", "--policy", recording.policy, "--regime", c.regime,
+               "--split", c.split, "--num-objects", str(c.num_objects), "--num-envs", str(num_envs),
+               "--host", "127.0.0.1", "--port", "0", "--exit-on-stdin-close"]
+        log.info("starting a local server: %s", " ".join(cmd[2:]))
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        self.url = self._wait_ready()
+        threading.Thread(target=self._forward, daemon=True).start()
+
+    def _wait_ready(self) -> str:
+        deadline = time.monotonic() + SERVER_START_TIMEOUT_S
+        result: list[str] = []
+
+        def read():
+            for line in self.proc.stdout:
+                if line.startswith("listening on "):
+                    result.append(line.split()[-1])
+                    return
+
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        reader.join(timeout=max(0.0, deadline - time.monotonic()))
+        if not result:
+            self.stop()
+            raise ServerError("local server", f"did not start (exit code {self.proc.poll()}); see its log above")
+        return result[0]
+
+    def _forward(self) -> None:
+        for line in self.proc.stdout:
+            sys.stderr.write(line)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.stdin.close()
+            try:
+                self.proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()

@@ -1,0 +1,73 @@
+"""What a vla-ladder dataset says about itself, as the recorder writes it and every reader reads it.
+
+Next to LeRobot's own metadata, a recording holds meta/vla_ladder_recording.json (what it is a recording
+of: the expert, the condition, the first seed, video or images; counters; versions) and one Parquet shard
+of per-episode provenance per commit under meta/vla_ladder_episodes/ (seed, layout, metrics...).
+Simulator-free, so training and dataset checks read it without the recorder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from vla_ladder.conditions import Condition
+
+FORMAT_VERSION = 2
+RECORDING_FILE = "meta/vla_ladder_recording.json"
+PROVENANCE_DIR = "meta/vla_ladder_episodes"
+
+
+@dataclass(frozen=True)
+class Recording:
+    """What a dataset is a recording of; resuming requires the same values."""
+
+    policy: str
+    """expert spec (scripted, ppo:PATH, ...)"""
+    condition: Condition
+    first_seed: int = 0
+    """first episode seed; later ones follow without repeats"""
+    video: bool = True
+    """cameras stored as MP4 video (LeRobot's default) or as PNG images inside the Parquet files"""
+
+    def to_dict(self) -> dict:
+        return {"policy": self.policy, "condition": self.condition.key, "first_seed": self.first_seed,
+                "video": self.video}
+
+    @classmethod
+    def from_dict(cls, data: dict, format_version: int = FORMAT_VERSION) -> "Recording":
+        if format_version == 1:  # regime/split/num_objects and "seed" before conditions had one key
+            data = {"policy": data["policy"], "first_seed": data["seed"], "video": data["video"],
+                    "condition": Condition(data["regime"], data["split"], data["num_objects"]).key}
+        return cls(data["policy"], Condition.parse(data["condition"]), int(data["first_seed"]), bool(data["video"]))
+
+    def differences(self, other: "Recording") -> list[str]:
+        mine, theirs = self.to_dict(), other.to_dict()
+        return [f"{k}={theirs[k]!r} (this command: {v!r})" for k, v in mine.items() if theirs[k] != v]
+
+
+def read_recording(root: str | os.PathLike) -> Recording | None:
+    """What the dataset at `root` is a recording of, from the recording state the recorder writes (None when
+    it is not a vla-ladder recording)."""
+    state = read_recording_state(root)
+    if state is None:
+        return None
+    return Recording.from_dict(state["config"], state.get("format", FORMAT_VERSION))
+
+
+def read_provenance(root: str | os.PathLike) -> pd.DataFrame:
+    """Per-episode provenance of a recorded dataset (seed, layout, expert, metrics...), by episode_index."""
+    shards = sorted((Path(root) / PROVENANCE_DIR).glob("*.parquet"))
+    if not shards:
+        return pd.DataFrame()
+    return pd.concat([pd.read_parquet(p) for p in shards], ignore_index=True).sort_values(
+        "episode_index", ignore_index=True)
+
+
+def read_recording_state(root: str | os.PathLike) -> dict | None:
+    path = Path(root) / RECORDING_FILE
+    return json.loads(path.read_text()) if path.exists() else None

@@ -1,0 +1,60 @@
+"""The architecture a newcomer can change: one home per contract fact, and stages that only import downwards."""
+
+import ast
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "vla_ladder"
+CONTRACT_NAMES = ("ENV_ID", "EPISODE_STEPS", "SIM_HZ", "CONTROL_HZ", "CAMERAS", "CAMERA_NAMES", "CAMERA_KEYS",
+                  "IMAGE_SHAPE", "STATE_DIM", "STATE_NAMES", "ACTION_DIM", "ACTION_NAMES", "STATE_KEY",
+                  "ACTION_KEY", "METRICS", "REACH_THRESHOLD", "REGIMES", "SPLITS")
+
+
+def _assignments() -> dict[str, list[str]]:
+    """Module-level names bound by an assignment, -> the files that bind them."""
+    found: dict[str, list[str]] = {}
+    for path in SRC.rglob("*.py"):
+        for node in ast.parse(path.read_text()).body:
+            targets = node.targets if isinstance(node, ast.Assign) else \
+                [node.target] if isinstance(node, ast.AnnAssign) else []
+            for t in targets:
+                for name in ([t] if isinstance(t, ast.Name) else getattr(t, "elts", [])):
+                    if isinstance(name, ast.Name):
+                        found.setdefault(name.id, []).append(str(path.relative_to(SRC)))
+    return found
+
+
+def test_every_contract_fact_has_one_home():
+    found = _assignments()
+    for name in CONTRACT_NAMES:
+        assert len(found.get(name, [])) == 1, f"{name} is defined in {found.get(name)}"
+
+
+def test_lerobot_feature_keys_are_never_typed_out():
+    """observation.state, observation.images.* and the action key come from LeRobot's constants via the contract."""
+    pattern = re.compile(r"""["']observation\.(state|images\.[a-z_]+)["']""")
+    offenders = [str(p.relative_to(SRC)) for p in SRC.rglob("*.py") if pattern.search(p.read_text())]
+    assert offenders == []
+
+
+def test_stages_import_only_downwards():
+    """The layers contract in pyproject.toml (import-linter): cli > experiments > report > the stages
+    (evaluation, training, recording, ppo, lerobot_env; siblings never import each other) > policies > task >
+    the ground floor (contract, conditions, files, stats, recordings, commandline)."""
+    lint = Path(sys.executable).with_name("lint-imports")
+    r = subprocess.run([str(lint), "--no-cache"], capture_output=True, text=True, cwd=SRC.parents[1])
+    assert r.returncode == 0, r.stdout[-3000:]
+    assert "1 kept, 0 broken" in r.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("module", ["vla_ladder.contract", "vla_ladder.conditions", "vla_ladder.task.layouts",
+                                    "vla_ladder.recordings"])
+def test_the_ground_floor_is_simulator_free(module):
+    code = f"import sys, {module}; print(any(m.startswith(('mani_skill', 'sapien')) for m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
