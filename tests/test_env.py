@@ -194,3 +194,23 @@ def test_a_seed_replays_bit_for_bit_whatever_ran_before(make_env):
     first = rollout(0)
     rollout(1)  # another episode in between
     np.testing.assert_array_equal(rollout(0), first)
+
+
+@pytest.mark.slow
+def test_lite_robot_renders_like_the_full_one_with_identical_physics(make_env):
+    """The lite robot only changes pictures: the same seed and actions give the same states, and the two
+    pictures differ by a few grey levels on average."""
+    runs = {}
+    for mesh in ("full", "lite"):
+        env = make_env(obs_mode="rgb", regime="small_jitter", robot_mesh=mesh)
+        obs, _ = env.reset(seed=3)
+        for _ in range(5):
+            obs, *_ = env.step(torch.tensor([[0.3, 0.2, -0.3, 0, 0, 0, 1.0]]))
+        runs[mesh] = obs
+        assert env.unwrapped.metadata["robot_mesh"] == mesh
+    np.testing.assert_array_equal(runs["full"]["agent"]["qpos"].numpy(), runs["lite"]["agent"]["qpos"].numpy())
+    for cam in ("hand_camera", "fixed_camera"):
+        a, b = (runs[m]["sensor_data"][cam]["rgb"][0].float() for m in ("full", "lite"))
+        assert (a - b).abs().mean() < 6, cam
+    with pytest.raises(ValueError, match="allowed: lite, full"):
+        make_env(robot_mesh="cartoon")

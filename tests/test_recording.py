@@ -278,7 +278,7 @@ def test_server_dropped_mid_episode_leaves_no_partial_episode(server, recorded, 
 
     def kill_server_mid_episode():
         _wait_for(lambda: _saved(root) >= EPISODES + 1, 900, "an episode from the server", proc)
-        time.sleep(3)  # well inside the next episode (each takes 10+ s to render)
+        time.sleep(1)  # inside the next episode (each takes ~3 s to simulate and render)
         proc.send_signal(signal.SIGKILL)
 
     killer = threading.Thread(target=kill_server_mid_episode)
