@@ -102,3 +102,42 @@ def test_regime_lists():
     assert EvalConfig(policy="scripted", grid=ConditionGrid(("all",))).grid.regimes == tuple(REGIMES)
     with pytest.raises(ValueError, match="no regime"):
         EvalConfig(policy="scripted", grid=ConditionGrid(()))
+
+
+@pytest.mark.slow
+def test_any_number_of_workers_plays_the_same_episodes(tmp_path):
+    """Episode j of a condition is a function of its seed alone: 1 or 2 worker processes, same rows."""
+    grid = ConditionGrid(("small_jitter", "full_random"), num_objects=(3,))
+    runs = {}
+    for workers in (1, 2):
+        cfg = EvalConfig("layout-prior", out=tmp_path / f"w{workers}", grid=grid, episodes=3, workers=workers)
+        run_evaluation(cfg, progress=False)
+        runs[workers] = pd.read_parquet(cfg.out / "episodes.parquet")
+    pd.testing.assert_frame_equal(runs[1], runs[2])
+    assert len(runs[1]) == 6 and runs[1]["success"].any() and not runs[1]["success"].all()
+
+
+@pytest.mark.slow
+def test_a_killed_run_resumes_and_another_request_is_refused(tmp_path, capsys):
+    out = tmp_path / "run"
+    argv = ["eval", "--policy", "scripted", "--regimes", "small_jitter", "--num-objects", "2", "--episodes", "3",
+            "--out", str(out), "--workers", "1"]
+    assert main(argv) == 0
+    full = pd.read_parquet(out / "episodes.parquet")
+    # As if killed after the first episode: the run directory holds one whole row.
+    full.iloc[:1].to_parquet(out / "episodes.parquet", index=False)
+    capsys.readouterr()
+    assert main(argv) == 0
+    assert "1 episodes done, 2 to play" in capsys.readouterr().out
+    pd.testing.assert_frame_equal(pd.read_parquet(out / "episodes.parquet"), full)
+    assert json.loads((out / "summary.json").read_text())["complete"]
+    # The same request with another worker count is the same run; another policy is refused, or replaces it.
+    assert main([*argv[:-1], "2"]) == 0
+    assert main([*argv[:2], "random", *argv[3:]]) == 2
+    assert "another evaluation request" in capsys.readouterr().err
+    assert main([*argv[:2], "random", *argv[3:], "--overwrite"]) == 0
+    assert set(pd.read_parquet(out / "episodes.parquet")["policy"]) == {"random"}
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "mine.txt").write_text("keep me")
+    assert main([*argv[:-4], "--out", str(tmp_path / "notes")]) == 2
+    assert (tmp_path / "notes" / "mine.txt").read_text() == "keep me"

@@ -1,31 +1,39 @@
-"""Seeded evaluation of a policy in GraspObject-v1, one condition (regime, split, object count) at a time.
+"""`vla-ladder eval`: a policy on seeded episodes of every condition, written to a run directory.
 
-Episode j of every condition plays seed `first_seed + j`, so every policy meets the same layouts. Episodes run
-`num_envs` at a time (physx_cuda batches them; physx_cpu runs one env) and the final step's decomposed
-metrics become one row each. `iter_episodes` yields those rows for any caller (recording, experiments);
-`run_evaluation` writes the run directory: episodes.parquet, summary.json, config.json, videos/.
+Episode j of every condition plays seed `first_seed + j`, so every policy meets the same layouts. Episodes
+are played by `player.play` (in worker processes on the CPU backend; any number of workers gives the same
+episodes) and each becomes one row of episodes.parquet with the final step's decomposed metrics.
+
+A run directory is whole at every moment: episodes.parquet and summary.json are rewritten atomically every
+few seconds, so a killed run keeps what it finished. Running the same request again resumes it (only the
+missing episodes are played); a different request into the same directory is refused unless --overwrite.
 """
 
 from __future__ import annotations
 
 import json
+import shutil
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Annotated, Iterator, Sequence
+from typing import Annotated
 
 import numpy as np
-import torch
 import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import Condition, ConditionGrid
+from vla_ladder.evaluation.player import EnvSettings, Job, auto_workers, play
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
-from vla_ladder.contract import CAMERA_NAMES, CONTROL_HZ, ENV_ID, EPISODE_STEPS
-from vla_ladder.policies import POLICY_KINDS, Policy, load_policy, parse_spec
-from vla_ladder.task.objects import OBJECT_NAMES
+from vla_ladder.policies import POLICY_KINDS, Policy, parse_spec
 
 SIM_BACKENDS = ("physx_cpu", "physx_cuda")
 OBJECT_SETS = ("auto", "ycb", "standin")
+ROBOT_MESHES = ("lite", "full")
+FLUSH_SECONDS = 10.0
+# Fields of EvalConfig that do not change which episodes are played or what they give: a run directory
+# written with other values of these is the same request and is resumed.
+NOT_THE_REQUEST = ("out", "workers", "overwrite")
 
 
 @dataclass
@@ -43,14 +51,21 @@ class EvalConfig:
     """episodes per condition"""
     first_seed: int = 0
     """episode j of every condition plays seed first_seed + j, so every policy meets the same layouts"""
+    workers: int = 0
+    """worker processes playing episodes on the CPU backend (0: one per core, capped by memory); any number gives
+    the same episodes"""
     num_envs: int = 1
-    """episodes simulated at once (more than one needs physx_cuda)"""
+    """episodes simulated at once in one process (more than one needs physx_cuda)"""
     sim_backend: str = "physx_cpu"
     """physx_cpu or physx_cuda"""
     videos: int = 0
     """write MP4s of both cameras for the first K episodes of each condition"""
     object_set: str = "auto"
     """ycb, standin, or auto (YCB when its meshes are on disk)"""
+    robot_mesh: str = "lite"
+    """lite (decimated visual meshes, fast on a CPU renderer) or full (ManiSkill's); physics is the same"""
+    overwrite: bool = False
+    """replace a run directory that holds another request (the same request is always resumed)"""
 
     def __post_init__(self):
         self.out = None if self.out is None else Path(self.out)
@@ -62,142 +77,134 @@ class EvalConfig:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if isinstance(self.videos, bool) or not isinstance(self.videos, (int, np.integer)) or self.videos < 0:
             raise ValueError(f"videos must be an integer >= 0, got {self.videos!r}")
+        if self.workers < 0:
+            raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
         if self.first_seed < 0:
             raise ValueError(f"first_seed must be >= 0, got {self.first_seed}")
         if self.sim_backend not in SIM_BACKENDS:
             raise ValueError(f"unknown sim_backend {self.sim_backend!r}; allowed: {', '.join(SIM_BACKENDS)}")
         if self.sim_backend == "physx_cpu" and self.num_envs != 1:
             raise ValueError(f"physx_cpu runs one env at a time (num_envs=1); got num_envs={self.num_envs}; "
-                             "use sim_backend=physx_cuda for batched evaluation")
-        if self.sim_backend == "physx_cuda" and not torch.cuda.is_available():
-            raise ValueError("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")
+                             "use --workers for parallel CPU episodes, or sim_backend=physx_cuda")
+        if self.sim_backend == "physx_cuda":
+            import torch
+            if not torch.cuda.is_available():
+                raise ValueError("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")
         if self.object_set not in OBJECT_SETS:
             raise ValueError(f"unknown object_set {self.object_set!r}; allowed: {', '.join(OBJECT_SETS)}")
+        if self.robot_mesh not in ROBOT_MESHES:
+            raise ValueError(f"unknown robot_mesh {self.robot_mesh!r}; allowed: {', '.join(ROBOT_MESHES)}")
 
     @property
     def conditions(self) -> list[Condition]:
         return self.grid.conditions
 
-    @property
-    def seeds(self) -> list[int]:
-        return [self.first_seed + j for j in range(self.episodes)]
+    def request(self) -> dict:
+        """What decides the run's episodes: config.json without the fields that do not."""
+        return {k: v for k, v in json.loads(json.dumps(asdict(self), default=files._default)).items()
+                if k not in NOT_THE_REQUEST}
+
+    def jobs(self) -> list[Job]:
+        out = self.out
+        return [Job(c, j, self.first_seed + j, video=str(out / video_name(c, j, self.first_seed + j))
+                    if out is not None and j < self.videos else "")
+                for c in self.conditions for j in range(self.episodes)]
 
 
-def make_env(policy: Policy, condition: Condition, num_envs: int = 1, sim_backend: str = "physx_cpu",
-             render: bool = False, object_set: str = "auto"):
-    """GraspObject-v1 in the policy's obs_mode; `render` adds a renderer so videos can be taken on demand
-    (state policies pay for pictures only in the episodes that are filmed)."""
-    import gymnasium as gym
-
-    import vla_ladder.task.env  # noqa: F401  (registers GraspObject-v1)
-
-    kwargs = {}
-    if render:
-        kwargs["render_backend"] = "gpu" if sim_backend == "physx_cuda" else "cpu"
-    return gym.make(ENV_ID, obs_mode=policy.obs_mode, regime=condition.regime, split=condition.split,
-                    num_objects=condition.num_objects, num_envs=num_envs, sim_backend=sim_backend,
-                    object_set=object_set, **kwargs)
+def video_name(condition: Condition, episode: int, seed: int) -> str:
+    return f"videos/{condition.slug}-ep{episode:03d}-seed{seed}.mp4"
 
 
-def camera_frames(env, obs, rows: Sequence[int]) -> np.ndarray:
-    """(len(rows), H, 2W, 3) uint8 of the given envs: wrist camera | front camera, taken from the
-    observation when it holds images, else rendered now."""
-    data = obs.get("sensor_data") if isinstance(obs, dict) else None
-    if not data or "rgb" not in data.get("hand_camera", {}):
-        data = env.unwrapped.get_sensor_images()
-    return torch.cat([data[cam]["rgb"][rows] for cam in CAMERA_NAMES], dim=2).cpu().numpy()
+def open_run_dir(cfg: EvalConfig) -> list[dict]:
+    """Make cfg.out ready and return the rows it already holds for this request (resume). A directory that
+    holds another request, or is not a run directory, is refused unless cfg.overwrite."""
+    out = cfg.out
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {str(out)!r} is a file; give a directory")
+    saved = out / "config.json"
+    if out.is_dir() and any(out.iterdir()):
+        same = saved.is_file() and {k: v for k, v in json.loads(saved.read_text()).items()
+                                    if k not in NOT_THE_REQUEST} == cfg.request()
+        if not same and not cfg.overwrite:
+            what = "another evaluation request" if saved.is_file() else "files that are not a run directory"
+            raise ValueError(f"{out} holds {what}; rerun the same command to resume it, pick a new --out, "
+                             "or pass --overwrite")
+        if not same:
+            shutil.rmtree(out)
+    files.write_json(saved, asdict(cfg))
+    path = out / "episodes.parquet"
+    if not path.is_file():
+        return []
+    import pandas as pd
+    return pd.read_parquet(path).to_dict("records")
 
 
-def iter_episodes(env, policy: Policy, seeds: Sequence[int], film: int = 0) -> Iterator[dict]:
-    """Play one episode per seed, `num_envs` at a time, and yield per episode (in seed order) a dict with
-    the final-step metrics, its layout, and "frames" ((T, H, 2W, 3) uint8) for the first `film` seeds
-    (None for the others). The env's episode length (50 steps) ends each batch."""
-    u = env.unwrapped
-    n = u.num_envs
-    horizon = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else EPISODE_STEPS
-    seeds = [int(s) for s in seeds]
-    for start in range(0, len(seeds), n):
-        chunk = seeds[start:start + n]
-        # A short last batch is padded with the seeds that follow; their episodes are discarded.
-        batch = chunk + [chunk[-1] + 1 + k for k in range(n - len(chunk))]
-        obs, _ = env.reset(seed=batch)
-        policy.reset(batch)
-        instructions = u.instructions
-        filmed = [k for k in range(len(chunk)) if start + k < film]  # keep only these envs' frames
-        frames = [camera_frames(env, obs, filmed)] if filmed else None
-        info = {}
-        for _ in range(horizon):
-            obs, _, _, truncated, info = env.step(policy.act(obs, instructions))
-            if frames is not None:
-                frames.append(camera_frames(env, obs, filmed))
-            if bool(torch.as_tensor(truncated).all()):
-                break
-        clips = dict(zip(filmed, np.stack(frames, axis=1))) if frames is not None else {}
-        for k, seed in enumerate(chunk):
-            held = int(info["held"][k])
-            yield dict(
-                seed=seed, target=u.layouts[k].target, instruction=instructions[k],
-                held=OBJECT_NAMES[held] if held >= 0 else "none",
-                success=bool(info["success"][k]), grasp_any=bool(info["grasp_any"][k]),
-                reach=bool(info["reach"][k]), reach_dist=float(info["reach_dist"][k]),
-                object_set=u.object_set, layout=u.layouts[k], frames=clips.get(k),
-            )
+def summarize_run(rows: list[dict], cfg: EvalConfig, policy_info: dict) -> tuple:
+    """Rows in condition order, and the summary.json of a (possibly partial) run."""
+    import pandas as pd
 
+    from vla_ladder.evaluation.metrics import summarize
 
-def write_video(path: str | Path, frames: np.ndarray, fps: int = CONTROL_HZ) -> Path:
-    """(T, H, W, 3) uint8 frames -> H.264 MP4 (yuv420p, plays in browsers), written atomically."""
-    import imageio.v3 as iio
-    # Encoded in memory: the encoder picks its container from the file name, which a temp file lacks.
-    data = iio.imwrite("<bytes>", frames, extension=".mp4", plugin="pyav", codec="libx264", fps=fps,
-                       out_pixel_format="yuv420p")
-    with files.atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return Path(path)
+    order = {c.key: i for i, c in enumerate(cfg.conditions)}
+    rows = sorted(rows, key=lambda r: (order[Condition(r["regime"], r["split"], r["num_objects"]).key],
+                                       r["episode"]))
+    df = pd.DataFrame(rows, columns=list(EPISODE_COLUMNS))
+    summary = {"policy": policy_info, "provenance": {**files.provenance(df["object_set"].iloc[0] if len(df) else None),
+                                                     "robot_mesh": cfg.robot_mesh},
+               "first_seed": cfg.first_seed, "episodes_per_condition": cfg.episodes,
+               "complete": len(df) == len(cfg.conditions) * cfg.episodes, "conditions": summarize(df)}
+    return df, summary
 
 
 def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool = True) -> dict:
-    """Evaluate cfg.policy (or `policy`, labelled cfg.policy) on every condition and return the summary dict;
-    with cfg.out, also write the run directory (results are rewritten atomically after each condition, so an
-    interrupted run leaves the finished conditions readable)."""
-    import pandas as pd
+    """Evaluate cfg.policy (or `policy`, an instance labelled cfg.policy, played in this process) on every
+    condition and return the summary dict; with cfg.out, also write (or resume) the run directory."""
     from tqdm.auto import tqdm
-
-    from vla_ladder.evaluation.metrics import summarize
 
     if policy is None:
         if not cfg.policy:
             raise ValueError("--policy SPEC is required; allowed: " + ", ".join(POLICY_KINDS))
         parse_spec(cfg.policy)  # an unknown spec fails before any simulator starts or file is written
-        policy = load_policy(cfg.policy)
-    spec, out = cfg.policy or policy.name, cfg.out
-    if out is not None:
-        files.write_json(out / "config.json", asdict(cfg))
-    rows: list[dict] = []
+    spec = cfg.policy or policy.name
+    rows = open_run_dir(cfg) if cfg.out is not None else []
+    done = {(r["regime"], r["split"], r["num_objects"], r["episode"]) for r in rows}
+    jobs = [j for j in cfg.jobs() if (j.condition.regime, j.condition.split, j.condition.num_objects, j.episode)
+            not in done]
+    if rows and cfg.out is not None:
+        print(f"[eval] resuming {cfg.out}: {len(rows)} episodes done, {len(jobs)} to play")
+    obs_mode = policy.obs_mode if policy is not None else None
+    settings = EnvSettings(cfg.sim_backend, cfg.num_envs, cfg.object_set, cfg.robot_mesh, render=cfg.videos > 0)
+    policy_info = json.loads((cfg.out / "summary.json").read_text())["policy"] \
+        if rows and cfg.out is not None and (cfg.out / "summary.json").is_file() else {"name": spec}
+    workers = 1 if obs_mode is not None else min(auto_workers(cfg.workers), max(len(jobs), 1))
+    bar = tqdm(total=len(cfg.conditions) * cfg.episodes, initial=len(rows), desc=f"eval {spec}", unit="ep",
+               disable=not progress)
+    last_flush = time.monotonic()
     summary: dict = {}
-    bar = tqdm(total=len(cfg.conditions) * cfg.episodes, desc=f"eval {spec}", unit="ep", disable=not progress)
-    for cond in cfg.conditions:
-        env = make_env(policy, cond, cfg.num_envs, cfg.sim_backend, render=cfg.videos > 0, object_set=cfg.object_set)
-        try:
-            for j, ep in enumerate(iter_episodes(env, policy, cfg.seeds, film=cfg.videos)):
-                frames, layout = ep.pop("frames"), ep.pop("layout")
-                video = ""
-                if frames is not None and out is not None:
-                    video = f"videos/{cond.slug}-ep{j:03d}-seed{ep['seed']}.mp4"
-                    write_video(out / video, frames)
-                rows.append(dict(policy=spec, regime=cond.regime, split=cond.split, num_objects=cond.num_objects,
-                                 episode=j, **ep, layout=json.dumps(layout.to_dict()), video=video))
-                bar.update(1)
-                bar.set_postfix(condition=cond.key, success=f"{np.mean([r['success'] for r in rows]):.2f}")
-        finally:
-            env.close()
-        df = pd.DataFrame(rows, columns=list(EPISODE_COLUMNS))
-        summary = {"policy": policy.describe(), "provenance": files.provenance(df["object_set"].iloc[0]),
-                   "first_seed": cfg.first_seed, "episodes_per_condition": cfg.episodes,
-                   "conditions": summarize(df)}
-        if out is not None:
-            files.write_parquet(out / "episodes.parquet", df)
-            files.write_json(out / "summary.json", summary)
-    bar.close()
+
+    def flush() -> dict:
+        df, summary = summarize_run(rows, cfg, policy_info)
+        if cfg.out is not None:
+            files.write_parquet(cfg.out / "episodes.parquet", df)
+            files.write_json(cfg.out / "summary.json", summary)
+        return summary
+
+    try:
+        for job, row in play(jobs, spec, settings, workers=workers, policy=policy):
+            policy_info = row.pop("policy_info")
+            c = job.condition
+            rows.append(dict(policy=spec, regime=c.regime, split=c.split, num_objects=c.num_objects,
+                             episode=job.episode, **{**row, "layout": json.dumps(row["layout"])},
+                             video=job.video and str(Path(job.video).relative_to(cfg.out))))
+            bar.update(1)
+            bar.set_postfix(condition=c.key, success=f"{np.mean([r['success'] for r in rows]):.2f}")
+            if time.monotonic() - last_flush >= FLUSH_SECONDS:
+                flush()
+                last_flush = time.monotonic()
+    finally:
+        bar.close()
+        if rows:
+            summary = flush()
     return summary
 
 

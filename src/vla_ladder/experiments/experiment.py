@@ -151,14 +151,7 @@ def eval_configs(entry: PolicyEntry, conditions: list[Condition], base: EvalConf
 
 
 def evaluate(entry: PolicyEntry, cfg: EvalConfig) -> Run:
-    """Evaluate one policy with the evaluation runner; a finished run directory of the same request is reused."""
-    if (cfg.out / "summary.json").is_file():
-        old = load_run(cfg.out)
-        if old.summary.get("first_seed") == cfg.first_seed and old.summary.get("episodes_per_condition") == \
-                cfg.episodes and set(old.summary.get("conditions", {})) == {c.key for c in cfg.conditions} \
-                and old.label == entry.spec:
-            print(f"[experiment] reusing {cfg.out}")
-            return old
+    """Evaluate one policy with the evaluation runner (which resumes a run directory of the same request)."""
     print(f"[experiment] {entry.label}: {', '.join(c.key for c in cfg.conditions)}, {cfg.episodes} episodes "
           f"-> {cfg.out}")
     run_evaluation(cfg)

@@ -1,0 +1,210 @@
+"""Playing episodes: a policy in GraspObject-v1, one `Job` (condition, seed, reset options) at a time, in this
+process or in a pool of worker processes.
+
+A CPU env simulates one episode at a time and rebuilds its scene every episode, so an episode is a function
+of its job alone: any number of workers, in any order, play the same episodes bit for bit (tested). Each
+worker holds one env and one policy for its whole life; the condition travels with the job through reset
+options, so one env serves every condition. Filmed episodes are encoded to MP4 where they were played.
+On physx_cuda, one process steps `num_envs` episodes at once instead.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+from vla_ladder.conditions import Condition
+from vla_ladder.contract import CAMERA_NAMES, CONTROL_HZ, ENV_ID, EPISODE_STEPS
+
+# Memory one worker needs for the simulator with rendering plus a small policy (measured ~1.1 GB peak for
+# a two-camera env and a tiny SmolVLA); auto worker counts keep this much per worker free.
+WORKER_MEMORY_BYTES = 2 * 2**30
+
+
+@dataclass(frozen=True)
+class Job:
+    """One episode to play: its condition and seed, extra reset options, and where its video goes."""
+
+    condition: Condition
+    episode: int
+    """index of the episode within its group (episode j of a condition plays seed first_seed + j)"""
+    seed: int
+    options: tuple[tuple[str, Any], ...] = ()
+    """extra env reset options as (name, value) pairs, e.g. (("instruct", "mug"),)"""
+    video: str = ""
+    """MP4 path to film this episode into ("": not filmed)"""
+
+
+@dataclass(frozen=True)
+class EnvSettings:
+    """What every env of a run is made with, besides the condition."""
+
+    sim_backend: str = "physx_cpu"
+    num_envs: int = 1
+    object_set: str = "auto"
+    robot_mesh: str = "lite"
+    render: bool = False
+    """add a renderer even for a state policy (filmed episodes)"""
+    extra: dict = field(default_factory=dict)
+    """further gym.make keyword arguments of GraspObject-v1"""
+
+
+def auto_workers(requested: int = 0) -> int:
+    """`requested`, or (0) one per CPU core, capped by the memory available for WORKER_MEMORY_BYTES each."""
+    if requested > 0:
+        return requested
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    try:
+        available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError):
+        return cores
+    return max(1, min(cores, available // WORKER_MEMORY_BYTES))
+
+
+def camera_frames(env, obs, rows: Sequence[int]) -> np.ndarray:
+    """(len(rows), H, 2W, 3) uint8 of the given envs: wrist camera | front camera, taken from the
+    observation when it holds images, else rendered now."""
+    import torch
+
+    data = obs.get("sensor_data") if isinstance(obs, dict) else None
+    if not data or "rgb" not in data.get(CAMERA_NAMES[0], {}):
+        data = env.unwrapped.get_sensor_images()
+    return torch.cat([data[cam]["rgb"][rows] for cam in CAMERA_NAMES], dim=2).cpu().numpy()
+
+
+def write_video(path: str | Path, frames: np.ndarray, fps: int = CONTROL_HZ) -> Path:
+    """(T, H, W, 3) uint8 frames -> H.264 MP4 (yuv420p, plays in browsers), written atomically."""
+    import imageio.v3 as iio
+
+    from vla_ladder import files
+
+    # Encoded in memory: the encoder picks its container from the file name, which a temp file lacks.
+    data = iio.imwrite("<bytes>", frames, extension=".mp4", plugin="pyav", codec="libx264", fps=fps,
+                       out_pixel_format="yuv420p")
+    with files.atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+class Player:
+    """One env and one policy; plays jobs, `num_envs` at a time (1 on the CPU backend)."""
+
+    def __init__(self, policy, settings: EnvSettings):
+        import gymnasium as gym
+
+        import vla_ladder.task.env  # noqa: F401  (registers GraspObject-v1)
+
+        self.policy, self.settings = policy, settings
+        kwargs = dict(settings.extra)
+        if settings.render:  # a state policy's env renders only when asked; filmed episodes need pictures
+            import torch
+            kwargs["render_backend"] = "gpu" if torch.cuda.is_available() else "cpu"
+        self.env = gym.make(ENV_ID, obs_mode=policy.obs_mode, num_envs=settings.num_envs,
+                            sim_backend=settings.sim_backend, object_set=settings.object_set,
+                            robot_mesh=settings.robot_mesh, **kwargs)
+
+    def close(self) -> None:
+        self.env.close()
+
+    def play(self, jobs: Sequence[Job]) -> list[dict]:
+        """Play up to num_envs jobs sharing their options at once; one result row per job, in order."""
+        import torch
+
+        env, u, n = self.env, self.env.unwrapped, self.env.unwrapped.num_envs
+        jobs = list(jobs)
+        # A short batch is padded with copies of its last job; their episodes are discarded.
+        batch = jobs + [jobs[-1]] * (n - len(jobs))
+        options = {**dict(jobs[0].options), "conditions": [j.condition for j in batch]}
+        obs, _ = env.reset(seed=[j.seed for j in batch], options=options)
+        self.policy.reset([j.seed for j in batch])
+        instructions = u.instructions
+        filmed = [k for k, j in enumerate(jobs) if j.video]
+        frames = [camera_frames(env, obs, filmed)] if filmed else None
+        info: dict = {}
+        horizon = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else EPISODE_STEPS
+        for _ in range(horizon):
+            obs, _, _, truncated, info = env.step(self.policy.act(obs, instructions))
+            if frames is not None:
+                frames.append(camera_frames(env, obs, filmed))
+            if bool(torch.as_tensor(truncated).all()):
+                break
+        if frames is not None:
+            for k, clip in zip(filmed, np.stack(frames, axis=1)):
+                write_video(jobs[k].video, clip)
+        from vla_ladder.task.objects import OBJECT_NAMES
+
+        rows = []
+        for k, job in enumerate(jobs):
+            held = int(info["held"][k])
+            lay = u.layouts[k]
+            rows.append(dict(
+                seed=job.seed, target=lay.target, instruction=instructions[k],
+                held=OBJECT_NAMES[held] if held >= 0 else "none",
+                success=bool(info["success"][k]), grasp_any=bool(info["grasp_any"][k]),
+                reach=bool(info["reach"][k]), reach_dist=float(info["reach_dist"][k]),
+                object_set=u.object_set, layout=lay.to_dict(), policy_info=self.policy.describe()))
+        return rows
+
+
+# ---------------------------------------------------------------------- worker processes
+_PLAYER: Player | None = None
+
+
+def _start_worker(spec: str, settings: EnvSettings, threads: int) -> None:
+    """Runs once in each spawned worker, before any job: one thread each for the renderer and torch, so N
+    workers use N cores instead of fighting over them."""
+    os.environ.setdefault("LP_NUM_THREADS", str(threads))  # lavapipe: read when Vulkan starts
+    import torch
+
+    from vla_ladder.policies import load_policy
+
+    torch.set_num_threads(threads)
+    global _PLAYER
+    _PLAYER = Player(load_policy(spec), settings)
+
+
+def _play_in_worker(jobs: tuple[Job, ...]) -> list[dict]:
+    return _PLAYER.play(jobs)
+
+
+def play(jobs: Sequence[Job], spec: str, settings: EnvSettings, workers: int = 1, policy=None,
+         ) -> Iterator[tuple[Job, dict]]:
+    """Play every job and yield (job, result row) as they finish (not in order). `policy` (an instance)
+    plays in this process; a spec with workers > 1 loads one copy of the policy per worker process."""
+    n = settings.num_envs
+    groups: dict[tuple, list[Job]] = {}
+    for job in jobs:
+        groups.setdefault(job.options, []).append(job)
+    batches = [tuple(g[i:i + n]) for g in groups.values() for i in range(0, len(g), n)]
+    if not batches:
+        return
+    if workers <= 1 or policy is not None or settings.sim_backend == "physx_cuda":
+        if policy is None:
+            from vla_ladder.policies import load_policy
+            policy = load_policy(spec)
+        player = Player(policy, settings)
+        try:
+            for batch in batches:
+                yield from zip(batch, player.play(batch))
+        finally:
+            player.close()
+        return
+    import multiprocessing
+    from concurrent.futures import as_completed
+
+    workers = min(workers, len(batches))
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
+                             initargs=(spec, settings, 1)) as pool:
+        futures = {pool.submit(_play_in_worker, batch): batch for batch in batches}
+        try:
+            for fut in as_completed(futures):
+                yield from zip(futures[fut], fut.result())
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
