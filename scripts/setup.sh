@@ -54,7 +54,7 @@ if [ -z "$UV" ]; then
 fi
 
 # A stamp holds the hash of what decides the environment; unchanged hash -> nothing to do.
-want=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -c1-16)
+want=$(cat pyproject.toml scripts/setup.sh plugins/lerobot_env_grasp_object/pyproject.toml | sha256sum | cut -c1-16)
 if [ ! -f .venv/.vla-ladder-stamp ] || [ "$(cat .venv/.vla-ladder-stamp)" != "$want" ]; then
   # pyenv's shim refuses 3.12 unless it is selected, so take the interpreter itself.
   py=$(ls -d "$HOME"/.pyenv/versions/3.12*/bin/python3.12 2>/dev/null | tail -n1 || true)
@@ -62,7 +62,9 @@ if [ ! -f .venv/.vla-ladder-stamp ] || [ "$(cat .venv/.vla-ladder-stamp)" != "$w
   [ -n "$py" ] || { log "need Python 3.12 (pyenv or system)"; exit 1; }
   [ -x .venv/bin/python ] || "$UV" venv -q --python "$py" .venv
   log "installing Python packages into .venv (first time: a few minutes)"
-  VIRTUAL_ENV="$ROOT/.venv" "$UV" pip install -q -e ".[dev]"
+  # The second distribution is the LeRobot env plugin: LeRobot imports installed lerobot_env_* distributions,
+  # so `lerobot-eval --env.type=grasp_object` works without --env.discover_packages_path.
+  VIRTUAL_ENV="$ROOT/.venv" "$UV" pip install -q -e ".[dev]" -e plugins/lerobot_env_grasp_object
   echo "$want" > .venv/.vla-ladder-stamp
 fi
 log "ready: $ROOT/.venv"

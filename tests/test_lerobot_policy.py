@@ -1,7 +1,11 @@
 """`lerobot:CHECKPOINT` policies and the LeRobot env plugin, with real LeRobot checkpoints trained here."""
 
 import json
+import os
 import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -83,16 +87,25 @@ def test_mismatched_checkpoint_features_are_rejected(smolvla_run, tmp_path):
     assert "action has shape (6,)" in msg
 
 
-def test_lerobot_env_plugin_constructs_and_steps():
-    from lerobot.configs.parser import load_plugin
+def test_lerobot_env_plugin_steps_and_scores_the_final_step(tmp_path):
+    """Found the way lerobot-eval finds it (an installed lerobot_env_* distribution); is_success is the final
+    step's success, and each finished episode's decomposed metrics land in --env.episode_metrics."""
     from lerobot.envs.factory import make_env, make_env_config
     from lerobot.envs.utils import close_envs, preprocess_observation
+    from lerobot.utils.import_utils import register_third_party_plugins
 
-    load_plugin("vla_ladder.lerobot_env")  # what `lerobot-eval --env.discover_packages_path=...` does
-    cfg = make_env_config("grasp_object", condition="small_jitter/canonical/2")
+    from vla_ladder.lerobot_env import LeRobotGraspObject
+
+    register_third_party_plugins()  # what lerobot-eval, lerobot-train... call first
+    metrics = tmp_path / "episodes.jsonl"
+    cfg = make_env_config("grasp_object", condition="small_jitter/canonical/2", episode_metrics=str(metrics))
     assert cfg.type == "grasp_object" and cfg.features_map["pixels/hand_camera"] == "observation.images.hand_camera"
     with pytest.raises(ValueError, match="regime"):
         make_env_config("grasp_object", condition="nowhere/canonical/5")
+    with pytest.raises(ValueError, match="episode_length must be 50"):
+        make_env_config("grasp_object", episode_length=30)
+    with pytest.raises(ValueError, match="does not exist"):
+        make_env_config("grasp_object", episode_metrics=str(tmp_path / "nowhere" / "e.jsonl"))
     envs = make_env(cfg, n_envs=1)
     vec = envs["grasp_object"][0]
     try:
@@ -102,9 +115,46 @@ def test_lerobot_env_plugin_constructs_and_steps():
         assert batch["observation.state"].shape == (1, 15)
         assert vec.call("task_description")[0].startswith("grasp the ")
         assert vec.call("_max_episode_steps")[0] == 50
-        for _ in range(2):
+        for t in range(50):
             obs, reward, terminated, truncated, info = vec.step(np.zeros((1, 7), np.float32))
-            assert info["is_success"].dtype == bool and info["is_success"].shape == (1,)
-            assert not terminated[0] and not truncated[0]
+            assert not terminated[0] and truncated[0] == (t == 49)
+            if t < 49:
+                assert info["is_success"].dtype == bool and info["is_success"].shape == (1,)
+                assert {"grasp_any", "reach"} <= set(info)
+        final = info["final_info"]  # gymnasium's same-step autoreset, as LeRobot configures it
+        assert {"is_success", "grasp_any", "reach"} <= set(final)
     finally:
         close_envs(envs)
+    (record,) = [json.loads(line) for line in metrics.read_text().splitlines()]
+    assert record["seed"] == 7 and record["condition"] == "small_jitter/canonical/2"
+    assert record["instruction"].startswith("grasp the ") and record["held"] == "none"
+    assert all(record[k] == bool(final[k][0]) for k in ("success", "grasp_any", "reach"))
+    # LeRobot counts an episode as a success if is_success was true at any step: only the final step may say so.
+    held_now = {"success": torch.tensor([True]), "grasp_any": torch.tensor([True]), "reach": torch.tensor([True])}
+    assert LeRobotGraspObject._info(held_now)["is_success"] is False
+    assert LeRobotGraspObject._info(held_now, final=True)["is_success"] is True
+
+
+def test_lerobot_eval_runs_grasp_object_from_the_installed_plugin(smolvla_run, tmp_path):
+    """`lerobot-eval --env.type=grasp_object` as a user types it: no --env.discover_packages_path, offline."""
+    from importlib.metadata import distribution
+
+    # LeRobot matches the distribution's name as written, underscores included, and imports it as a module.
+    assert distribution("lerobot_env_grasp_object").metadata["Name"] == "lerobot_env_grasp_object"
+    out, metrics = tmp_path / "eval", tmp_path / "episodes.jsonl"
+    cmd = [str(Path(sys.executable).parent / "lerobot-eval"), "--env.type=grasp_object",
+           "--env.condition=small_jitter/canonical/2", f"--env.episode_metrics={metrics}",
+           f"--policy.path={smolvla_run / 'checkpoints' / 'last' / 'pretrained_model'}", "--policy.device=cpu",
+           "--eval.n_episodes=1", "--eval.batch_size=1", "--seed=11", f"--output_dir={out}"]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1", "MS_SKIP_ASSET_DOWNLOAD_PROMPT": "1"}
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=1200, env=env)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-4000:]
+    info = json.loads((out / "eval_info.json").read_text())
+    task = info["per_task"][0]
+    assert task["task_group"] == "grasp_object" and len(task["metrics"]["successes"]) == 1
+    assert info["overall"]["n_episodes"] == 1
+    (record,) = [json.loads(line) for line in metrics.read_text().splitlines()]
+    assert record["seed"] == 11  # episode i of eval_info.json played seed --seed + i
+    assert record["success"] == task["metrics"]["successes"][0]
+    assert isinstance(record["grasp_any"], bool) and isinstance(record["reach"], bool)
+    assert f"GraspObject-v1 episode seed=11 {record['instruction']!r}" in done.stdout + done.stderr

@@ -194,6 +194,9 @@ class DatasetStore:
                          pd.DataFrame(self._rows))
         with self._seed_lock:
             files.write_json(self.staging / RECORDING_FILE, self._state())
+        from vla_ladder.recording import card, stats  # quantiles over all frames, and the dataset card
+        stats.write_exact_quantiles(self.staging)
+        card.write_card(self.staging)
         _fsync_tree(self.staging)
         if self.root.exists():
             if not any(self.root.iterdir()):

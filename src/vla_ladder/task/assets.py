@@ -3,10 +3,17 @@
 Stand-ins keep each YCB object's real size, mass and the feature that makes it hard to grasp (a mug
 wider than the gripper with a handle, a thin marker lying down, 75 mm fruit in an 80 mm gripper).
 Visual shapes are only added when the scene can render, so physics-only runs need no Vulkan device.
+
+YCB meshes are read the way ManiSkill reads them (`get_actor_builder("ycb:<id>")`), from its asset directory
+($MS_ASSET_DIR/data, default ~/.maniskill/data, read once when mani_skill is imported):
+assets/mani_skill2_ycb/info_pick_v0.json (per model: bbox min/max in the model's frame, scales, optional
+density) and models/<id>/collision.ply (split into convex parts) and textured.obj (the visual mesh).
+Both object sets get the same contact material, so the set changes shapes and looks, not friction.
 """
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -25,11 +32,28 @@ def ycb_dir() -> Path:
     return Path(ASSET_DIR) / "assets" / "mani_skill2_ycb"
 
 
+YCB_MODEL_FILES = ("collision.ply", "textured.obj")
+"""What ManiSkill's YCB loader opens for a model: the collision mesh, and the visual mesh when it renders."""
+
+
+def ycb_missing() -> list[str]:
+    """What ManiSkill's YCB loader would need for the five objects and cannot find (empty: all there)."""
+    root = ycb_dir()
+    info_path = root / "info_pick_v0.json"
+    if not info_path.is_file():
+        return [str(info_path)]
+    try:
+        info = json.loads(info_path.read_text())
+    except ValueError:
+        return [f"{info_path} (not valid JSON)"]
+    missing = [f"{info_path}: entry {o.ycb_id}" for o in OBJECTS if "bbox" not in info.get(o.ycb_id, {})]
+    return missing + [str(root / "models" / o.ycb_id / f) for o in OBJECTS for f in YCB_MODEL_FILES
+                      if not (root / "models" / o.ycb_id / f).is_file()]
+
+
 def ycb_available() -> bool:
     """True when ManiSkill's YCB models for all five objects are on disk (never downloads)."""
-    root = ycb_dir()
-    return (root / "info_pick_v0.json").is_file() and all(
-        (root / "models" / o.ycb_id / "collision.ply").is_file() for o in OBJECTS)
+    return not ycb_missing()
 
 
 def resolve_object_set(object_set: str = "auto") -> str:
@@ -42,10 +66,13 @@ def resolve_object_set(object_set: str = "auto") -> str:
         if object_set == "auto":
             return "ycb" if ycb_available() else "standin"
         return resolve_object_set(object_set)
-    if object_set == "ycb" and not ycb_available():
-        raise ValueError(f"object_set='ycb' but the YCB models are not under {ycb_dir()}; "
-                         "run `python -m mani_skill.utils.download_asset ycb` on a machine with network, "
-                         "or use object_set='standin'")
+    if object_set == "ycb":
+        missing = ycb_missing()
+        if missing:
+            more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+            raise ValueError(f"object_set='ycb' but ManiSkill's YCB models are incomplete: missing {missing[0]}{more}"
+                             "; run `python -m mani_skill.utils.download_asset ycb` on a machine with network, "
+                             "point $MS_ASSET_DIR at a copy, or use object_set='standin'")
     return object_set
 
 
@@ -131,9 +158,15 @@ def standin_builder(scene, spec: ObjectSpec, render: bool, phys):
     return b
 
 
-def ycb_builder(scene, spec: ObjectSpec, render: bool):
+def ycb_builder(scene, spec: ObjectSpec, render: bool, phys=None):
+    """ManiSkill's own YCB builder; its collision shapes get `phys` (ManiSkill leaves them on the scene's
+    default material, friction 0.3, where the stand-ins have 1.0)."""
     from mani_skill.utils.building.actors.common import get_actor_builder
-    return get_actor_builder(scene, id=f"ycb:{spec.ycb_id}", add_visual=render)
+    builder = get_actor_builder(scene, id=f"ycb:{spec.ycb_id}", add_visual=render)
+    if phys is not None:
+        for record in builder.collision_records:
+            record.material = phys
+    return builder
 
 
 def build_objects(scene, object_set: str, render: bool) -> list:
@@ -141,7 +174,8 @@ def build_objects(scene, object_set: str, render: bool) -> list:
     phys = sapien.physx.PhysxMaterial(static_friction=1.0, dynamic_friction=1.0, restitution=0.0)
     actors = []
     for i, spec in enumerate(OBJECTS):
-        builder = ycb_builder(scene, spec, render) if object_set == "ycb" else standin_builder(scene, spec, render, phys)
+        build = ycb_builder if object_set == "ycb" else standin_builder
+        builder = build(scene, spec, render, phys)
         builder.set_initial_pose(sapien.Pose(p=[0.0, 1.8, 0.1 + 0.2 * i]))
         actors.append(builder.build(name=spec.name))
     return actors
@@ -153,7 +187,6 @@ def object_geometry(object_set: str) -> dict[str, np.ndarray]:
     half = np.array([np.asarray(o.size) / 2 for o in OBJECTS])
     center = np.zeros((len(OBJECTS), 3))
     if object_set == "ycb":
-        import json
         info = json.loads((ycb_dir() / "info_pick_v0.json").read_text())
         for i, o in enumerate(OBJECTS):
             meta = info[o.ycb_id]
