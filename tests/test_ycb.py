@@ -161,25 +161,28 @@ def test_env_builds_steps_and_renders_ycb_meshes(ycb_assets, tmp_path):
     assert {"success", "grasp_any", "reach"} <= set(r["info_keys"])
 
 
-def test_missing_ycb_files_are_named(ycb_assets, tmp_path):
-    """A partial copy is not taken for the YCB set: "auto" falls back to the stand-ins, "ycb" names the file."""
+def test_missing_ycb_files_are_named(ycb_assets, tmp_path, monkeypatch):
+    """A partial copy is not taken for the YCB set: "auto" falls back to the stand-ins, "ycb" names the file.
+    (Only the file checks run here, so ManiSkill's ASSET_DIR is set in-process, as MS_ASSET_DIR sets it.)"""
     import shutil
+
+    import mani_skill
+
+    from vla_ladder.task import assets
 
     partial = tmp_path / "partial"
     shutil.copytree(ycb_assets, partial)
+    monkeypatch.delenv("VLA_LADDER_OBJECT_SET", raising=False)
+    monkeypatch.setattr(mani_skill, "ASSET_DIR", partial / "data")
+    assert assets.resolve_object_set("auto") == "ycb"
     (partial / "data/assets/mani_skill2_ycb/models/025_mug/textured.obj").unlink()
-    code = """
-from vla_ladder.task import assets
-print("RESULT", assets.resolve_object_set("auto"))
-try:
-    assets.resolve_object_set("ycb")
-except ValueError as e:
-    print("ERROR", e)
-"""
-    out = _run(code, partial).stdout
-    assert "RESULT standin" in out
-    (err,) = [ln for ln in out.splitlines() if ln.startswith("ERROR")]
-    assert "025_mug/textured.obj" in err and "standin" in err
+    assert assets.resolve_object_set("auto") == "standin"
+    with pytest.raises(ValueError, match=r"025_mug/textured\.obj.*standin"):
+        assets.resolve_object_set("ycb")
+    info = partial / "data/assets/mani_skill2_ycb/info_pick_v0.json"
+    info.write_text(json.dumps({k: v for k, v in json.loads(info.read_text()).items() if k != "013_apple"}))
+    with pytest.raises(ValueError, match="entry 013_apple and 1 more"):
+        assets.resolve_object_set("ycb")
 
 
 def test_vla_ladder_eval_reports_the_ycb_set(ycb_assets, tmp_path):
