@@ -64,7 +64,10 @@ if [ ! -f .venv/.vla-ladder-stamp ] || [ "$(cat .venv/.vla-ladder-stamp)" != "$w
   log "installing Python packages into .venv (first time: a few minutes)"
   # The second distribution is the LeRobot env plugin: LeRobot imports installed lerobot_env_* distributions,
   # so `lerobot-eval --env.type=grasp_object` works without --env.discover_packages_path.
-  VIRTUAL_ENV="$ROOT/.venv" "$UV" pip install -q -e ".[dev]" -e plugins/lerobot_env_grasp_object
+  # --compile-bytecode: where PYTHONDONTWRITEBYTECODE is set (CI runners often set it), nothing would ever
+  # cache bytecode and every process (each simulation worker and server) would compile torch, LeRobot and
+  # transformers from source again: ~70 s of CPU each, measured on 2 busy cores.
+  VIRTUAL_ENV="$ROOT/.venv" "$UV" pip install -q --compile-bytecode -e ".[dev]" -e plugins/lerobot_env_grasp_object
   echo "$want" > .venv/.vla-ladder-stamp
 fi
 log "ready: $ROOT/.venv"

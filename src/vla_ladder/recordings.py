@@ -33,17 +33,20 @@ class Recording:
     """first episode seed; later ones follow without repeats"""
     video: bool = True
     """cameras stored as MP4 video (LeRobot's default) or as PNG images inside the Parquet files"""
+    robot_mesh: str = "lite"
+    """how the robot looked in the pictures (see vla_ladder.task.robot)"""
 
     def to_dict(self) -> dict:
         return {"policy": self.policy, "condition": self.condition.key, "first_seed": self.first_seed,
-                "video": self.video}
+                "video": self.video, "robot_mesh": self.robot_mesh}
 
     @classmethod
     def from_dict(cls, data: dict, format_version: int = FORMAT_VERSION) -> "Recording":
-        if format_version == 1:  # regime/split/num_objects and "seed" before conditions had one key
-            data = {"policy": data["policy"], "first_seed": data["seed"], "video": data["video"],
+        if format_version == 1:  # before conditions had one key, seeds a name, and the robot a lite mesh
+            data = {"policy": data["policy"], "first_seed": data["seed"], "video": data["video"], "robot_mesh": "full",
                     "condition": Condition(data["regime"], data["split"], data["num_objects"]).key}
-        return cls(data["policy"], Condition.parse(data["condition"]), int(data["first_seed"]), bool(data["video"]))
+        return cls(data["policy"], Condition.parse(data["condition"]), int(data["first_seed"]), bool(data["video"]),
+                   data.get("robot_mesh", "lite"))
 
     def differences(self, other: "Recording") -> list[str]:
         mine, theirs = self.to_dict(), other.to_dict()

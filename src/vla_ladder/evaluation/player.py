@@ -21,11 +21,6 @@ import numpy as np
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import CAMERA_NAMES, CONTROL_HZ, ENV_ID, EPISODE_STEPS
 
-# Memory one worker needs for the simulator with rendering plus a small policy (measured ~1.1 GB peak for
-# a two-camera env and a tiny SmolVLA); auto worker counts keep this much per worker free.
-WORKER_MEMORY_BYTES = 2 * 2**30
-
-
 @dataclass(frozen=True)
 class Job:
     """One episode to play: its condition and seed, extra reset options, and where its video goes."""
@@ -52,18 +47,6 @@ class EnvSettings:
     """add a renderer even for a state policy (filmed episodes)"""
     extra: dict = field(default_factory=dict)
     """further gym.make keyword arguments of GraspObject-v1"""
-
-
-def auto_workers(requested: int = 0) -> int:
-    """`requested`, or (0) one per CPU core, capped by the memory available for WORKER_MEMORY_BYTES each."""
-    if requested > 0:
-        return requested
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    try:
-        available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError):
-        return cores
-    return max(1, min(cores, available // WORKER_MEMORY_BYTES))
 
 
 def camera_frames(env, obs, rows: Sequence[int]) -> np.ndarray:

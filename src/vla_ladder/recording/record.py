@@ -42,8 +42,12 @@ class RecordConfig:
     error)"""
     policy: str = "scripted"
     """expert spec of the local server: scripted, ppo:PATH, ... (with --server, the servers' expert)"""
+    workers: int = 0
+    """local servers, each simulating in its own process (0: one per core, capped by memory)"""
     num_envs: int = 1
-    """parallel envs of the local server (more than one needs a GPU)"""
+    """parallel envs of each local server (more than one needs a GPU)"""
+    robot_mesh: str = "lite"
+    """how the local servers render the robot: lite (decimated visual meshes) or full (ManiSkill's)"""
     first_seed: int = 0
     """first episode seed; later ones follow and never repeat, across servers and resumes"""
     video: bool = True
@@ -63,6 +67,10 @@ class RecordConfig:
             raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
         if self.first_seed < 0:
             raise ValueError(f"--first-seed must be >= 0, got {self.first_seed}")
+        if self.workers < 0:
+            raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
+        if self.robot_mesh not in ("lite", "full"):
+            raise ValueError(f"unknown robot_mesh {self.robot_mesh!r}; allowed: lite, full")
         for url in self.server:
             if not url.startswith(("ws://", "wss://")):
                 raise ValueError(f"--server {url!r}: expected ws://HOST:PORT or wss://HOST:PORT")
@@ -74,18 +82,18 @@ def recording_of(cfg: RecordConfig) -> Recording:
     """What the dataset will be a recording of: the local server's settings, or what the servers say they
     serve (from their welcome messages)."""
     if not cfg.server:
-        return Recording(cfg.policy, cfg.condition, cfg.first_seed, cfg.video)
+        return Recording(cfg.policy, cfg.condition, cfg.first_seed, cfg.video, cfg.robot_mesh)
     served = {url: asyncio.run(_welcome(url, cfg.token)) for url in cfg.server}
-    kinds = {(info["policy"], info["condition"]) for info in served.values()}
+    kinds = {(info["policy"], info["condition"], info.get("robot_mesh", "full")) for info in served.values()}
     if len(kinds) > 1:
         raise ValueError("the servers serve different things: " + "; ".join(
             f"{url}: {info['policy']} on {info['condition']}" for url, info in served.items()))
-    policy, key = kinds.pop()
+    policy, key, robot_mesh = kinds.pop()
     condition = Condition.parse(key)
     if cfg.condition not in (Condition(), condition):
         raise ValueError(f"--server {cfg.server[0]} serves {condition} but the command asks for {cfg.condition}; "
                          "drop the condition flags (the servers' condition is recorded) or start matching servers")
-    return Recording(policy, condition, cfg.first_seed, cfg.video)
+    return Recording(policy, condition, cfg.first_seed, cfg.video, robot_mesh)
 
 
 async def _welcome(url: str, token: str | None) -> dict:
@@ -111,14 +119,16 @@ def run(cfg: RecordConfig) -> int:
     if store.saved:
         log.info("resuming %s at %d/%d episodes, next seed %d", cfg.out, store.saved, cfg.episodes,
                  store.next_seed)
-    local = None
+    local: list[LocalServer] = []
     source = None
     try:
         if cfg.server:
             urls = list(cfg.server)
         else:
-            local = LocalServer(recording, cfg.num_envs)
-            urls = [local.url]
+            from vla_ladder.machine import auto_workers
+            n = auto_workers(cfg.workers)
+            local = [LocalServer(recording, cfg.num_envs, threads=1 if n > 1 else 0) for _ in range(n)]
+            urls = [s.wait_ready() for s in local]  # they start side by side
         source = EpisodeSource(urls, store.reserve_seeds, cfg.episodes - store.saved,
                                check_server=lambda url, info: check_server(recording, url, info),
                                token=cfg.token).start()
@@ -148,13 +158,13 @@ def run(cfg: RecordConfig) -> int:
     finally:
         if source is not None:
             source.stop()
-        if local is not None:
-            local.stop()
+        for server in local:
+            server.stop()
 
 
 def check_server(recording: Recording, url: str, info: dict) -> None:
     """A server must simulate exactly the condition and expert this dataset records."""
-    want = {"policy": recording.policy, "condition": recording.condition.key}
+    want = {"policy": recording.policy, "condition": recording.condition.key, "robot_mesh": recording.robot_mesh}
     wrong = [f"{k}={info.get(k)!r} (recording: {v!r})" for k, v in want.items() if info.get(k) != v]
     if wrong:
         raise ValueError(f"server {url} runs " + ", ".join(wrong) + "; start it with the recording's arguments")
@@ -197,17 +207,25 @@ class LocalServer:
     """`vla-ladder serve` as a child process on 127.0.0.1 with a free port, tied to this process: it exits
     when our end of its stdin closes, so even a kill -9 of the recorder does not leave it behind."""
 
-    def __init__(self, recording: Recording, num_envs: int = 1):
+    def __init__(self, recording: Recording, num_envs: int = 1, threads: int = 0):
         c = recording.condition
         cmd = [sys.executable, "-m", "vla_ladder.cli", "serve", "--policy", recording.policy, "--regime", c.regime,
                "--split", c.split, "--num-objects", str(c.num_objects), "--num-envs", str(num_envs),
-               "--host", "127.0.0.1", "--port", "0", "--exit-on-stdin-close"]
+               "--robot-mesh", recording.robot_mesh, "--host", "127.0.0.1", "--port", "0", "--exit-on-stdin-close"]
+        env = dict(os.environ)
+        if threads:  # several servers on one machine: one renderer thread each instead of all fighting for all
+            env.update(LP_NUM_THREADS=str(threads), OMP_NUM_THREADS=str(threads))
         log.info("starting a local server: %s", " ".join(cmd[2:]))
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-        self.url = self._wait_ready()
-        threading.Thread(target=self._forward, daemon=True).start()
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+        self.url: str | None = None
 
-    def _wait_ready(self) -> str:
+    def wait_ready(self) -> str:
+        """The server's URL once it listens; from then on its output is forwarded to our stderr."""
+        self.url = self._listening()
+        threading.Thread(target=self._forward, daemon=True).start()
+        return self.url
+
+    def _listening(self) -> str:
         deadline = time.monotonic() + SERVER_START_TIMEOUT_S
         result: list[str] = []
 

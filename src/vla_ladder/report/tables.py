@@ -87,18 +87,18 @@ class Table:
         n_lead = 2 if self.grouped else 1
         spec = "l" * n_lead + "c" * len(METRICS)
         head = (["Model"] if self.grouped else []) + [self.row_title] + [METRIC_NAMES[m] for m in METRICS]
-        out = ["\\begin{table}[t]", "  \\centering", f"  \\caption{{{_tex_escape(self.caption)}}}",
+        out = ["\\begin{table}[t]", "  \\centering", f"  \\caption{{{tex_escape(self.caption)}}}",
                f"  \\label{{tab:{self.key}}}", "  \\footnotesize", "  \\renewcommand{\\arraystretch}{1.25}",
                f"  \\begin{{tabular}}{{{spec}}}", "    \\toprule",
-               "    " + " & ".join(map(_tex_escape, head)) + " \\\\", "    \\midrule"]
+               "    " + " & ".join(map(tex_escape, head)) + " \\\\", "    \\midrule"]
         for g, (model, rows) in enumerate(self.groups.items()):
             if g:
                 out.append("    \\midrule")
             for i, (label, cells) in enumerate(rows):
                 lead = []
                 if self.grouped:
-                    lead = [f"\\multirow{{{len(rows)}}}{{*}}{{{_tex_escape(model)}}}" if i == 0 else ""]
-                lead.append(_tex_escape(label))
+                    lead = [f"\\multirow{{{len(rows)}}}{{*}}{{{tex_escape(model)}}}" if i == 0 else ""]
+                lead.append(tex_escape(label))
                 out.append("    " + " & ".join(lead + [cells[m].tex() for m in METRICS]) + " \\\\")
         out += ["    \\bottomrule", "  \\end{tabular}", "\\end{table}"]
         return "\n".join(out) + "\n"
@@ -112,7 +112,7 @@ _TEX = {"\\": "\\textbackslash{}", "_": "\\_", "%": "\\%", "&": "\\&", "#": "\\#
         "}": "\\}", "→": "$\\rightarrow$", "–": "--"}
 
 
-def _tex_escape(s: str) -> str:
+def tex_escape(s: str) -> str:
     return re.sub("|".join(map(re.escape, _TEX)), lambda m: _TEX[m.group()], s)
 
 

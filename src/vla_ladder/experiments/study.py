@@ -1,0 +1,274 @@
+"""`vla-ladder study CONFIG --out DIR`: a learned policy diagnosed end to end, the paper's protocol as units.
+
+1. record: one dataset per training condition, with the config's expert (`vla-ladder record`);
+2. train: every policy x dataset x (batch size, chunk size) of the grid, with LeRobot's own training;
+3. select: every execution horizon <= the chunk size on validation episodes of the training condition; the
+   best model per policy x dataset is picked by success, then grasp-any, then reach;
+4. evaluate: that model on the same seeded episodes as every other policy: every regime of the ladder for a
+   canonically trained model (the train x eval regime matrix), pairings ID and OOD for a pairing-trained one,
+   the configured object counts; the reference policies on the same cells;
+5. report: summary.json (every cell with n, counts, rates and 95% Wilson intervals), the tables laid out as
+   the paper's (Markdown and LaTeX, tables/), the learning curves, and report.html.
+
+Every step is a unit (experiments/units.py): a re-run with the same CONFIG and DIR skips finished units and
+continues interrupted ones; each unit's config and log land in DIR/units/ and DIR/logs/.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import tyro
+
+from vla_ladder import files
+from vla_ladder.conditions import Condition, parse_regimes
+from vla_ladder.contract import METRICS
+from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig
+from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
+
+RANK_BY = ("success", "grasp_any", "reach")
+
+
+@dataclass
+class StudyCommand:
+    """Record, train, evaluate and report a learned policy along the ladder (resumable)."""
+
+    config: tyro.conf.Positional[str]
+    """a preset (micro, cpu-mini, gpu-scratch, paper) or a study JSON file"""
+    out: Path
+    """study directory (a re-run with the same config resumes in it)"""
+    workers: int = 0
+    """simulation worker processes for recording and evaluation (0: one per core, capped by memory)"""
+    ray: bool = False
+    """run the units as Ray tasks (a local Ray, or the cluster at --ray-address)"""
+    ray_address: str | None = None
+    """address of a running Ray cluster (implies --ray)"""
+
+    def __post_init__(self):
+        self.out = Path(self.out)
+        self.study = StudyConfig.load(self.config)
+        if self.workers < 0:
+            raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
+        if self.out.exists() and not self.out.is_dir():
+            raise ValueError(f"--out {str(self.out)!r} is a file; give a directory")
+        saved = self.out / "study.json"
+        if saved.is_file() and json.loads(saved.read_text()) != _plain(asdict(self.study)):
+            raise ValueError(f"{self.out} holds another study ({saved}); use a new --out")
+        if self.out.is_dir() and any(self.out.iterdir()) and not saved.is_file():
+            raise ValueError(f"{self.out} is not empty and holds no study; use a new --out")
+
+
+def _plain(data):
+    return json.loads(json.dumps(data, default=files._default))
+
+
+# ---------------------------------------------------------------------- unit functions (run in children)
+def record_unit(config: dict) -> dict:
+    from vla_ladder.recording.record import RecordConfig, run
+    cfg = RecordConfig(out=config["out"], episodes=config["episodes"], condition=Condition.parse(config["condition"]),
+                       policy=config["policy"], first_seed=config["first_seed"], workers=config["workers"])
+    if run(cfg) != 0:
+        raise RuntimeError(f"recording {cfg.out} stopped before {cfg.episodes} episodes")
+    from vla_ladder.recordings import read_recording_state
+    return read_recording_state(cfg.out)["counters"]
+
+
+def train_unit(config: dict) -> dict:
+    from vla_ladder.training.train import TrainConfig, train
+    out = Path(config["out"])
+    if out.exists():  # a training run killed half-way starts over
+        shutil.rmtree(out)
+    ckpt = train(TrainConfig(**config))
+    info = json.loads((out / "vla_ladder_train.json").read_text())
+    return {"checkpoint": str(ckpt), "wall_s": info["wall_s"]}
+
+
+def eval_unit(config: dict) -> dict:
+    from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
+    summary = run_evaluation(EvalConfig(**config))
+    return {"conditions": {k: {m: c[m] for m in ("n", *METRICS)} for k, c in summary["conditions"].items()}}
+
+
+# ---------------------------------------------------------------------- planning
+def model_id(policy: PolicySpec, dataset: DatasetSpec, batch: int, chunk: int) -> str:
+    return f"{policy.name}-{dataset.name}-b{batch}c{chunk}"
+
+
+def eval_grid(dataset: DatasetSpec, study: StudyConfig) -> dict:
+    """The cells a model trained on `dataset` is evaluated on: the ladder for a canonical condition, the
+    pairings ID and OOD of its regime for a pairing split (the only pairs it could have held out)."""
+    c, ev = dataset.cond, study.evaluation
+    if c.split == "canonical":
+        return {"regimes": list(parse_regimes(ev.regimes)), "splits": ["canonical"], "num_objects": ev.num_objects}
+    return {"regimes": [c.regime], "splits": ["pairings_id", "pairings_ood"], "num_objects": ev.num_objects}
+
+
+class Study:
+    """Plans a study's units from its config and runs them phase by phase."""
+
+    def __init__(self, cmd: StudyCommand):
+        self.cmd, self.cfg, self.root = cmd, cmd.study, cmd.out
+        self.device = self.cfg.device
+        if self.device == "auto":
+            import torch
+            self.device = "cuda" if torch.cuda.is_available() else "cpu"
+
+    def run_phase(self, units: list[Unit]) -> dict:
+        if self.cmd.ray or self.cmd.ray_address:
+            return run_units_on_ray(units, self.root, self.cmd.ray_address)
+        return run_units(units, self.root)
+
+    # -- record
+    def record_units(self) -> list[Unit]:
+        return [Unit(f"record-{d.name}", "record", "vla_ladder.experiments.study:record_unit",
+                     {"out": str(self.dataset_dir(d)), "episodes": d.episodes, "condition": d.condition,
+                      "policy": d.expert, "first_seed": d.first_seed, "workers": self.cmd.workers}, cpus=2)
+                for d in self.cfg.datasets]
+
+    def dataset_dir(self, d: DatasetSpec) -> Path:
+        return self.root / "data" / d.name
+
+    # -- train
+    def lerobot_args(self, p: PolicySpec) -> list[str]:
+        args = list(p.lerobot_args)
+        if p.vlm is not None:
+            from vla_ladder.training.tiny import SIZES, build_vlm_dir
+            vlm = build_vlm_dir(self.root / "assets" / f"vlm-{p.vlm}", p.vlm)
+            side = p.image_size or SIZES[p.vlm].image_size
+            args = [f"--policy.vlm_model_name={vlm}", "--policy.load_vlm_weights=false",
+                    "--policy.train_expert_only=false", "--policy.freeze_vision_encoder=false",
+                    f"--policy.resize_imgs_with_padding=[{side},{side}]", *args]
+        return args
+
+    def train_units(self) -> list[Unit]:
+        units = []
+        g = self.cfg.grid
+        for p in self.cfg.policies:
+            args = self.lerobot_args(p)
+            for d in self.cfg.datasets:
+                for b in g.batch_sizes:
+                    for c in g.chunk_sizes:
+                        mid = model_id(p, d, b, c)
+                        save_freq = max(p.steps // 4, 1) if self.cfg.evaluation.curve_episodes else p.steps
+                        config = {"policy_type": p.type, "dataset": str(self.dataset_dir(d)),
+                                  "out": str(self.root / "models" / mid), "pretrained": p.pretrained,
+                                  "batch_size": b, "chunk_size": c, "n_action_steps": c, "steps": p.steps,
+                                  "save_freq": save_freq, "log_freq": max(p.steps // 20, 1),
+                                  "num_workers": self.cfg.num_workers, "device": self.device,
+                                  "lerobot_args": args}
+                        units.append(Unit(f"train-{mid}", "train", "vla_ladder.experiments.study:train_unit",
+                                          config, cpus=2, after=[f"record-{d.name}"]))
+        return units
+
+    def checkpoint(self, mid: str, step: str = "last") -> Path:
+        return self.root / "models" / mid / "checkpoints" / step / "pretrained_model"
+
+    # -- select and evaluate
+    def models(self):
+        g = self.cfg.grid
+        for p in self.cfg.policies:
+            for d in self.cfg.datasets:
+                yield p, d, [(b, c) for b in g.batch_sizes for c in g.chunk_sizes]
+
+    def eval_config(self, spec: str, out: Path, grid: dict, episodes: int, first_seed: int, videos: int) -> dict:
+        return {"policy": spec, "out": str(out), "grid": grid, "episodes": episodes, "first_seed": first_seed,
+                "workers": self.cmd.workers, "videos": videos}
+
+    def select_units(self) -> list[Unit]:
+        g = self.cfg.grid
+        units = []
+        for p, d, bcs in self.models():
+            own = {"regimes": [d.cond.regime], "splits": [d.cond.split], "num_objects": [d.cond.num_objects]}
+            for b, c in bcs:
+                mid = model_id(p, d, b, c)
+                for h in self.horizons(c):
+                    if g.select_episodes == 0:
+                        break
+                    cfg = self.eval_config(f"lerobot:{self.checkpoint(mid)}?n_action_steps={h}",
+                                           self.root / "select" / f"{mid}-h{h}", own, g.select_episodes,
+                                           g.select_first_seed, 0)
+                    units.append(Unit(f"select-{mid}-h{h}", "select", "vla_ladder.experiments.study:eval_unit",
+                                      cfg, cpus=2, after=[f"train-{mid}"]))
+        return units
+
+    def horizons(self, chunk: int) -> list[int]:
+        return [h for h in self.cfg.grid.horizons if h <= chunk]
+
+    def best(self, results: dict) -> dict[tuple[str, str], dict]:
+        """(policy, dataset) -> the chosen model and horizon, with the validation rates it was chosen on."""
+        chosen = {}
+        for p, d, bcs in self.models():
+            rows = []
+            for b, c in bcs:
+                mid = model_id(p, d, b, c)
+                for h in self.horizons(c):
+                    r = results.get(f"select-{mid}-h{h}")
+                    rates = next(iter(r["conditions"].values())) if r else {m: 0.0 for m in RANK_BY}
+                    rows.append({"model": mid, "batch_size": b, "chunk_size": c, "horizon": h,
+                                 **{m: rates[m] for m in RANK_BY}})
+            # Stable sort: on a full tie the first in grid order wins.
+            rows.sort(key=lambda r: tuple(r[m] for m in RANK_BY), reverse=True)
+            chosen[(p.name, d.name)] = {**rows[0], "candidates": rows}
+        return chosen
+
+    def eval_units(self, chosen: dict) -> list[Unit]:
+        ev = self.cfg.evaluation
+        units = []
+        for p, d, _ in self.models():
+            best = chosen[(p.name, d.name)]
+            spec = f"lerobot:{self.checkpoint(best['model'])}?n_action_steps={best['horizon']}"
+            cfg = self.eval_config(spec, self.root / "eval" / f"{p.name}-{d.name}", eval_grid(d, self.cfg),
+                                   ev.episodes, ev.first_seed, ev.videos)
+            units.append(Unit(f"eval-{p.name}-{d.name}", "eval", "vla_ladder.experiments.study:eval_unit", cfg,
+                              cpus=2, after=[f"train-{best['model']}"]))
+        grids = {json.dumps(eval_grid(d, self.cfg), sort_keys=True) for d in self.cfg.datasets}
+        for ref in ev.reference_policies:
+            for i, grid in enumerate(sorted(grids)):
+                cfg = self.eval_config(ref, self.root / "eval" / f"reference-{ref}-{i}", json.loads(grid),
+                                       ev.episodes, ev.first_seed, 0)
+                units.append(Unit(f"eval-reference-{ref}-{i}", "eval", "vla_ladder.experiments.study:eval_unit",
+                                  cfg, cpus=2))
+        return units
+
+    def curve_units(self, chosen: dict) -> list[Unit]:
+        """Every saved checkpoint of each chosen model on validation episodes of its training condition."""
+        ev, g = self.cfg.evaluation, self.cfg.grid
+        if not ev.curve_episodes:
+            return []
+        units = []
+        for p, d, _ in self.models():
+            best = chosen[(p.name, d.name)]
+            own = {"regimes": [d.cond.regime], "splits": [d.cond.split], "num_objects": [d.cond.num_objects]}
+            steps = sorted(x.name for x in (self.root / "models" / best["model"] / "checkpoints").iterdir()
+                           if x.name.isdigit())
+            for step in steps:
+                spec = f"lerobot:{self.checkpoint(best['model'], step)}?n_action_steps={best['horizon']}"
+                cfg = self.eval_config(spec, self.root / "curves" / f"{best['model']}-{step}", own,
+                                       ev.curve_episodes, g.select_first_seed + g.select_episodes, 0)
+                units.append(Unit(f"curve-{best['model']}-{step}", "curve",
+                                  "vla_ladder.experiments.study:eval_unit", cfg, cpus=2))
+        return units
+
+    # -- the whole study
+    def run(self) -> Path:
+        root = self.root
+        root.mkdir(parents=True, exist_ok=True)
+        files.write_json(root / "study.json", asdict(self.cfg))
+        self.run_phase(self.record_units())
+        self.run_phase(self.train_units())
+        selected = self.run_phase(self.select_units())
+        chosen = self.best(selected)
+        files.write_json(root / "selection.json", {f"{p}/{d}": v for (p, d), v in chosen.items()})
+        results = self.run_phase(self.eval_units(chosen))
+        curves = self.run_phase(self.curve_units(chosen))
+        from vla_ladder.experiments.study_results import write_results
+        return write_results(self, chosen, results, curves)
+
+
+def run(cmd: StudyCommand) -> int:
+    out = Study(cmd).run()
+    print(out.resolve())
+    return 0

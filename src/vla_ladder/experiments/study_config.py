@@ -1,0 +1,223 @@
+"""What a study runs: the datasets to record, the policies to train on them, the grid, and how to evaluate.
+
+A study config is a JSON file (the presets ship in vla_ladder/configs/study/: micro, cpu-mini, gpu-scratch,
+paper). Every section is a dataclass validated when loaded: an unknown field, regime, policy type or a grid
+that cannot run is refused before any work, with the field's path named ("policies[1].type: ...").
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, fields
+from importlib import resources
+from pathlib import Path
+
+from vla_ladder.conditions import Condition, ConditionGrid
+
+PRESETS_PACKAGE = "vla_ladder.configs.study"
+REFERENCE_POLICIES = ("scripted", "nearest", "layout-prior", "random")
+VLM_SIZES = ("tiny", "small", "smolvlm2-500m")
+
+
+@dataclass
+class DatasetSpec:
+    """One recorded training dataset."""
+
+    name: str
+    """short name used in unit ids and tables, e.g. sj"""
+    condition: str
+    """the condition recorded, as its key regime/split/num_objects"""
+    episodes: int
+    """successful demonstrations the dataset holds"""
+    expert: str = "scripted"
+    """the expert recorded: scripted or ppo:PATH"""
+    first_seed: int = 1_000_000
+    """first episode seed; far from the evaluation seeds (0...) so no evaluation layout is trained on"""
+
+    def __post_init__(self):
+        Condition.parse(self.condition)
+        _positive(self, "episodes")
+        if self.first_seed < 0:
+            raise ValueError(f"first_seed must be >= 0, got {self.first_seed}")
+        from vla_ladder.policies import parse_spec
+        kind, _ = parse_spec(self.expert)
+        if kind not in ("scripted", "ppo"):
+            raise ValueError(f"expert {self.expert!r} is not an expert; allowed: scripted, ppo:PATH")
+
+    @property
+    def cond(self) -> Condition:
+        return Condition.parse(self.condition)
+
+
+@dataclass
+class PolicySpec:
+    """One LeRobot policy type trained on every dataset."""
+
+    name: str
+    """label in tables, e.g. SmolVLA-scratch"""
+    type: str
+    """LeRobot policy type: smolvla, act, pi05, diffusion, ..."""
+    steps: int
+    """training steps"""
+    pretrained: str = "none"
+    """none (from scratch), a local checkpoint directory, or a hub id"""
+    vlm: str | None = None
+    """smolvla from scratch offline: build a local VLM of this size (tiny, small, smolvlm2-500m) as its backbone"""
+    image_size: int | None = None
+    """smolvla: side of the square images its vision tower sees (resize_imgs_with_padding); default: the VLM's"""
+    lerobot_args: list[str] = field(default_factory=list)
+    """further lerobot-train flags, e.g. --policy.optimizer_lr=3e-4"""
+
+    def __post_init__(self):
+        from vla_ladder.training.train import policy_types
+        allowed = policy_types()
+        if self.type not in allowed:
+            raise ValueError(f"type: unknown policy type {self.type!r}; allowed: {', '.join(allowed)}")
+        _positive(self, "steps")
+        if self.vlm is not None and self.vlm not in VLM_SIZES:
+            raise ValueError(f"vlm: unknown size {self.vlm!r}; allowed: {', '.join(VLM_SIZES)}")
+        if self.vlm is not None and self.type != "smolvla":
+            raise ValueError(f"vlm: only smolvla has a VLM backbone, not {self.type!r}")
+        if not all(isinstance(a, str) and a.startswith("--") for a in self.lerobot_args):
+            raise ValueError(f"lerobot_args: expected --flag=value strings, got {self.lerobot_args}")
+
+
+@dataclass
+class GridSpec:
+    """The paper's grid: every (batch size, chunk size) is trained, every execution horizon <= the chunk size is
+    tried on validation episodes of the training condition, and the best (success, then grasp-any, then reach)
+    is evaluated. Validation seeds are disjoint from the evaluation seeds, so the reported numbers are not the
+    ones the choice was made on."""
+
+    batch_sizes: list[int] = field(default_factory=lambda: [64])
+    chunk_sizes: list[int] = field(default_factory=lambda: [16])
+    horizons: list[int] = field(default_factory=lambda: [8])
+    select_episodes: int = 20
+    """validation episodes per horizon (0: no selection, the first horizon that fits is used)"""
+    select_first_seed: int = 500_000
+    """first validation seed"""
+
+    def __post_init__(self):
+        for name in ("batch_sizes", "chunk_sizes", "horizons"):
+            values = getattr(self, name)
+            if not values or not all(isinstance(v, int) and v >= 1 for v in values):
+                raise ValueError(f"{name}: expected positive integers, got {values}")
+        if not any(h <= c for h in self.horizons for c in self.chunk_sizes):
+            raise ValueError(f"horizons: no horizon in {self.horizons} fits a chunk size in {self.chunk_sizes}")
+        if self.select_episodes < 0:
+            raise ValueError(f"select_episodes must be >= 0, got {self.select_episodes}")
+
+
+@dataclass
+class EvaluationSpec:
+    """How every trained model (and every reference policy) is evaluated."""
+
+    episodes: int = 100
+    """episodes per cell"""
+    first_seed: int = 0
+    """episode j of every cell plays seed first_seed + j"""
+    regimes: list[str] = field(default_factory=lambda: ["all"])
+    """the ladder each canonically trained model is evaluated on (the train x eval regime matrix)"""
+    num_objects: list[int] = field(default_factory=lambda: [5])
+    """object counts evaluated"""
+    videos: int = 1
+    """filmed episodes per cell (for the report)"""
+    reference_policies: list[str] = field(default_factory=lambda: ["layout-prior", "nearest"])
+    """privileged-state reference policies evaluated on the same cells, for the tables"""
+    curve_episodes: int = 0
+    """evaluate every saved checkpoint on this many validation episodes of the training condition (the
+    learning curve; 0: none)"""
+
+    def __post_init__(self):
+        _positive(self, "episodes")
+        ConditionGrid(tuple(self.regimes), ("canonical",), tuple(self.num_objects))
+        for p in self.reference_policies:
+            if p not in REFERENCE_POLICIES:
+                raise ValueError(f"reference_policies: unknown {p!r}; allowed: {', '.join(REFERENCE_POLICIES)}")
+        if self.videos < 0 or self.curve_episodes < 0 or self.first_seed < 0:
+            raise ValueError("videos, curve_episodes and first_seed must be >= 0")
+
+
+@dataclass
+class StudyConfig:
+    """A learned policy diagnosed end to end: record, train, evaluate, report."""
+
+    name: str
+    description: str = ""
+    datasets: list[DatasetSpec] = field(default_factory=list)
+    policies: list[PolicySpec] = field(default_factory=list)
+    grid: GridSpec = field(default_factory=GridSpec)
+    evaluation: EvaluationSpec = field(default_factory=EvaluationSpec)
+    device: str = "auto"
+    """where training and policy inference run: auto (cuda when present), cpu or cuda"""
+    num_workers: int = 0
+    """data-loader workers of LeRobot training"""
+
+    def __post_init__(self):
+        if not self.datasets or not self.policies:
+            raise ValueError("a study needs at least one dataset and one policy")
+        for what, items in (("datasets", self.datasets), ("policies", self.policies)):
+            names = [x.name for x in items]
+            if len(set(names)) != len(names):
+                raise ValueError(f"{what}: names must be unique, got {names}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"device: unknown {self.device!r}; allowed: auto, cpu, cuda")
+        ev, sel = self.evaluation, self.grid
+        if sel.select_first_seed < ev.first_seed + ev.episodes and ev.first_seed < sel.select_first_seed + \
+                sel.select_episodes:
+            raise ValueError("grid.select_first_seed: validation seeds overlap the evaluation seeds")
+        for d in self.datasets:
+            # Recorded seeds run upwards from first_seed (failures skip seeds, so allow 4x the episodes).
+            span = range(d.first_seed, d.first_seed + 4 * d.episodes)
+            if ev.first_seed in span or sel.select_first_seed in span or d.first_seed < ev.first_seed + ev.episodes:
+                raise ValueError(f"datasets[{d.name}].first_seed: its seeds overlap the evaluation or validation "
+                                 "seeds")
+
+    @classmethod
+    def load(cls, name_or_path: str) -> "StudyConfig":
+        """A preset name (micro, cpu-mini, gpu-scratch, paper) or a path to a JSON file."""
+        path = Path(name_or_path)
+        if path.suffix == ".json" and path.is_file():
+            data = json.loads(path.read_text())
+        else:
+            known = presets()
+            if name_or_path not in known:
+                raise ValueError(f"unknown study {name_or_path!r}; allowed: {', '.join(known)} or a JSON file")
+            data = json.loads(resources.files(PRESETS_PACKAGE).joinpath(f"{name_or_path}.json").read_text())
+        return from_dict(cls, data, "")
+
+
+def presets() -> list[str]:
+    return sorted(p.name[:-5] for p in resources.files(PRESETS_PACKAGE).iterdir() if p.name.endswith(".json"))
+
+
+def from_dict(cls, data: dict, where: str):
+    """`cls` from JSON data, naming the path of a bad or unknown field ("policies[0].steps: ...")."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{where or 'study'}: expected an object, got {type(data).__name__}")
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ValueError(f"{where + ': ' if where else ''}unknown field {unknown[0]!r}; allowed: {', '.join(known)}")
+    nested = {"datasets": DatasetSpec, "policies": PolicySpec, "grid": GridSpec, "evaluation": EvaluationSpec}
+    kwargs = {}
+    for key, value in data.items():
+        sub = nested.get(key) if cls is StudyConfig else None
+        if sub is not None and isinstance(value, list):
+            kwargs[key] = [from_dict(sub, v, f"{key}[{i}]") for i, v in enumerate(value)]
+        elif sub is not None:
+            kwargs[key] = from_dict(sub, value, key)
+        else:
+            kwargs[key] = value
+    try:
+        return cls(**kwargs)
+    except TypeError as e:  # a missing required field
+        raise ValueError(f"{where or 'study'}: {e}") from None
+    except ValueError as e:
+        raise ValueError(f"{where}: {e}" if where and not str(e).startswith(where) else str(e)) from None
+
+
+def _positive(obj, name: str) -> None:
+    value = getattr(obj, name)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")

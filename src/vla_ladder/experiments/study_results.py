@@ -1,0 +1,85 @@
+"""A finished study's results: summary.json (every cell), the tables, the learning curves and report.html."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from vla_ladder import files
+from vla_ladder.contract import METRICS
+from vla_ladder.evaluation.rundir import load_run
+
+REPORT_MAX_BYTES = 5_000_000
+
+
+def cells_of(run_dir: Path, policy: str, train=None) -> list[dict]:
+    """One cell per condition of an evaluation run: n, counts, rates and 95% Wilson intervals."""
+    summary = json.loads((run_dir / "summary.json").read_text())
+    out = []
+    for key, c in summary["conditions"].items():
+        cell = {"policy": policy, "train_dataset": train and train[0], "train_condition": train and train[1],
+                "eval_condition": key, "n": c["n"], **{f"{m}_count": round(c[m] * c["n"]) for m in METRICS},
+                **{m: c[m] for m in METRICS}, "ci95": c["ci95"], "run": str(run_dir)}
+        out.append(cell)
+    return out
+
+
+def curve_points(study, chosen: dict) -> dict[str, list[dict]]:
+    ev = study.cfg.evaluation
+    curves = {}
+    if not ev.curve_episodes:
+        return curves
+    for p, d, _ in study.models():
+        model = chosen[(p.name, d.name)]["model"]
+        points = []
+        for run_dir in sorted((study.root / "curves").glob(f"{model}-*")):
+            step = int(run_dir.name.rsplit("-", 1)[1])
+            c = next(iter(json.loads((run_dir / "summary.json").read_text())["conditions"].values()))
+            points.append({"step": step, "n": c["n"], **{m: c[m] for m in METRICS}, "ci95": c["ci95"]})
+        curves[f"{p.name} on {d.name}"] = sorted(points, key=lambda x: x["step"])
+    return curves
+
+
+def write_results(study, chosen: dict, results: dict, curves_results: dict) -> Path:
+    from vla_ladder.report import study as present
+    from vla_ladder.report.html import build_report, reference_data
+
+    root, cfg = study.root, study.cfg
+    cells, runs, labels = [], [], []
+    for p, d, _ in study.models():
+        run_dir = root / "eval" / f"{p.name}-{d.name}"
+        cells += cells_of(run_dir, p.name, (d.name, d.condition))
+        runs.append(load_run(run_dir))
+        labels.append(f"{p.name} ({d.name})")
+    for ref in cfg.evaluation.reference_policies:
+        for run_dir in sorted((root / "eval").glob(f"reference-{ref}-*")):
+            cells += cells_of(run_dir, ref)
+            runs.append(load_run(run_dir))
+            labels.append(f"{ref} #{run_dir.name.rsplit('-', 1)[1]}")
+    curves = curve_points(study, chosen)
+    summary = {"study": cfg.name, "description": cfg.description, "cells": cells,
+               "selection": {f"{p}/{d}": v for (p, d), v in chosen.items()}, "curves": curves,
+               "units": {k: v for k, v in results.items()}, "provenance": files.provenance()}
+    files.write_json(root / "summary.json", summary)
+    paper = reference_data("paper.json")
+    tables = root / "tables"
+    files.write_text(tables / "matrix.md", present.matrix_markdown(cells))
+    files.write_text(tables / "matrix.tex", present.matrix_latex(cells))
+    files.write_text(tables / "paper_comparison.md", present.paper_comparison_markdown(cells, paper))
+    sections = [("Study: train regime x eval regime", present.matrix_html(cells))]
+    pairings = present.pairings_html(cells)
+    if pairings:
+        sections.append(("Study: held-out object-region pairings", pairings))
+    if curves:
+        png = present.plot_curves(curves, root / "curves.png")
+        import base64
+        sections.append(("Study: learning curves (validation episodes of the training condition)",
+                         f"<img class=plot alt=curves src='data:image/png;base64,"
+                         f"{base64.b64encode(png.read_bytes()).decode()}'>"))
+    report = root / "report.html"
+    build_report(runs, report, title=f"vla-ladder study: {cfg.name}", labels=labels, sections=sections)
+    if report.stat().st_size > REPORT_MAX_BYTES:  # a page that mails and commits: frame strips only
+        build_report(runs, report, title=f"vla-ladder study: {cfg.name}", labels=labels, sections=sections,
+                     with_video=False)
+    print((tables / "matrix.md").read_text())
+    return report

@@ -1,0 +1,164 @@
+"""A study's tables and figures: the train x eval regime matrix, the paper's layouts with the reference
+policies and the paper's own numbers beside the learned ones, and learning curves.
+
+Every function takes the study's cells (summary.json "cells": one dict per policy x train condition x eval
+condition, with n, rates and 95% Wilson intervals) and returns text or writes a PNG; nothing here runs.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+
+from vla_ladder.conditions import REGIMES, Condition
+from vla_ladder.contract import METRICS
+from vla_ladder.files import atomic_path
+from vla_ladder.report.tables import METRIC_NAMES, REGIME_NAMES, SPLIT_NAMES, tex_escape
+
+SHORT = {"success": "S", "grasp_any": "G", "reach": "R"}
+
+
+def _pct(x: float) -> str:
+    return "–" if x != x else f"{100 * x:.0f}"
+
+
+def _cell(c: dict) -> str:
+    return " / ".join(_pct(c[m]) for m in METRICS)
+
+
+def _row_label(cell: dict) -> tuple[str, str]:
+    train = cell.get("train_condition")
+    return cell["policy"], ("—" if train is None else f"{cell.get('train_dataset', '')} ({train})")
+
+
+def matrix(cells: list[dict]) -> tuple[list[tuple[str, int]], list[str], list[tuple[str, str, dict]]]:
+    """Columns (regime, object count) in ladder order, their titles, and rows (policy, trained on,
+    {column: cell}) of the canonical cells."""
+    rows: dict[tuple[str, str], dict] = {}
+    cols = set()
+    for c in cells:
+        cond = Condition.parse(c["eval_condition"])
+        if cond.split != "canonical":
+            continue
+        rows.setdefault(_row_label(c), {})[(cond.regime, cond.num_objects)] = c
+        cols.add((cond.regime, cond.num_objects))
+    counts = sorted({k for _, k in cols})
+    order = [(r, k) for k in counts for r in REGIMES if (r, k) in cols]
+    titles = [REGIME_NAMES[r] + (f", {k} objects" if len(counts) > 1 else "") for r, k in order]
+    return order, titles, [(p, t, row) for (p, t), row in rows.items()]
+
+
+def matrix_markdown(cells: list[dict]) -> str:
+    regimes, titles, rows = matrix(cells)
+    head = ["Policy", "Trained on", *titles]
+    lines = ["**Train regime x eval regime: success / grasp-any / reach (%).**", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for policy, train, row in rows:
+        lines.append("| " + " | ".join([policy, train, *(_cell(row[r]) if r in row else "–" for r in regimes)])
+                     + " |")
+    ns = sorted({c["n"] for _, _, row in rows for c in row.values()})
+    lines += ["", f"n episodes per cell: {', '.join(map(str, ns))}; every cell's 95% Wilson intervals are in "
+              "summary.json and the per-condition table."]
+    return "\n".join(lines) + "\n"
+
+
+def matrix_latex(cells: list[dict]) -> str:
+    regimes, titles, rows = matrix(cells)
+    head = ["Policy", "Trained on", *titles]
+    out = ["\\begin{table}[t]", "  \\centering",
+           "  \\caption{Train regime $\\times$ eval regime: success / grasp-any / reach (\\%).}",
+           "  \\label{tab:study_matrix}", "  \\footnotesize", f"  \\begin{{tabular}}{{ll{'c' * len(regimes)}}}",
+           "    \\toprule", "    " + " & ".join(map(tex_escape, head)) + " \\\\", "    \\midrule"]
+    for policy, train, row in rows:
+        out.append("    " + " & ".join([tex_escape(policy), tex_escape(train),
+                                        *(_cell(row[r]) if r in row else "--" for r in regimes)]) + " \\\\")
+    out += ["    \\bottomrule", "  \\end{tabular}", "\\end{table}"]
+    return "\n".join(out) + "\n"
+
+
+def _rate(c: dict, m: str) -> str:
+    lo, hi = c["ci95"][m]
+    return f"{_pct(c[m])} [{_pct(lo)}, {_pct(hi)}]"
+
+
+def paper_comparison_markdown(cells: list[dict], paper: dict) -> str:
+    """The paper's Tables 2 and 3 layout: each learned model on its own training condition (and pairings ID/OOD),
+    the reference policies on the same cells, and the paper's SmolVLA and pi0.5 numbers."""
+    lines = ["**Learned policies on their training condition, beside the reference policies and the paper.**", "",
+             "| Policy | Trained on | Evaluated on | n | " + " | ".join(METRIC_NAMES[m] for m in METRICS) + " |",
+             "|---|---|---|---|---|---|---|"]
+    own = [c for c in cells if c.get("train_condition") is not None and _same_cell(c)]
+    refs = [c for c in cells if c.get("train_condition") is None]
+    for c in own:
+        lines.append(f"| {c['policy']} | {c['train_dataset']} ({c['train_condition']}) | {c['eval_condition']} | "
+                     f"{c['n']} | " + " | ".join(_rate(c, m) for m in METRICS) + " |")
+    learned_keys = {c["eval_condition"] for c in own}
+    for c in refs:
+        if c["eval_condition"] in learned_keys:
+            lines.append(f"| {c['policy']} (reference) | — | {c['eval_condition']} | {c['n']} | "
+                         + " | ".join(_rate(c, m) for m in METRICS) + " |")
+    for table in ("ladder", "pairings"):
+        for model, conds in paper.get(table, {}).items():
+            for key, c in conds.items():
+                if key in learned_keys:
+                    lines.append(f"| paper: {model} | {key.split('/')[0]} | {key} | {c['n']} | "
+                                 + " | ".join(_pct(c[m]) for m in METRICS) + " |")
+    lines += ["", "Rates in %, 95% Wilson intervals in brackets (the paper reports rates of 100 episodes without "
+              "intervals). Pairing-trained models are evaluated on the held-out pairings (OOD) as well."]
+    return "\n".join(lines) + "\n"
+
+
+def _same_cell(c: dict) -> bool:
+    """The cell is on the model's training condition, or the OOD pairing counterpart of it."""
+    t, e = Condition.parse(c["train_condition"]), Condition.parse(c["eval_condition"])
+    return (t.regime, t.num_objects) == (e.regime, e.num_objects) and (t.split == e.split or t.split == "pairings_id")
+
+
+def matrix_html(cells: list[dict]) -> str:
+    regimes, titles, rows = matrix(cells)
+    head = "".join(f"<th>{html.escape(t)}</th>" for t in titles)
+    body = "".join(
+        f"<tr><td>{html.escape(p)}</td><td>{html.escape(t)}</td>"
+        + "".join(f"<td>{_cell(row[r])}<span class=ci> n={row[r]['n']}</span></td>" if r in row else "<td>–</td>"
+                  for r in regimes) + "</tr>" for p, t, row in rows)
+    return (f"<table><tr><th>policy</th><th>trained on</th>{head}</tr>{body}</table>"
+            "<p class=note>success / grasp-any / reach in %, canonical split; the diagonal is each "
+            "model's training regime. Intervals: summary.json and the per-condition table below.</p>")
+
+
+def pairings_html(cells: list[dict]) -> str:
+    rows = [c for c in cells if Condition.parse(c["eval_condition"]).split != "canonical"]
+    if not rows:
+        return ""
+    body = "".join(
+        f"<tr><td>{html.escape(c['policy'])}</td><td>{html.escape(str(c.get('train_condition') or '—'))}</td>"
+        f"<td>{SPLIT_NAMES[Condition.parse(c['eval_condition']).split]}</td><td>{c['n']}</td>"
+        + "".join(f"<td>{_rate(c, m)}</td>" for m in METRICS) + "</tr>" for c in rows)
+    head = "".join(f"<th>{METRIC_NAMES[m]}</th>" for m in METRICS)
+    return f"<table><tr><th>policy</th><th>trained on</th><th>split</th><th>n</th>{head}</tr>{body}</table>"
+
+
+def plot_curves(curves: dict[str, list[dict]], path: str | Path) -> Path:
+    """curves: model -> [{step, success, grasp_any, reach, ci95}] on validation episodes; one panel per model."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = max(len(curves), 1)
+    fig, axes = plt.subplots(1, n, figsize=(4 * n, 3.2), squeeze=False)
+    for ax, (model, points) in zip(axes[0], curves.items()):
+        steps = [p["step"] for p in points]
+        for m in METRICS:
+            ax.plot(steps, [100 * p[m] for p in points], marker="o", label=METRIC_NAMES[m])
+            ax.fill_between(steps, [100 * p["ci95"][m][0] for p in points], [100 * p["ci95"][m][1] for p in points],
+                            alpha=0.15)
+        ax.set_title(model, fontsize=9)
+        ax.set_xlabel("training step")
+        ax.set_ylim(-2, 102)
+    axes[0][0].set_ylabel("% of validation episodes")
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+    return Path(path)

@@ -1,0 +1,121 @@
+"""`vla-ladder study`: the micro preset end to end (record -> train -> evaluate -> report), kills and resumes,
+and configs refused before any work."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from vla_ladder.cli import main
+from vla_ladder.experiments.study_config import StudyConfig, presets
+
+ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1", "MS_SKIP_ASSET_DOWNLOAD_PROMPT": "1",
+       "WANDB_MODE": "disabled"}
+
+
+def _micro(**changes) -> dict:
+    from importlib import resources
+    data = json.loads(resources.files("vla_ladder.configs.study").joinpath("micro.json").read_text())
+    for path, value in changes.items():
+        *parents, leaf = path.split(".")
+        node = data
+        for p in parents:
+            node = node[int(p)] if p.isdigit() else node[p]
+        node[leaf] = value
+    return data
+
+
+def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
+    assert {"micro", "cpu-mini", "gpu-scratch", "paper"} <= set(presets())
+    for name in presets():
+        StudyConfig.load(name)
+    bad = {
+        "unknown field 'epochs'": _micro(epochs=3),
+        "policies[0]: unknown field 'stepz'": {**_micro(), "policies": [{"name": "x", "type": "act", "stepz": 3}]},
+        "policies[0]: type: unknown policy type 'transformer'": _micro(**{"policies.0.type": "transformer"}),
+        "unknown regime 'tiny_jitter'": _micro(**{"datasets.0.condition": "tiny_jitter/canonical/2"}),
+        "horizons: no horizon in [8] fits a chunk size in [4]": _micro(**{"grid.horizons": [8]}),
+        "reference_policies: unknown 'oracle'": _micro(**{"evaluation.reference_policies": ["oracle"]}),
+        "overlap the evaluation or validation seeds": _micro(**{"datasets.0.first_seed": 1}),
+    }
+    for message, data in bad.items():
+        path = tmp_path / "study.json"
+        path.write_text(json.dumps(data))
+        assert main(["study", str(path), "--out", str(tmp_path / "out")]) == 2, message
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+        assert not (tmp_path / "out").exists()
+    assert main(["study", "nano", "--out", str(tmp_path / "out")]) == 2
+    assert "allowed: " in capsys.readouterr().err
+
+
+def _done_markers(root: Path) -> dict[str, float]:
+    return {p.stem: p.stat().st_mtime_ns for p in (root / "units").glob("*.json")}
+
+
+def _wait(predicate, timeout: float, proc) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert proc.poll() is None, f"the study exited early ({proc.returncode})"
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.5)
+
+
+def _kill(proc) -> None:
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+
+@pytest.mark.slow
+def test_micro_study_survives_kills_mid_record_and_mid_train_and_reports_learned_rows(tmp_path):
+    out = tmp_path / "study"
+    cmd = [sys.executable, "-m", "vla_ladder.cli", "study", "micro", "--out", str(out), "--workers", "1"]
+
+    def start():
+        return subprocess.Popen(cmd, env=ENV, start_new_session=True, stdout=subprocess.DEVNULL)
+
+    # Killed while recording: after the recorder's first commit, before the record unit is done.
+    proc = start()
+    _wait(lambda: (out / "data" / "sj" / "meta" / "vla_ladder_recording.json").is_file(), 900, proc)
+    _kill(proc)
+    assert "record-sj" not in _done_markers(out)
+    # Killed while training: the record unit is done, the training unit has started.
+    proc = start()
+    _wait(lambda: (out / "logs" / "train-SmolVLA-tiny-sj-b4c4.log").is_file(), 900, proc)
+    time.sleep(3)
+    _kill(proc)
+    done = _done_markers(out)
+    assert "record-sj" in done and "train-SmolVLA-tiny-sj-b4c4" not in done
+    subprocess.run(cmd, env=ENV, check=True, stdout=subprocess.DEVNULL, timeout=1800)
+
+    after = _done_markers(out)
+    assert after["record-sj"] == done["record-sj"], "a finished unit ran again"
+    assert set(after) == {"record-sj", "train-SmolVLA-tiny-sj-b4c4", "eval-SmolVLA-tiny-sj"}
+    recorded = json.loads((out / "units" / "record-sj.json").read_text())["result"]
+    assert recorded["saved"] == 3
+    from vla_ladder.recordings import read_provenance
+    seeds = read_provenance(out / "data" / "sj")["seed"]
+    assert len(seeds) == 3 and seeds.is_unique
+
+    summary = json.loads((out / "summary.json").read_text())
+    learned = [c for c in summary["cells"] if c["policy"] == "SmolVLA-tiny"]
+    assert {c["eval_condition"] for c in learned} == {"small_jitter/canonical/2", "full_random/canonical/2"}
+    for c in learned:
+        assert c["n"] == 2 and c["train_condition"] == "small_jitter/canonical/2"
+        for m in ("success", "grasp_any", "reach"):
+            assert 0 <= c[m] <= 1 and len(c["ci95"][m]) == 2 and c[f"{m}_count"] == round(c[m] * 2)
+    matrix = (out / "tables" / "matrix.md").read_text()
+    assert "| SmolVLA-tiny | sj (small_jitter/canonical/2) |" in matrix
+    page = (out / "report.html").read_text()
+    assert "Study: train regime x eval regime" in page and "SmolVLA-tiny" in page and "Grasp-any" in page
+    assert (out / "logs" / "eval-SmolVLA-tiny-sj.log").stat().st_size > 0
+    # A different study in the same directory is refused.
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps(_micro(**{"evaluation.episodes": 3})))
+    r = subprocess.run([*cmd[:4], str(other), "--out", str(out)], env=ENV, capture_output=True, text=True)
+    assert r.returncode == 2 and "holds another study" in r.stderr
