@@ -62,7 +62,8 @@ def test_mixture_slots_and_seeds():
     seeds = train_seeds(1, 0, 1000)
     assert min(seeds) >= TRAIN_SEED_MIN and max(seeds) < 2**32
     assert seeds == train_seeds(1, 0, 1000) and seeds != train_seeds(1, 1, 1000)
-    args = Args(out="x", grid=ConditionGrid(("small_jitter", "full_random"), ("canonical", "pairings_ood"), (5,)))
+    args = Args(out="x", grid=ConditionGrid(("small_jitter", "full_random"), ("canonical", "pairings_ood"), (5,)),
+                sim_backend="physx_cpu", num_envs=1)
     assert args.conditions == [Condition("small_jitter", "canonical", 5), Condition("small_jitter", "pairings_ood", 5),
                                Condition("full_random", "canonical", 5)]
 
@@ -152,10 +153,10 @@ def test_bad_input_errors(tmp_path, run_dir):
 def test_cli_exposes_every_field(capsys):
     from vla_ladder.cli import main
 
-    args = cli_config(["--out", "d", "--num-envs", "8", "--regimes", "small_jitter", "full_random",
-                       "--num-objects", "5", "--no-norm-adv", "--ent-coef", "0.05"])
+    args = cli_config(["--out", "d", "--sim-backend", "physx_cpu", "--num-envs", "1", "--regimes", "small_jitter",
+                       "full_random", "--num-objects", "5", "--no-norm-adv", "--ent-coef", "0.05"])
     assert (args.num_envs, args.grid.regimes, args.grid.num_objects, args.norm_adv, args.ent_coef) == \
-        (8, ("small_jitter", "full_random"), (5,), False, 0.05)
+        (1, ("small_jitter", "full_random"), (5,), False, 0.05)
     assert args.learning_rate == 1e-4 and args.total_timesteps == 30_000_000  # the paper's defaults
     with pytest.raises(SystemExit) as e:
         main(["train-expert", "--help"])

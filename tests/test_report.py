@@ -26,7 +26,8 @@ def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("runs")
     a = make_run(root / "nearest", "nearest", LADDER + PAIRINGS, ["success", "wrong_object", "wrong_object",
                                                                     "wrong_object", "grasp_lost"], videos=5)
-    b = make_run(root / "prior", "layout-prior", LADDER + COUNTS, list(OUTCOMES) * 2)
+    # full_random with five objects is in both lists: a run holds each condition once.
+    b = make_run(root / "prior", "layout-prior", LADDER + [c for c in COUNTS if c not in LADDER], list(OUTCOMES) * 2)
     return [load_run(a), load_run(b)]
 
 

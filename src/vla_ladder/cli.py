@@ -9,8 +9,10 @@ their command runs, so `vla-ladder placements` never loads the simulator.
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
+from vla_ladder.checks import check_seed_args, os_error_message
 from vla_ladder.commandline import parse_config
 
 # name -> ("module:ConfigClass", one-line help). The module defines run(config) -> int.
@@ -47,6 +49,7 @@ def parse(name: str, argv: list[str]):
     target, help_ = COMMANDS[name]
     module_name, _, cls_name = target.partition(":")
     module = importlib.import_module(module_name)
+    check_seed_args(getattr(module, cls_name), argv)  # one message for a bad seed, whichever command
     if hasattr(module, "cli_config"):  # a command with its own parsing (train-expert's --resume)
         return module.cli_config(argv)
     tail: list[str] = []
@@ -78,6 +81,15 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:  # bad input: one clear line, no traceback
         print(f"vla-ladder {name}: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader of our output went away (`| head`): nothing left to say, no traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # (what the Python docs advise)
+        return 1
+    except OSError as e:  # disk full, read-only, a file in the way, a port in use: the path and the fix
+        print(f"vla-ladder {name}: error: {os_error_message(e)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"vla-ladder {name}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -17,13 +17,12 @@ import pandas as pd
 import tyro
 from statsmodels.stats.contingency_tables import mcnemar
 
+from vla_ladder.checks import check_output_file
 from vla_ladder.contract import METRICS
 from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
-from vla_ladder.evaluation.rundir import Run, load_run
+from vla_ladder.evaluation.rundir import EPISODE_KEY, Run, check_same_seeds, load_run
 from vla_ladder.files import write_json
 from vla_ladder.stats import wilson
-
-PAIR_KEYS = (*CONDITION_KEYS, "episode")
 
 
 def mcnemar_exact(b: int, c: int) -> float:
@@ -51,16 +50,12 @@ def pair_episodes(a: Run, b: Run) -> pd.DataFrame:
     if ka != kb:
         raise ValueError(f"the runs evaluated different conditions: only in {a.path}: "
                          f"{sorted(ka - kb) or 'none'}; only in {b.path}: {sorted(kb - ka) or 'none'}")
-    merged = ea.merge(eb, on=list(PAIR_KEYS), how="outer", suffixes=("_a", "_b"), indicator=True)
+    merged = ea.merge(eb, on=list(EPISODE_KEY), how="outer", suffixes=("_a", "_b"), indicator=True)
     unpaired = merged[merged["_merge"] != "both"]
     if len(unpaired):
         raise ValueError(f"the runs have different episodes: {len(unpaired)} episodes are in only one run "
                          f"(e.g. {_describe(unpaired.iloc[0])}); evaluate both with the same --episodes")
-    bad = merged[merged["seed_a"] != merged["seed_b"]]
-    if len(bad):
-        ex = "; ".join(f"{_describe(r)}: seed {r.seed_a} vs {r.seed_b}" for _, r in bad.head(3).iterrows())
-        raise ValueError(f"the runs used different seeds on {len(bad)} of {len(merged)} episodes ({ex}); "
-                         f"evaluate both with the same --first-seed so they play the same layouts")
+    check_same_seeds(a, b)
     return merged.drop(columns="_merge")
 
 
@@ -126,6 +121,8 @@ class CompareConfig:
     def __post_init__(self):
         if not 0 < self.alpha < 1:
             raise ValueError(f"--alpha must be in (0, 1), got {self.alpha}")
+        if self.json is not None:
+            check_output_file(self.json, "--json")
 
 
 def run(cfg: CompareConfig) -> int:

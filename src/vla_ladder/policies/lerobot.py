@@ -20,8 +20,11 @@ from vla_ladder.contract import ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IM
 from vla_ladder.policies import Policy
 
 ENV_IMAGE_SHAPE = (IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1])  # CHW, as LeRobot declares visual features
-# Policies that resize images themselves and pad cameras a batch lacks (LeRobot's VLAs).
-FLEXIBLE_CAMERAS = {"smolvla", "pi0", "pi05", "pi0_fast"}
+# Policies that resize every camera image to their own resolution (LeRobot's VLAs): a checkpoint trained on another
+# image size still gets images it can use. Every camera they declare must still be fed, except the blank
+# `empty_camera_i` slots their `empty_cameras` option adds on purpose.
+RESIZES_IMAGES = {"smolvla", "pi0", "pi05", "pi0_fast"}
+WEIGHTS_FILE = "model.safetensors"
 QUERY_KEYS = {"n_action_steps": int, "device": str}
 
 
@@ -35,36 +38,56 @@ def resolve_checkpoint(path: str | Path) -> Path:
                      "pretrained_model/ or in checkpoints/last/pretrained_model/ (a `vla-ladder train` run dir)")
 
 
-def check_env_compatible(cfg, rename_map: dict[str, str]) -> None:
-    """ValueError naming every input/output feature of the policy that GraspObject-v1 cannot provide."""
-    from lerobot.configs import FeatureType
+def check_checkpoint(path: str | Path) -> Path:
+    """resolve_checkpoint, and the weights are there too (a checkpoint copied without them fails here, in one
+    line, rather than inside LeRobot's loader)."""
+    found = resolve_checkpoint(path)
+    if not (found / WEIGHTS_FILE).is_file():
+        raise ValueError(f"the LeRobot checkpoint {str(found)!r} has config.json but no {WEIGHTS_FILE}: copy the "
+                         "checkpoint directory whole, or point at another checkpoints/<step>/pretrained_model")
+    return found
 
-    fed = {rename_map.get(k, k) for k in CAMERA_KEYS}
-    images = {k: ft for k, ft in cfg.input_features.items() if ft.type is FeatureType.VISUAL}
-    problems = []
-    flexible = cfg.type in FLEXIBLE_CAMERAS
-    if not fed & set(images):
-        problems.append(f"none of its cameras {sorted(images)} is one the env provides")
-    for key, ft in images.items():
-        if key not in fed and not flexible:
-            problems.append(f"camera {key} is not provided")
-        if not flexible and tuple(ft.shape) != ENV_IMAGE_SHAPE:
-            problems.append(f"camera {key} has shape {tuple(ft.shape)}, the env renders {ENV_IMAGE_SHAPE}")
-    state = cfg.input_features.get(rename_map.get(STATE_KEY, STATE_KEY))
-    padded = getattr(cfg, "max_state_dim", 0)
-    if state is not None and state.shape[0] != STATE_DIM and STATE_DIM > padded:
-        problems.append(f"state has {state.shape[0]} dims, the env provides {STATE_DIM}")
+
+def check_env_compatible(cfg, rename_map: dict[str, str]) -> None:
+    """ValueError naming every input the policy declares that GraspObject-v1 does not provide, and every size that
+    differs, for every policy type. `rename_map` (env key -> policy key) is the one saved with the checkpoint:
+    renames are explicit, never guessed."""
+    from lerobot.configs import FeatureType
+    from lerobot.utils.constants import OBS_IMAGES
+
+    fed_cameras = {rename_map.get(k, k) for k in CAMERA_KEYS}
+    fed_state = rename_map.get(STATE_KEY, STATE_KEY)
+    blank_slots = {f"{OBS_IMAGES}.empty_camera_{i}" for i in range(getattr(cfg, "empty_cameras", 0) or 0)}
+    resizes = cfg.type in RESIZES_IMAGES
+    cameras = [k for k, ft in cfg.input_features.items() if ft.type is FeatureType.VISUAL and k not in blank_slots]
+    problems: list[str] = []
+    if cameras and not fed_cameras & set(cameras):
+        problems.append(f"none of its cameras {cameras} is one the env provides")
     for key, ft in cfg.input_features.items():
-        if ft.type not in (FeatureType.VISUAL, FeatureType.STATE):
-            problems.append(f"input {key} ({ft.type.value}) is not provided")
+        shape = tuple(ft.shape)
+        if ft.type is FeatureType.VISUAL:
+            if key in blank_slots:
+                continue
+            if key not in fed_cameras:
+                problems.append(f"camera {key} is not one the env has")
+            elif not resizes and shape != ENV_IMAGE_SHAPE:
+                problems.append(f"camera {key} has shape {shape}, the env renders {ENV_IMAGE_SHAPE}")
+        elif ft.type is FeatureType.STATE and key == fed_state:
+            if shape != (STATE_DIM,):
+                problems.append(f"state {key} has shape {shape}, the env provides ({STATE_DIM},)")
+        else:
+            problems.append(f"input {key} ({ft.type.value}, shape {shape}) is not provided")
     action = cfg.output_features.get(ACTION_KEY)
     if action is None or tuple(action.shape) != (ACTION_DIM,):
         problems.append(f"action has shape {None if action is None else tuple(action.shape)}, the env takes "
                         f"({ACTION_DIM},)")
     if problems:
-        raise ValueError(f"LeRobot checkpoint ({cfg.type}) does not match GraspObject-v1: " + "; ".join(problems)
-                         + f". The env provides {', '.join(CAMERA_KEYS)} {ENV_IMAGE_SHAPE}, {STATE_KEY} "
-                         f"({STATE_DIM},) and takes action ({ACTION_DIM},)")
+        renames = f" (with the saved rename map {rename_map})" if rename_map else ""
+        hint = ("; a checkpoint with other camera names is fine-tuned with `vla-ladder train --rename-map`, which "
+                "saves the map with it" if any("camera" in p for p in problems) else "")
+        raise ValueError(f"LeRobot checkpoint ({cfg.type}) does not match GraspObject-v1{renames}: "
+                         + "; ".join(problems) + f". The env provides {', '.join(CAMERA_KEYS)} {ENV_IMAGE_SHAPE}, "
+                         f"{STATE_KEY} ({STATE_DIM},) and takes action ({ACTION_DIM},){hint}")
 
 
 def _saved_rename_map(path: Path) -> dict[str, str]:
@@ -91,6 +114,9 @@ class LeRobotPolicy(Policy):
         self.path = resolve_checkpoint(path)
         overrides = [] if n_action_steps is None else [f"--n_action_steps={int(n_action_steps)}"]
         device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+        if device.startswith("cuda") and not torch.cuda.is_available():
+            raise ValueError(f"device={device} needs a CUDA GPU and none is visible; use ?device=cpu, or leave "
+                             "device out (cuda when there is one, else cpu)")
         overrides.append(f"--device={device}")
         try:
             cfg = PreTrainedConfig.from_pretrained(self.path, cli_overrides=overrides)
@@ -98,6 +124,7 @@ class LeRobotPolicy(Policy):
             raise ValueError(f"cannot use the checkpoint {str(self.path)!r} with {overrides}: {e}") from e
         rename_map = _saved_rename_map(self.path)
         check_env_compatible(cfg, rename_map)
+        check_checkpoint(self.path)
 
         self.policy = get_policy_class(cfg.type).from_pretrained(self.path, config=cfg).eval()
         self.config = self.policy.config

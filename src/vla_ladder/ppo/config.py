@@ -5,12 +5,14 @@ Defaults are the paper's appendix table; the ones it does not list are ManiSkill
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
 
 import tyro
 
+from vla_ladder.checks import check_output_dir, check_seed
 from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.contract import EPISODE_STEPS
 
@@ -41,7 +43,9 @@ class Args:
 
     # Environment
     sim_backend: str = "physx_cuda"
-    """physx_cuda (GPU-parallel envs) or physx_cpu (one env in-process, several through AsyncVectorEnv)"""
+    """physx_cuda (GPU-parallel envs; the default, the paper's setting) or physx_cpu (one env in-process, several
+    through AsyncVectorEnv, one process each). Without a CUDA GPU the default is refused, never silently swapped:
+    pass --sim-backend physx_cpu with a --num-envs and --total-timesteps a CPU can run"""
     num_envs: int = 1024
     """the number of parallel environments"""
     max_episode_steps: int = EPISODE_STEPS
@@ -109,8 +113,8 @@ class Args:
                 raise ValueError(f"--{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
         if not self.hidden_sizes or min(self.hidden_sizes) <= 0:
             raise ValueError(f"--hidden-sizes must be positive widths, got {self.hidden_sizes}")
-        if self.train_seed < 0:
-            raise ValueError(f"--train-seed must be >= 0, got {self.train_seed}")
+        check_seed(self.train_seed, "--train-seed")
+        check_seed(self.eval_first_seed, "--eval-first-seed")
         if self.minibatch_size < 1:
             raise ValueError(f"--num-minibatches {self.num_minibatches} exceeds the batch of "
                              f"{self.batch_size} (num_envs x num_steps)")
@@ -120,6 +124,21 @@ class Args:
         if not 0 <= self.eval_first_seed <= TRAIN_SEED_MIN - self.eval_episodes:
             raise ValueError(f"evaluation seeds must stay below the training seeds ({TRAIN_SEED_MIN}): "
                              f"need 0 <= eval_first_seed <= {TRAIN_SEED_MIN - self.eval_episodes}")
+        check_output_dir(self.out, "--out")
+        self._check_machine()
+
+    def _check_machine(self) -> None:
+        """The backend fits this machine: physx_cuda needs a CUDA GPU, physx_cpu runs a process per env."""
+        if self.sim_backend == "physx_cuda":
+            import torch
+            if not torch.cuda.is_available():
+                raise ValueError(f"--sim-backend physx_cuda (the default: the paper's {self.num_envs} GPU envs) needs "
+                                 f"a CUDA GPU and none is visible; on this CPU machine pass --sim-backend physx_cpu "
+                                 f"--num-envs N (N <= {cpu_cores()}, one process each) and a --total-timesteps it "
+                                 "can run (about 40 env-steps/s)")
+        elif self.num_envs > cpu_cores():
+            raise ValueError(f"--sim-backend physx_cpu runs one process per env: --num-envs must be at most the "
+                             f"{cpu_cores()} CPU cores here, got {self.num_envs}")
 
     @property
     def conditions(self) -> list[Condition]:
@@ -137,3 +156,8 @@ class Args:
     @property
     def num_iterations(self) -> int:
         return self.total_timesteps // self.batch_size
+
+
+def cpu_cores() -> int:
+    """CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

@@ -21,18 +21,24 @@ from vla_ladder.recording import protocol as P
 log = logging.getLogger(__name__)
 # Close codes after which reconnecting cannot help: the server refused this client or its messages.
 PERMANENT = {P.CLOSE_TOO_BIG, P.CLOSE_INTERNAL} | set(range(4000, 5000))
+# websockets pings the server every PING_INTERVAL_S and gives up when a pong takes longer than PING_TIMEOUT_S
+# (its defaults): a server that stops answering is then found out instead of waited for forever.
+PING_INTERVAL_S = 20.0
+PING_TIMEOUT_S = 20.0
 
 
 class ServerError(RuntimeError):
-    """A server closed the connection or could not be reached."""
+    """A server closed the connection, stopped answering, or could not be reached."""
 
-    def __init__(self, url: str, message: str, code: int | None = None):
+    def __init__(self, url: str, message: str, code: int | None = None, permanent: bool | None = None):
         super().__init__(f"{url}: {message}" + (f" (close code {code})" if code is not None else ""))
         self.url, self.code = url, code
+        self._permanent = permanent
 
     @property
     def permanent(self) -> bool:
-        return self.code in PERMANENT
+        """Whether reconnecting cannot help (by default: the close code says the server refused us)."""
+        return self.code in PERMANENT if self._permanent is None else self._permanent
 
 
 @dataclass
@@ -86,8 +92,10 @@ class Episode:
 class EpisodeClient:
     """One protocol connection: hello/welcome, then `request(seeds)` and `receive()`."""
 
-    def __init__(self, url: str, token: str | None = None, max_message: int = P.MAX_EPISODE_MESSAGE):
+    def __init__(self, url: str, token: str | None = None, max_message: int = P.MAX_EPISODE_MESSAGE,
+                 ping_interval: float = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S):
         self.url, self.token, self.max_message = url, token, max_message
+        self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
         self.ws = None
         self.welcome: dict | None = None
 
@@ -96,7 +104,8 @@ class EpisodeClient:
 
         try:
             self.ws = await connect(self.url, max_size=self.max_message, compression=None, max_queue=2,
-                                    open_timeout=open_timeout)
+                                    open_timeout=open_timeout, ping_interval=self.ping_interval,
+                                    ping_timeout=self.ping_timeout)
         except (OSError, TimeoutError) as e:
             raise ServerError(self.url, f"cannot connect: {e}") from None
         await self._send(P.hello(self.token, self.max_message))
@@ -144,6 +153,12 @@ class EpisodeClient:
             raise ServerError(self.url, f"malformed message: {e.reason}", e.code) from None
 
     def _closed(self, e) -> ServerError:
+        if e.rcvd is None and e.sent is not None and e.sent.code == P.CLOSE_INTERNAL:
+            # websockets itself fails the connection with 1011 "keepalive ping timeout" when the server stops
+            # answering pings. The server refused nothing (a server's own 1011 arrives in e.rcvd): it froze or
+            # its network went away, so this is a lost connection, worth reconnecting to like a dropped one.
+            return ServerError(self.url, f"server stopped answering ({e.sent.reason or 'keepalive ping timeout'})",
+                               e.sent.code, permanent=False)
         frame = e.rcvd or e.sent
         code = frame.code if frame else 1006
         reason = (frame.reason if frame else "") or "connection lost"
@@ -167,10 +182,12 @@ class EpisodeSource:
 
     def __init__(self, urls: list[str], reserve: Callable[[int], list[int]], successes_needed: int,
                  check_server: Callable[[str, dict], None] | None = None, token: str | None = None,
-                 queue_size: int = 4, retries: int = 3, failed_frames: bool = False):
+                 queue_size: int = 4, retries: int = 3, failed_frames: bool = False,
+                 ping_interval: float = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S):
         if not urls:
             raise ValueError("need at least one server URL")
         self.urls, self.reserve, self.token = list(urls), reserve, token
+        self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
         self.successes_needed, self.check_server = successes_needed, check_server
         self.retries, self.failed_frames = retries, failed_frames
         self.received = self.successes = 0
@@ -235,7 +252,7 @@ class EpisodeSource:
     async def _serve(self, url: str) -> None:
         attempt = 0
         while not self._stopping.is_set():
-            client = EpisodeClient(url, self.token)
+            client = EpisodeClient(url, self.token, ping_interval=self.ping_interval, ping_timeout=self.ping_timeout)
             try:
                 welcome = await client.connect()
                 if self.check_server is not None:

@@ -25,6 +25,7 @@ import numpy as np
 import tyro
 
 from vla_ladder import contract
+from vla_ladder.checks import check_port_free, check_seed
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, CONTROL_HZ, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
 from vla_ladder.recording import protocol as P
@@ -70,8 +71,8 @@ class ServeConfig:
 
     def __post_init__(self):
         self.condition = Condition.of(self.condition)
-        from vla_ladder.policies import parse_spec
-        parse_spec(self.policy)
+        check_seed(self.rng_seed, "--rng-seed")
+        check_policy_files(self.policy)
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
         if self.num_envs > 1:
@@ -86,6 +87,21 @@ class ServeConfig:
                              "token: 127.0.0.1, ::1, localhost")
         if self.max_outstanding <= 0:
             self.max_outstanding = max(8, 4 * self.num_envs)
+        check_port_free(self.host, self.port)  # before the simulator starts, not after
+
+
+def check_policy_files(spec: str) -> None:
+    """ValueError when the expert spec names a checkpoint that is not there: the server would otherwise start, build
+    its simulator and fail every request it gets."""
+    from vla_ladder.policies import parse_spec
+
+    kind, arg = parse_spec(spec)
+    if kind == "ppo":
+        from vla_ladder.policies.ppo import checkpoint_dir
+        checkpoint_dir(arg)
+    elif kind == "lerobot":
+        from vla_ladder.policies.lerobot import check_checkpoint, parse_arg
+        check_checkpoint(parse_arg(arg)[0])
 
 
 @dataclass
@@ -348,14 +364,15 @@ class EpisodeServer:
 
     # ------------------------------------------------------------------ lifecycle
     async def serve(self, ready: Callable[[str], None] | None = None) -> None:
-        """Listen until cancelled; `ready(url)` is called once the socket is bound."""
+        """Listen until cancelled; `ready(url)` is called once the socket is bound. The socket is bound first: a
+        port in use fails (OSError) before the simulator starts."""
         from websockets.asyncio.server import serve
 
-        self._thread = threading.Thread(target=self._simulate, name="simulator", daemon=True)
-        self._thread.start()
         try:
             async with serve(self._handle, self.cfg.host, self.cfg.port, max_size=P.MAX_CLIENT_MESSAGE,
                              compression=None, max_queue=4) as server:
+                self._thread = threading.Thread(target=self._simulate, name="simulator", daemon=True)
+                self._thread.start()
                 sock = next(iter(server.sockets))
                 host, port = sock.getsockname()[:2]
                 self.url = f"ws://{_url_host(host)}:{port}"
@@ -364,7 +381,8 @@ class EpisodeServer:
                 await asyncio.Future()  # until cancelled
         finally:
             self._stop.set()
-            self._thread.join(timeout=60)
+            if self._thread is not None:
+                self._thread.join(timeout=60)
 
 
 def _reason(text: str) -> str:

@@ -22,6 +22,7 @@ import numpy as np
 
 from vla_ladder.contract import CONTROL_HZ, METRICS
 from vla_ladder.evaluation.metrics import OUTCOME_TEXT, OUTCOMES, outcomes
+from vla_ladder.checks import check_output_file
 from vla_ladder.evaluation.rundir import Run, load_runs
 from vla_ladder.files import write_text
 from vla_ladder.report import plots, tables
@@ -336,6 +337,7 @@ class ReportConfig:
             raise ValueError(f"--samples must be >= 0, got {self.samples}")
         if not self.runs:
             raise ValueError("give at least one run directory")
+        check_output_file(self.out, "--out")
 
 
 def run(cfg: ReportConfig) -> int:

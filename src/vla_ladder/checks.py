@@ -1,0 +1,163 @@
+"""Checks every command makes on its input before any long work: seeds, output locations, ports, OS errors.
+
+A bad value fails here in one line that names the flag or the path and what to do instead, so a typo is found
+before a simulator starts or a model trains, not after. Seeds are checked on the command line itself, before
+a config is built, so that every command says the same thing about the same mistake. Simulator-free.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import os
+import socket
+import typing
+from pathlib import Path
+
+SEED_SUFFIX = "seed"
+"""A config field holds a seed when its name is `seed` or ends in `_seed` (first_seed, train_seed, rng_seed, ...:
+seeds say which seed they are, docs/architecture.md), whatever the command."""
+SEED_LIMIT = 2**32
+"""Seeds are numpy RandomState seeds in the simulator (ManiSkill seeds each episode with one): 0 <= seed < 2**32."""
+
+
+# ---------------------------------------------------------------------------------------------- seeds
+def check_seed(value, flag: str) -> int:
+    """`value` as a seed, or ValueError naming `flag` and the allowed range."""
+    if isinstance(value, bool) or not hasattr(value, "__index__"):
+        raise ValueError(f"{flag} must be an integer seed (0 <= seed < 2**32), got {value!r}")
+    if not 0 <= value < SEED_LIMIT:
+        raise ValueError(f"{flag} must be >= 0 and < 2**32 (a numpy seed), got {value}")
+    return int(value)
+
+
+def is_seed_field(name: str) -> bool:
+    return name == SEED_SUFFIX or name.endswith(f"_{SEED_SUFFIX}")
+
+
+def seed_flags(cls: type) -> dict[str, str]:
+    """Every seed flag of the config dataclass `cls`, nested configs included (`--train.train-seed`), spelled
+    with hyphens as tyro prints them."""
+    flags: dict[str, str] = {}
+    hints = typing.get_type_hints(cls, include_extras=True)
+    for f in dataclasses.fields(cls):
+        hint = hints.get(f.name)
+        inner = typing.get_args(hint)[0] if typing.get_origin(hint) is typing.Annotated else hint
+        if is_seed_field(f.name):
+            flags[f"--{f.name.replace('_', '-')}"] = f.name
+        elif isinstance(inner, type) and dataclasses.is_dataclass(inner):
+            flattened = any(getattr(m, "name", None) == "" for m in getattr(hint, "__metadata__", ()))
+            prefix = "" if flattened else f"{f.name.replace('_', '-')}."
+            flags.update({f"--{prefix}{flag[2:]}": name for flag, name in seed_flags(inner).items()})
+    return flags
+
+
+def check_seed_args(cls: type, argv: list[str]) -> None:
+    """ValueError for the first seed flag in `argv` whose value is an integer outside the seed range (tyro itself
+    rejects values that are not integers). Stops at `--`: what follows belongs to another program."""
+    flags = seed_flags(cls)
+    for i, arg in enumerate(argv):
+        if arg == "--":
+            return
+        name, eq, value = arg.partition("=")
+        flag = name.replace("_", "-")
+        if not flag.startswith("--") or flag not in flags:
+            continue
+        if not eq:
+            value = argv[i + 1] if i + 1 < len(argv) else ""
+        try:
+            number = int(value)
+        except ValueError:
+            continue
+        check_seed(number, flag)
+
+
+# ---------------------------------------------------------------------------------------- output paths
+def check_output_dir(path: str | os.PathLike, flag: str) -> Path:
+    """`path` can be a directory this process writes into: it is one, or can be made under a writable directory.
+    ValueError naming `flag`, the path and the fix otherwise."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{flag} {str(path)!r} is a file, not a directory; give a directory (or remove the file)")
+    _check_writable_under(path if path.is_dir() else path.parent, flag, path)
+    return path
+
+
+def check_output_file(path: str | os.PathLike, flag: str) -> Path:
+    """`path` can be written as a file: it is not a directory, and its directory is (or can be made) writable."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{flag} {str(path)!r} is a directory; give the path of the file to write in it, e.g. "
+                         f"{str(path / 'out')!r}")
+    _check_writable_under(path.parent, flag, path)
+    return path
+
+
+def _check_writable_under(directory: Path, flag: str, target: Path) -> None:
+    existing = directory.absolute()
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(f"{flag} {str(target)!r}: {str(existing)!r} is a file where a directory is needed; "
+                         "remove it or choose another path")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        why = "is on a read-only file system" if _read_only(existing) else "is not writable by this user"
+        raise ValueError(f"{flag} {str(target)!r}: {str(existing)!r} {why}; choose a location you can write to")
+
+
+def _read_only(path: Path) -> bool:
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
+
+
+# ----------------------------------------------------------------------------------------------- ports
+def check_port_free(host: str, port: int, flag: str = "--port") -> None:
+    """ValueError when `host`:`port` cannot be listened on (in use, or not an address of this machine). Binds the
+    way asyncio's server does (SO_REUSEADDR), so a port in TIME_WAIT is free. Port 0 (any free port) always is."""
+    if port == 0:
+        return
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        raise ValueError(f"--host {host!r} is not an address of this machine ({e.strerror}); use 127.0.0.1 or "
+                         "one of its own addresses") from None
+    for family, kind, proto, _, address in infos:
+        with socket.socket(family, kind, proto) as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                sock.bind(address)
+            except OSError as e:
+                fix = FIXES.get(e.errno, f"choose another {flag}")
+                raise ValueError(f"cannot listen on {host}:{port} ({e.strerror}); {fix}") from None
+
+
+# ------------------------------------------------------------------------------------------- OS errors
+# errno -> what to do about it, for the one line a command ends with.
+FIXES = {
+    errno.EROFS: "write somewhere else (another --out)",
+    errno.EACCES: "write somewhere you may (another --out), or change the permissions",
+    errno.EPERM: "write somewhere you may (another --out), or change the permissions",
+    errno.ENOSPC: "free some space on that disk, or write somewhere else (another --out)",
+    errno.EDQUOT: "free some space on that disk, or write somewhere else (another --out)",
+    errno.ENOENT: "check the path",
+    errno.ENOTDIR: "a file is where a directory is needed: remove or rename it, or choose another path",
+    errno.EISDIR: "a directory is where a file is needed: give a file path",
+    errno.EEXIST: "a file is where a directory is needed: remove or rename it, or choose another path",
+    errno.ENOTEMPTY: "choose a new path",
+    errno.EADDRINUSE: "pick another --port (0 picks a free one) or stop what listens there",
+    errno.EADDRNOTAVAIL: "use 127.0.0.1 or one of this machine's own addresses (--host)",
+    errno.ECONNREFUSED: "start the server first, or check the address",
+    errno.EMFILE: "raise the limit (ulimit -n) or run fewer workers",
+    errno.ENOMEM: "run fewer workers or smaller batches",
+}
+
+
+def os_error_message(e: OSError, resource: str | None = None) -> str:
+    """One line for an OSError: the path (or `resource`) it concerns, what went wrong and what to do."""
+    where = resource or " -> ".join(str(p) for p in (e.filename, e.filename2) if p is not None)
+    what = e.strerror or str(e) or type(e).__name__
+    fix = FIXES.get(e.errno)
+    text = f"{where}: {what}" if where else what
+    return f"{text}; {fix}" if fix else text

@@ -1,0 +1,117 @@
+"""A LeRobot checkpoint whose declared inputs GraspObject-v1 cannot feed is refused before any episode, every
+mismatch named, whatever the policy type (the VLAs used to pass with a missing camera).
+
+The checkpoints are LeRobot's own config classes saved as LeRobot saves them (config.json, and for renames the
+policy_preprocessor.json that `lerobot-train --rename_map` writes) without weights: the check must come before
+any weight is read, so a checkpoint that passes it stops at the missing weights file instead."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from vla_ladder.contract import ACTION_KEY, CAMERA_KEYS, STATE_KEY
+
+pytestmark = pytest.mark.slow  # imports LeRobot's policy stack (~30 s on a busy 2-core machine)
+
+TYPES = ["act", "smolvla", "pi0", "pi05", "pi0_fast", "diffusion"]
+HAND, FIXED = CAMERA_KEYS
+
+
+def _checkpoint(root: Path, kind: str, cameras: dict[str, tuple], state: tuple | None = (15,),
+                action: tuple = (7,), rename: dict[str, str] | None = None, **options) -> Path:
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.factory import make_policy_config
+
+    inputs = {k: PolicyFeature(FeatureType.VISUAL, shape) for k, shape in cameras.items()}
+    if state is not None:
+        inputs[STATE_KEY] = PolicyFeature(FeatureType.STATE, state)
+    cfg = make_policy_config(kind, input_features=inputs, device="cpu", **options,
+                             output_features={ACTION_KEY: PolicyFeature(FeatureType.ACTION, action)})
+    root.mkdir(parents=True)
+    cfg._save_pretrained(root)
+    if rename is not None:  # the step LeRobot's processor saves when trained with --rename_map
+        (root / "policy_preprocessor.json").write_text(json.dumps({"name": "policy_preprocessor", "steps": [
+            {"registry_name": "rename_observations_processor", "config": {"rename_map": rename}}]}))
+    return root
+
+
+def _refusal(path: Path) -> str:
+    from vla_ladder.policies.lerobot import LeRobotPolicy
+
+    with pytest.raises(ValueError) as e:
+        LeRobotPolicy(path, device="cpu")
+    return str(e.value)
+
+
+ENV_CAMERAS = {HAND: (3, 256, 256), FIXED: (3, 256, 256)}
+
+
+@pytest.mark.parametrize("kind", TYPES)
+def test_every_mismatch_is_named_for_every_policy_type(kind, tmp_path):
+    top = HAND.replace("hand_camera", "top")
+    bad = _checkpoint(tmp_path / "bad", kind, {HAND: (3, 256, 256), top: (3, 256, 256)}, state=(6,), action=(6,))
+    msg = _refusal(bad)
+    assert f"LeRobot checkpoint ({kind}) does not match GraspObject-v1" in msg
+    assert f"camera {top} is not one the env has" in msg
+    assert f"state {STATE_KEY} has shape (6,), the env provides (15,)" in msg
+    assert "action has shape (6,), the env takes (7,)" in msg
+    assert "--rename-map" in msg and "\n" not in msg
+
+    # The same checkpoint with GraspObject-v1's features passes the check and stops at the absent weights.
+    good = _checkpoint(tmp_path / "good", kind, ENV_CAMERAS)
+    assert "has config.json but no model.safetensors" in _refusal(good)
+
+
+@pytest.mark.parametrize("kind", ["act", "smolvla"])
+def test_image_sizes_matter_only_to_policies_that_do_not_resize(kind, tmp_path):
+    small = _checkpoint(tmp_path / "small", kind, {HAND: (3, 96, 96), FIXED: (3, 96, 96)})
+    msg = _refusal(small)
+    if kind == "act":
+        assert f"camera {HAND} has shape (3, 96, 96), the env renders (3, 256, 256)" in msg
+    else:  # SmolVLA resizes every image to its own resolution
+        assert "no model.safetensors" in msg
+
+
+def test_renames_are_the_saved_ones_and_blank_camera_slots_are_allowed(tmp_path):
+    top, side = HAND.replace("hand_camera", "top"), HAND.replace("hand_camera", "side")
+    renamed = _checkpoint(tmp_path / "renamed", "smolvla", {top: (3, 256, 256), side: (3, 256, 256)},
+                          rename={HAND: top, FIXED: side})
+    assert "no model.safetensors" in _refusal(renamed)
+    half = _checkpoint(tmp_path / "half", "smolvla", {top: (3, 256, 256), side: (3, 256, 256)}, rename={HAND: top})
+    msg = _refusal(half)
+    assert f"with the saved rename map {{'{HAND}': '{top}'}}" in msg and f"camera {side} is not one" in msg
+    assert "none of its cameras" not in msg
+    none = _checkpoint(tmp_path / "none", "pi05", {top: (3, 224, 224)})
+    assert "none of its cameras" in _refusal(none)
+    blank = _checkpoint(tmp_path / "blank", "smolvla", ENV_CAMERAS, empty_cameras=1)
+    assert "no model.safetensors" in _refusal(blank)
+
+
+def test_other_inputs_and_a_missing_state_or_action(tmp_path):
+    from lerobot.configs.types import FeatureType
+
+    env_state = STATE_KEY.replace("state", "environment_state")
+    ckpt = _checkpoint(tmp_path / "env_state", "act", ENV_CAMERAS)
+    cfg = json.loads((ckpt / "config.json").read_text())
+    cfg["input_features"][env_state] = {"type": FeatureType.ENV.value, "shape": [10]}
+    cfg["output_features"] = {}
+    (ckpt / "config.json").write_text(json.dumps(cfg))
+    msg = _refusal(ckpt)
+    assert f"input {env_state} (ENV, shape (10,)) is not provided" in msg and "action has shape None" in msg
+    stateless = _checkpoint(tmp_path / "stateless", "act", ENV_CAMERAS, state=None)
+    assert "no model.safetensors" in _refusal(stateless)  # a policy that ignores the state is fine
+
+
+def test_a_cuda_device_without_a_gpu_is_refused(tmp_path):
+    import torch
+
+    from vla_ladder.policies.lerobot import LeRobotPolicy
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    good = _checkpoint(tmp_path / "good", "act", ENV_CAMERAS)
+    with pytest.raises(ValueError, match=r"device=cuda needs a CUDA GPU and none is visible; use \?device=cpu"):
+        LeRobotPolicy(good, device="cuda")

@@ -1,0 +1,361 @@
+"""Misuse, as a demanding new user commits it: bad seeds, corrupted run directories, full or read-only disks, a file
+where a directory belongs, a port in use, a missing checkpoint, no GPU. Each must end in one line on stderr that
+names the flag, path or resource and the fix, with exit code 2, before any long work, leaving no temporary files.
+docs/misuse.md lists every case tried and how it ends."""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import importlib
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import typing
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from report_fixtures import make_run
+
+from vla_ladder import checks
+from vla_ladder.cli import COMMANDS, main
+from vla_ladder.files import write_json, write_parquet
+
+SJ = ("small_jitter", "canonical", 5)
+FR = ("full_random", "canonical", 5)
+
+
+def _one_line_error(capsys, rc: int, *words: str) -> str:
+    """The command failed with exit 2 and said so in exactly one stderr line containing `words`."""
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert len(err.splitlines()) == 1, err
+    for w in words:
+        assert w in err, (w, err)
+    return err
+
+
+# ---------------------------------------------------------------------------------------------------- seeds
+NEGATIVE_SEEDS = {
+    "placements": (["placements", "--n", "2"], "--first-seed"),
+    "render": (["render", "--out", "{tmp}/r"], "--seed"),
+    "train-expert": (["train-expert", "--out", "{tmp}/ppo"], "--train-seed"),
+    "train-expert eval": (["train-expert", "--out", "{tmp}/ppo"], "--eval-first-seed"),
+    "serve": (["serve", "--port", "0"], "--rng-seed"),
+    "record": (["record", "--out", "{tmp}/rec", "--episodes", "1"], "--first-seed"),
+    "train": (["train", "--policy-type", "act", "--dataset", "{tmp}/data", "--out", "{tmp}/t"], "--train-seed"),
+    "eval": (["eval", "--policy", "scripted", "--out", "{tmp}/e"], "--first-seed"),
+    "experiment": (["experiment", "ladder", "--policy", "scripted", "--out", "{tmp}/x"], "--first-seed"),
+    "probe": (["probe", "instruction-swap", "--policy", "scripted", "--out", "{tmp}/p"], "--first-seed"),
+    "grid train": (["grid", "--out", "{tmp}/g", "--train.policy-type", "act", "--train.dataset", "{tmp}/data"],
+                   "--train.train-seed"),
+    "grid eval": (["grid", "--out", "{tmp}/g", "--train.policy-type", "act", "--train.dataset", "{tmp}/data"],
+                  "--eval.first-seed"),
+}
+
+
+@pytest.mark.timeout(120)  # before the check, `serve` listened forever
+@pytest.mark.parametrize("case", [c for c in NEGATIVE_SEEDS if NEGATIVE_SEEDS[c][0][0] in COMMANDS])
+@pytest.mark.parametrize("value", ["-1", "=-7", str(2**32)])
+def test_a_bad_seed_is_named_by_its_flag_before_anything_runs(case, value, tmp_path, capsys):
+    argv, flag = NEGATIVE_SEEDS[case]
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    argv += [flag + value] if value.startswith("=") else [flag, value]
+    rc = main(argv)
+    shown = value.lstrip("=")
+    _one_line_error(capsys, rc, f"error: {flag} must be >= 0 and < 2**32", f"got {shown}")
+    assert list(tmp_path.iterdir()) == []  # nothing was created
+
+
+def _seed_like(cls) -> list[str]:
+    """Fields of a config (nested configs included) whose name says they hold a seed."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    names = []
+    for f in dataclasses.fields(cls):
+        hint = hints[f.name]
+        hint = typing.get_args(hint)[0] if typing.get_origin(hint) is typing.Annotated else hint
+        if f.name.endswith("seed"):
+            names.append(f.name)
+        elif isinstance(hint, type) and dataclasses.is_dataclass(hint):
+            names += _seed_like(hint)
+    return names
+
+
+def test_every_seed_field_of_every_command_is_checked():
+    """A seed field added to any command later is found by the same check (its name ends in "_seed")."""
+    flags = {}
+    for name, (target, _) in COMMANDS.items():
+        module, _, cls_name = target.partition(":")
+        cls = getattr(importlib.import_module(module), cls_name)
+        flags[name] = checks.seed_flags(cls)
+        assert all(checks.is_seed_field(f) for f in _seed_like(cls)), name
+        assert len(flags[name]) == len(_seed_like(cls)), (name, flags[name])
+    assert set(flags["grid"]) == {"--train.train-seed", "--eval.first-seed"}
+    assert set(flags["train-expert"]) == {"--train-seed", "--eval-first-seed"}
+    assert set(flags["serve"]) == {"--rng-seed"} and set(flags["render"]) == {"--seed"}
+    assert flags["compare"] == {} and flags["report"] == {}
+
+
+def test_seed_checks_of_configs_built_in_code_say_the_same():
+    from vla_ladder.ppo.config import Args
+    from vla_ladder.recording.server import ServeConfig
+
+    with pytest.raises(ValueError, match=r"^--rng-seed must be >= 0 and < 2\*\*32 \(a numpy seed\), got -1$"):
+        ServeConfig(rng_seed=-1, port=0)
+    with pytest.raises(ValueError, match=r"^--train-seed must be >= 0 and < 2\*\*32 \(a numpy seed\), got -2$"):
+        Args(out="x", sim_backend="physx_cpu", num_envs=1, train_seed=-2)
+    with pytest.raises(ValueError, match="integer seed"):
+        checks.check_seed(1.5, "--seed")
+    assert checks.check_seed(2**32 - 1, "--seed") == 2**32 - 1
+
+
+# ------------------------------------------------------------------------------------------ run directories
+def _runs(tmp_path) -> tuple[Path, Path]:
+    a = make_run(tmp_path / "a", "nearest", [SJ, FR], ["success", "nothing", "wrong_object", "success"])
+    b = make_run(tmp_path / "b", "scripted", [SJ, FR], ["success"] * 4)
+    return a, b
+
+
+def _edit_episodes(run: Path, edit) -> None:
+    write_parquet(run / "episodes.parquet", edit(pd.read_parquet(run / "episodes.parquet")))
+
+
+def _edit_summary(run: Path, edit) -> None:
+    summary = json.loads((run / "summary.json").read_text())
+    edit(summary)
+    write_json(run / "summary.json", summary)
+
+
+def _killed(run: Path, drop: int) -> None:
+    """What a run killed mid-way leaves: one episode fewer, and a summary.json that counts what is there."""
+    from vla_ladder.evaluation.metrics import summarize
+
+    _edit_episodes(run, lambda df: df.drop(index=drop))
+    _edit_summary(run, lambda s: s.update(conditions=summarize(pd.read_parquet(run / "episodes.parquet"))))
+
+
+CORRUPTIONS = {
+    "an episode twice": (lambda r: _edit_episodes(r, lambda df: pd.concat([df, df.iloc[[2]]], ignore_index=True)),
+                         ["small_jitter/canonical/5 episode 2 (2 rows)", "evaluate again into a new --out"]),
+    "an episode missing (a killed run)": (lambda r: _killed(r, drop=1),
+                                          ["incomplete", "lacks episodes 1 of 0..3", "rerun the same `vla-ladder eval`"]),
+    "an episode missing from episodes.parquet": (
+        lambda r: _edit_episodes(r, lambda df: df.drop(index=1)),
+        ["lacks episodes 1 of 0..3", "summary.json counts 4 episodes of small_jitter/canonical/5, episodes.parquet "
+         "holds 3", "rerun the same `vla-ladder eval`"]),
+    "an episode beyond the count": (
+        lambda r: _edit_episodes(r, lambda df: df.assign(episode=df["episode"].where(df.index != 3, 9),
+                                                         seed=df["seed"].where(df.index != 3, 9))),
+        ["episodes 9 beyond episodes_per_condition 4"]),
+    "a count that disagrees with summary.json": (
+        lambda r: _edit_summary(r, lambda s: s["conditions"]["full_random/canonical/5"].update(n=5)),
+        ["summary.json counts 5 episodes of full_random/canonical/5, episodes.parquet holds 4"]),
+    "a rate that disagrees with summary.json": (
+        lambda r: _edit_summary(r, lambda s: s["conditions"]["small_jitter/canonical/5"].update(success=0.25)),
+        ["summary.json gives small_jitter/canonical/5 success = 0.25, episodes.parquet 4/4"]),
+    "a condition summary.json does not know": (
+        lambda r: _edit_summary(r, lambda s: s["conditions"].pop("full_random/canonical/5")),
+        ["only in episodes.parquet: full_random/canonical/5"]),
+    "a seed that is not first_seed + episode": (
+        lambda r: _edit_episodes(r, lambda df: df.assign(seed=df["seed"].where(df.index != 0, 42))),
+        ["1 episodes do not play seed first_seed + episode", "episode 0 has seed 42"]),
+    "a metric that is not true/false": (
+        lambda r: _edit_episodes(r, lambda df: df.assign(reach=df["reach"].astype(float).where(df.index != 0, 0.5))),
+        ["column 'reach' holds values other than true/false"]),
+    "summary.json says incomplete": (lambda r: _edit_summary(r, lambda s: s.update(complete=False)),
+                                     ["incomplete", "complete: false"]),
+}
+
+
+@pytest.mark.parametrize("command", ["compare", "report"])
+@pytest.mark.parametrize("case", list(CORRUPTIONS))
+def test_compare_and_report_refuse_a_run_whose_files_disagree(command, case, tmp_path, capsys):
+    a, b = _runs(tmp_path)
+    corrupt, words = CORRUPTIONS[case]
+    corrupt(b)
+    argv = ["compare", str(a), str(b), "--json", str(tmp_path / "cmp.json")] if command == "compare" else \
+        ["report", str(a), str(b), "--out", str(tmp_path / "report.html"), "--no-video", "--no-placements"]
+    _one_line_error(capsys, main(argv), str(b), *words)
+    assert not (tmp_path / "cmp.json").exists() and not (tmp_path / "report.html").exists()
+
+
+def test_report_refuses_runs_that_played_other_seeds(tmp_path, capsys):
+    a, _ = _runs(tmp_path)
+    shifted = make_run(tmp_path / "shifted", "scripted", [SJ], ["success"] * 4, seed=100)
+    rc = main(["report", str(a), str(shifted), "--out", str(tmp_path / "r.html"), "--no-video", "--no-placements"])
+    _one_line_error(capsys, rc, "different seeds on 4 of 4 shared episodes", "seed 0 vs 100", "--first-seed")
+    assert not (tmp_path / "r.html").exists()
+
+
+def test_consistent_runs_still_compare(tmp_path, capsys):
+    a, b = _runs(tmp_path)
+    assert main(["compare", str(a), str(b)]) == 0
+    assert "McNemar" in capsys.readouterr().out
+
+
+# -------------------------------------------------------------------------------------------- the disk
+def _no_space(monkeypatch, name: str) -> None:
+    """Every write of a file called `name` (or a temporary file for it) fails as on a full disk."""
+    real = Path.write_text
+
+    def write_text(self, *args, **kwargs):
+        if self.name == name or self.name.startswith(f".{name}."):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", write_text)
+
+
+def test_a_full_disk_ends_in_one_line_and_leaves_no_temporary_file(tmp_path, monkeypatch, capsys):
+    a, b = _runs(tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    _no_space(monkeypatch, "cmp.json")
+    rc = main(["compare", str(a), str(b), "--json", str(out / "cmp.json")])
+    _one_line_error(capsys, rc, "No space left on device", str(out), "free some space on that disk")
+    assert list(out.iterdir()) == []
+
+
+def test_a_full_disk_under_report_leaves_no_temporary_folder(tmp_path, monkeypatch, capsys):
+    a, b = _runs(tmp_path)
+    scratch = tmp_path / "scratch"  # the report draws its figures in a temporary folder: it must go away
+    scratch.mkdir()
+    monkeypatch.setattr("tempfile.tempdir", str(scratch))
+    _no_space(monkeypatch, "report.html")
+    rc = main(["report", str(a), str(b), "--out", str(tmp_path / "report.html"), "--no-video"])
+    _one_line_error(capsys, rc, "No space left on device", "report.html")
+    assert list(scratch.iterdir()) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b", "scratch"]
+
+
+def _read_only_shell(directory: Path) -> list[str] | None:
+    """A command prefix that runs a program with `directory` read-only: a private read-only bind mount for root
+    (util-linux unshare; the mount dies with the process), a directory without write permission otherwise."""
+    if os.geteuid() != 0:
+        directory.chmod(0o555)
+        return []
+    if shutil.which("unshare") is None:
+        return None
+    probe = subprocess.run(["unshare", "--mount", "--propagation", "private", "true"], capture_output=True)
+    if probe.returncode != 0:
+        return None
+    return ["unshare", "--mount", "--propagation", "private", "sh", "-c",
+            'mount --bind -o ro "$0" "$0" && exec "$@"', str(directory)]
+
+
+@pytest.mark.slow
+def test_a_read_only_output_location_ends_in_one_line(tmp_path):
+    """Checked at parse time where the command owns the check (compare --json), caught by main otherwise."""
+    a, b = _runs(tmp_path)
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    prefix = _read_only_shell(ro)
+    if prefix is None:
+        pytest.skip("cannot make a read-only directory here (root without mount namespaces)")
+    cli = [sys.executable, "-m", "vla_ladder.cli"]
+    for argv, words in [
+        (["compare", str(a), str(b), "--json", str(ro / "sub" / "cmp.json")], ["--json", "read-only", str(ro)]),
+        (["placements", "--n", "1", "--json", str(ro / "layouts.json")], ["Read-only file system", str(ro),
+                                                                           "write somewhere else"]),
+    ]:
+        done = subprocess.run(prefix + cli + argv, capture_output=True, text=True, timeout=300)
+        err = done.stderr.strip()
+        assert done.returncode == 2 and len(err.splitlines()) == 1, err
+        assert all(w in err for w in words), err
+        if os.geteuid() == 0:  # with permissions only, the wording is "not writable"/"Permission denied"
+            assert "read-only" in err.lower(), err
+    assert list(ro.iterdir()) == []
+
+
+def test_a_file_where_a_directory_belongs_and_the_reverse(tmp_path, capsys):
+    a, b = _runs(tmp_path)
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    cases = [
+        (["compare", str(a), str(b), "--json", str(afile / "cmp.json")], ["--json", "is a file where a directory"]),
+        (["compare", str(a), str(b), "--json", str(tmp_path)], ["--json", "is a directory; give the path of the file"]),
+        (["report", str(a), "--out", str(tmp_path)], ["--out", "is a directory"]),
+        (["train-expert", "--out", str(afile), "--sim-backend", "physx_cpu", "--num-envs", "1"],
+         ["--out", "is a file, not a directory"]),
+        # Not checked by the command's config: caught where the write fails, still one line.
+        (["placements", "--n", "1", "--json", str(afile / "layouts.json")], ["File exists", str(afile),
+                                                                             "a file is where a directory is needed"]),
+        (["placements", "--n", "1", "--json", str(tmp_path)], ["Is a directory", str(tmp_path)]),
+    ]
+    for argv, words in cases:
+        _one_line_error(capsys, main(argv), *words)
+    assert afile.read_text() == "x"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "afile", "b"]
+
+
+# ---------------------------------------------------------------------------------- ports, files, devices
+@pytest.fixture
+def busy_port():
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.listen()
+        yield sock.getsockname()[1]
+
+
+@pytest.mark.timeout(120)
+def test_serve_refuses_a_port_in_use_before_starting_the_simulator(busy_port, capsys):
+    rc = main(["serve", "--port", str(busy_port)])
+    err = _one_line_error(capsys, rc, f"cannot listen on 127.0.0.1:{busy_port}", "Address already in use",
+                          "pick another --port (0 picks a free one)")
+    assert "simulator" not in err
+
+
+@pytest.mark.slow  # the server resolves its object set through ManiSkill
+@pytest.mark.timeout(120)
+def test_the_server_binds_before_its_simulator_thread_starts(busy_port):
+    """Even when the port is taken between the check and the bind, no simulator is started."""
+    import asyncio
+
+    from vla_ladder.recording.server import EpisodeServer, ServeConfig
+
+    cfg = ServeConfig(port=0, lazy=True)
+    cfg.port = busy_port  # taken after the config was checked
+    server = EpisodeServer(cfg)
+    with pytest.raises(OSError) as e:
+        asyncio.run(server.serve())
+    assert e.value.errno == errno.EADDRINUSE
+    assert server._thread is None
+
+
+@pytest.mark.timeout(120)
+def test_serve_refuses_a_missing_expert_checkpoint(tmp_path, capsys):
+    _one_line_error(capsys, main(["serve", "--port", "0", "--policy", f"ppo:{tmp_path / 'nope'}"]),
+                    "no PPO checkpoint at", str(tmp_path / "nope"))
+    ckpt = tmp_path / "lerobot"
+    ckpt.mkdir()
+    (ckpt / "config.json").write_text("{}")
+    _one_line_error(capsys, main(["serve", "--port", "0", "--policy", f"lerobot:{ckpt}"]),
+                    "has config.json but no model.safetensors", str(ckpt))
+
+
+def test_train_expert_without_a_gpu_names_the_cpu_flags(tmp_path, capsys):
+    import torch
+
+    from vla_ladder.ppo.train import cli_config
+
+    if torch.cuda.is_available():  # the paper's default is what a GPU machine runs
+        assert cli_config(["--out", str(tmp_path / "ppo")]).sim_backend == "physx_cuda"
+        return
+    rc = main(["train-expert", "--out", str(tmp_path / "ppo")])
+    _one_line_error(capsys, rc, "--sim-backend physx_cuda", "needs a CUDA GPU and none is visible",
+                    "--sim-backend physx_cpu --num-envs N")
+    rc = main(["train-expert", "--out", str(tmp_path / "ppo"), "--sim-backend", "physx_cpu", "--num-envs", "4096"])
+    _one_line_error(capsys, rc, "one process per env", "got 4096")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_os_errors_are_described_with_their_path_and_fix():
+    e = OSError(errno.EROFS, os.strerror(errno.EROFS), "/data/out.json")
+    assert checks.os_error_message(e) == "/data/out.json: Read-only file system; write somewhere else (another --out)"
+    e = FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), "/runs/ppo/model.safetensors")
+    assert checks.os_error_message(e) == "/runs/ppo/model.safetensors: No such file or directory; check the path"
+    assert checks.os_error_message(OSError("weird")) == "weird"

@@ -1,0 +1,118 @@
+"""A server that stops answering is reconnected like one that dropped the connection.
+
+websockets pings the server and, when no pong comes back in time, fails the connection itself with close code
+1011 "keepalive ping timeout" — the code a server sends when its simulation fails, after which retrying is
+pointless. Here real servers on 127.0.0.1 freeze their event loop (as a server stuck in a long blocking call or
+a frozen VM does): the client must take that for a lost connection, not a refusal."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import threading
+import time
+
+import pytest
+
+from vla_ladder.recording import protocol as P
+from vla_ladder.recording.client import EpisodeClient, EpisodeSource, ServerError
+
+PING = dict(ping_interval=0.2, ping_timeout=0.5)
+
+
+class LoopThread:
+    """An asyncio event loop in a thread of its own, running one server coroutine until stopped; `freeze(s)` blocks
+    that loop for s seconds, so the server answers nothing, pings included."""
+
+    def __init__(self, serve):
+        self._serve, self.loop, self.url = serve, None, None
+        self._ready = threading.Event()
+        self._thread = threading.Thread(target=lambda: asyncio.run(self._main()), daemon=True)
+
+    async def _main(self):
+        self.loop = asyncio.get_running_loop()
+        self._task = asyncio.current_task()
+        try:
+            await self._serve(self._started)
+        except asyncio.CancelledError:
+            pass
+
+    def _started(self, url: str) -> None:
+        self.url = url
+        self._ready.set()
+
+    def __enter__(self) -> "LoopThread":
+        self._thread.start()
+        assert self._ready.wait(300), "the server did not start"
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.loop.call_soon_threadsafe(self._task.cancel)
+        self._thread.join(timeout=120)
+
+    def freeze(self, seconds: float) -> None:
+        self.loop.call_soon_threadsafe(time.sleep, seconds)
+
+
+async def _greeting_server(ready) -> None:
+    """The handshake of protocol.py and nothing more: enough for a client to be connected and waiting."""
+    from websockets.asyncio.server import serve
+
+    async def handle(ws):
+        P.decode(await ws.recv())  # the hello
+        await ws.send(P.encode({"type": "welcome", "protocol": P.PROTOCOL_VERSION, "server": {}, "limits": {}}))
+        await ws.wait_closed()
+
+    async with serve(handle, "127.0.0.1", 0) as server:
+        ready(f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}")
+        await asyncio.Future()
+
+
+def test_a_server_that_stops_answering_is_a_lost_connection_not_a_refusal():
+    async def receive_while_frozen(server: LoopThread) -> ServerError:
+        client = EpisodeClient(server.url, **PING)
+        await client.connect()
+        server.freeze(3)
+        try:
+            with pytest.raises(ServerError) as e:
+                await asyncio.wait_for(client.receive(), 10)
+        finally:
+            await client.close()
+        return e.value
+
+    with LoopThread(_greeting_server) as server:
+        error = asyncio.run(receive_while_frozen(server))
+    assert "stopped answering (keepalive ping timeout)" in str(error) and error.code == P.CLOSE_INTERNAL
+    assert not error.permanent  # so EpisodeSource reconnects, as after a dropped connection
+    assert ServerError("ws://x", "simulation failed", P.CLOSE_INTERNAL).permanent  # a server's own 1011 stays final
+
+
+@pytest.mark.slow
+def test_recording_goes_on_after_the_expert_server_froze(caplog):
+    """The real episode server (scripted expert, both cameras) freezes once its client is connected; the source
+    notices within a second, reconnects when the server is back and still delivers every episode asked for."""
+    from vla_ladder.conditions import Condition
+    from vla_ladder.recording.server import EpisodeServer, ServeConfig
+
+    server = EpisodeServer(ServeConfig(condition=Condition("small_jitter", "canonical", 2), port=0))
+    seeds = itertools.count(300)
+    caplog.set_level(logging.INFO, logger="vla_ladder.recording")
+    with LoopThread(server.serve) as running:
+        source = EpisodeSource([running.url], lambda n: [next(seeds) for _ in range(n)], successes_needed=2,
+                               ping_interval=0.5, ping_timeout=2.0).start()
+        try:
+            deadline = time.monotonic() + 120
+            while running.url not in source.welcomes:
+                assert time.monotonic() < deadline, "the source never connected"
+                time.sleep(0.1)
+            running.freeze(6)
+            episodes = []
+            while sum(e.success for e in episodes) < 2:
+                episodes.append(source.get(timeout=600))
+        finally:
+            source.stop()
+    warnings = [r.getMessage() for r in caplog.records if r.name == "vla_ladder.recording.client"]
+    assert any("stopped answering (keepalive ping timeout)" in w and "reconnecting" in w for w in warnings), warnings
+    assert all(e.has_frames for e in episodes if e.success)
+    assert len({e.seed for e in episodes}) == len(episodes)
