@@ -61,6 +61,9 @@ ACTION_DIM = len(ACTION_NAMES)
 STATE_KEY = OBS_STATE
 ACTION_KEY = ACTION
 
+BLIND_INSTRUCTION = "grasp the object"
+"""The one instruction an instruction-blind policy is trained and evaluated with (it names no object)."""
+
 METRICS: tuple[str, ...] = ("success", "grasp_any", "reach")
 """success: the instructed object is held at the final step; grasp_any: some object was grasped at some step;
 reach: the TCP ends within REACH_THRESHOLD of the instructed object's bounding box."""

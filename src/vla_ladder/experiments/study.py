@@ -153,7 +153,8 @@ class Study:
                     for c in g.chunk_sizes:
                         mid = model_id(p, d, b, c)
                         save_freq = max(p.steps // 4, 1) if self.cfg.evaluation.curve_episodes else p.steps
-                        config = {"policy_type": p.type, "dataset": str(self.dataset_dir(d)),
+                        data = self.blind_dir(d) if p.blind else self.dataset_dir(d)
+                        config = {"policy_type": p.type, "dataset": str(data),
                                   "out": str(self.root / "models" / mid), "pretrained": p.pretrained,
                                   "batch_size": b, "chunk_size": c, "n_action_steps": c, "steps": p.steps,
                                   "save_freq": save_freq, "log_freq": max(p.steps // 20, 1),
@@ -162,6 +163,22 @@ class Study:
                         units.append(Unit(f"train-{mid}", "train", "vla_ladder.experiments.study:train_unit",
                                           config, cpus=2, after=[f"record-{d.name}"]))
         return units
+
+    def blind_dir(self, d: DatasetSpec) -> Path:
+        return self.root / "data" / f"{d.name}-blind"
+
+    def make_blind_copies(self) -> None:
+        """Instruction-blind copies of the recorded datasets, for the blind policies (hard links, seconds)."""
+        if any(p.blind for p in self.cfg.policies):
+            from vla_ladder.training.blind import blind_copy
+            for d in self.cfg.datasets:
+                blind_copy(self.dataset_dir(d), self.blind_dir(d))
+
+    def spec(self, p: PolicySpec, mid: str, horizon: int, step: str = "last") -> str:
+        """The policy spec of a trained model (blind ones get the blind instruction in every episode)."""
+        from vla_ladder.contract import BLIND_INSTRUCTION
+        blind = f"&instruction={BLIND_INSTRUCTION}" if p.blind else ""
+        return f"lerobot:{self.checkpoint(mid, step)}?n_action_steps={horizon}{blind}"
 
     def checkpoint(self, mid: str, step: str = "last") -> Path:
         return self.root / "models" / mid / "checkpoints" / step / "pretrained_model"
@@ -187,8 +204,8 @@ class Study:
                 for h in self.horizons(c):
                     if g.select_episodes == 0:
                         break
-                    cfg = self.eval_config(f"lerobot:{self.checkpoint(mid)}?n_action_steps={h}",
-                                           self.root / "select" / f"{mid}-h{h}", own, g.select_episodes,
+                    cfg = self.eval_config(self.spec(p, mid, h), self.root / "select" / f"{mid}-h{h}", own,
+                                           g.select_episodes,
                                            g.select_first_seed, 0)
                     units.append(Unit(f"select-{mid}-h{h}", "select", "vla_ladder.experiments.study:eval_unit",
                                       cfg, cpus=2, after=[f"train-{mid}"]))
@@ -219,8 +236,8 @@ class Study:
         units = []
         for p, d, _ in self.models():
             best = chosen[(p.name, d.name)]
-            spec = f"lerobot:{self.checkpoint(best['model'])}?n_action_steps={best['horizon']}"
-            cfg = self.eval_config(spec, self.root / "eval" / f"{p.name}-{d.name}", eval_grid(d, self.cfg),
+            cfg = self.eval_config(self.spec(p, best["model"], best["horizon"]), self.root / "eval" /
+                                   f"{p.name}-{d.name}", eval_grid(d, self.cfg),
                                    ev.episodes, ev.first_seed, ev.videos)
             units.append(Unit(f"eval-{p.name}-{d.name}", "eval", "vla_ladder.experiments.study:eval_unit", cfg,
                               cpus=2, after=[f"train-{best['model']}"]))
@@ -245,8 +262,8 @@ class Study:
             steps = sorted(x.name for x in (self.root / "models" / best["model"] / "checkpoints").iterdir()
                            if x.name.isdigit())
             for step in steps:
-                spec = f"lerobot:{self.checkpoint(best['model'], step)}?n_action_steps={best['horizon']}"
-                cfg = self.eval_config(spec, self.root / "curves" / f"{best['model']}-{step}", own,
+                cfg = self.eval_config(self.spec(p, best["model"], best["horizon"], step),
+                                       self.root / "curves" / f"{best['model']}-{step}", own,
                                        ev.curve_episodes, g.select_first_seed + g.select_episodes, 0)
                 units.append(Unit(f"curve-{best['model']}-{step}", "curve",
                                   "vla_ladder.experiments.study:eval_unit", cfg, cpus=2))
@@ -258,6 +275,7 @@ class Study:
         root.mkdir(parents=True, exist_ok=True)
         files.write_json(root / "study.json", asdict(self.cfg))
         self.run_phase(self.record_units())
+        self.make_blind_copies()
         self.run_phase(self.train_units())
         selected = self.run_phase(self.select_units())
         chosen = self.best(selected)

@@ -67,6 +67,9 @@ class PolicySpec:
     """smolvla: side of the square images its vision tower sees (resize_imgs_with_padding); default: the VLM's"""
     lerobot_args: list[str] = field(default_factory=list)
     """further lerobot-train flags, e.g. --policy.optimizer_lr=3e-4"""
+    blind: bool = False
+    """train and evaluate without the instruction (every episode's instruction is contract.BLIND_INSTRUCTION):
+    the instruction-blind control of the same architecture, which scores what the layout alone allows"""
 
     def __post_init__(self):
         from vla_ladder.training.train import policy_types

@@ -63,3 +63,17 @@ def load_policy(spec: str, **kwargs) -> Policy:
     kind, arg = parse_spec(spec)
     module, _, fn = POLICY_KINDS[kind].partition(":")
     return getattr(importlib.import_module(module), fn)(arg, **kwargs)
+
+
+def check_spec(spec: str) -> tuple[str, str | None]:
+    """parse_spec, plus: a ppo:/lerobot: spec must name a checkpoint that is there. Commands call it before any
+    long work (a server would otherwise build its simulator and fail every request; an evaluation would write
+    its run directory and fail in its first worker)."""
+    kind, arg = parse_spec(spec)
+    if kind == "ppo":
+        from vla_ladder.policies.ppo import checkpoint_dir
+        checkpoint_dir(arg)
+    elif kind == "lerobot":
+        from vla_ladder.policies.lerobot import check_checkpoint, parse_arg
+        check_checkpoint(parse_arg(arg)[0])
+    return kind, arg

@@ -25,7 +25,7 @@ ENV_IMAGE_SHAPE = (IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1])  # CHW, as Le
 # `empty_camera_i` slots their `empty_cameras` option adds on purpose.
 RESIZES_IMAGES = {"smolvla", "pi0", "pi05", "pi0_fast"}
 WEIGHTS_FILE = "model.safetensors"
-QUERY_KEYS = {"n_action_steps": int, "device": str}
+QUERY_KEYS = {"n_action_steps": int, "device": str, "instruction": str}
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -107,7 +107,10 @@ class LeRobotPolicy(Policy):
 
     obs_mode = "rgb"
 
-    def __init__(self, path: str | Path, n_action_steps: int | None = None, device: str | None = None):
+    def __init__(self, path: str | Path, n_action_steps: int | None = None, device: str | None = None,
+                 instruction: str | None = None):
+        """`instruction` replaces every episode's instruction (an instruction-blind policy is trained and played
+        with one fixed text, contract.BLIND_INSTRUCTION)."""
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
@@ -133,6 +136,7 @@ class LeRobotPolicy(Policy):
             self.config, pretrained_path=self.path,
             preprocessor_overrides={"device_processor": {"device": str(self.device)}})
         self.name = f"lerobot-{cfg.type}"
+        self.instruction = instruction
         self._num_envs = 0
 
     @property
@@ -155,7 +159,7 @@ class LeRobotPolicy(Policy):
             rgb = obs["sensor_data"][cam.name]["rgb"]
             out[cam.key] = torch.as_tensor(rgb).permute(0, 3, 1, 2).to(self.device, torch.float32) / 255.0
         out[STATE_KEY] = torch.as_tensor(obs["extra"]["proprio"]).to(self.device, torch.float32)
-        out["task"] = [str(t) for t in instructions]
+        out["task"] = [self.instruction or str(t) for t in instructions]
         return out
 
     @torch.no_grad()
@@ -175,7 +179,7 @@ class LeRobotPolicy(Policy):
     def describe(self) -> dict:
         return {"name": self.name, "type": self.config.type, "checkpoint": str(self.path),
                 "chunk_size": getattr(self.config, "chunk_size", getattr(self.config, "horizon", None)),
-                "n_action_steps": self.n_action_steps, "device": str(self.device)}
+                "n_action_steps": self.n_action_steps, "device": str(self.device), "instruction": self.instruction}
 
 
 def parse_arg(arg: str) -> tuple[str, dict]:
@@ -190,7 +194,7 @@ def parse_arg(arg: str) -> tuple[str, dict]:
 
 
 def make_policy(arg: str | None, **kwargs) -> LeRobotPolicy:
-    """Factory for `load_policy("lerobot:PATH[?n_action_steps=H&device=D]")`."""
+    """Factory for `load_policy("lerobot:PATH[?n_action_steps=H&device=D&instruction=TEXT]")`."""
     if not arg:
         raise ValueError("policy 'lerobot' needs a checkpoint: lerobot:CHECKPOINT_DIR[?n_action_steps=H]")
     path, options = parse_arg(arg)

@@ -5,7 +5,6 @@ Defaults are the paper's appendix table; the ones it does not list are ManiSkill
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -15,6 +14,7 @@ import tyro
 from vla_ladder.checks import check_output_dir, check_seed
 from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.contract import EPISODE_STEPS
+from vla_ladder.machine import cores
 
 # Training episodes take seeds in [TRAIN_SEED_MIN, 2**32) (numpy's seed limit); evaluation seeds stay
 # below, so `vla-ladder eval --first-seed S` with any S + episodes <= TRAIN_SEED_MIN is held out.
@@ -134,11 +134,11 @@ class Args:
             if not torch.cuda.is_available():
                 raise ValueError(f"--sim-backend physx_cuda (the default: the paper's {self.num_envs} GPU envs) needs "
                                  f"a CUDA GPU and none is visible; on this CPU machine pass --sim-backend physx_cpu "
-                                 f"--num-envs N (N <= {cpu_cores()}, one process each) and a --total-timesteps it "
+                                 f"--num-envs N (N <= {cores()}, one process each) and a --total-timesteps it "
                                  "can run (about 40 env-steps/s)")
-        elif self.num_envs > cpu_cores():
+        elif self.num_envs > cores():
             raise ValueError(f"--sim-backend physx_cpu runs one process per env: --num-envs must be at most the "
-                             f"{cpu_cores()} CPU cores here, got {self.num_envs}")
+                             f"{cores()} CPU cores here, got {self.num_envs}")
 
     @property
     def conditions(self) -> list[Condition]:
@@ -156,8 +156,3 @@ class Args:
     @property
     def num_iterations(self) -> int:
         return self.total_timesteps // self.batch_size
-
-
-def cpu_cores() -> int:
-    """CPU cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

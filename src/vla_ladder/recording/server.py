@@ -28,6 +28,7 @@ from vla_ladder import contract
 from vla_ladder.checks import check_port_free, check_seed
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, CONTROL_HZ, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
+from vla_ladder.policies import check_spec
 from vla_ladder.recording import protocol as P
 from vla_ladder.task.objects import OBJECT_NAMES
 
@@ -66,13 +67,19 @@ class ServeConfig:
     """episodes one client may have requested but not yet received (0: 4 x num_envs, at least 8)"""
     lazy: bool = False
     """build the simulator on the first request instead of at start (cheap start for protocol checks)"""
+    rebuild_scenes: bool = False
+    """rebuild the CPU scene every episode so a recorded seed replays bit for bit (0.26 s more an episode); a
+    recording stores what happened, so by default the scene is reused (PhysX solver caches may then make a
+    replay differ by millimetres; the layout, target and instruction of a seed never differ)"""
+    robot_mesh: str = "lite"
+    """lite (decimated visual meshes, fast on a CPU renderer) or full (ManiSkill's); physics is the same"""
     exit_on_stdin_close: bool = False
     """exit when stdin closes (how `record` ties the local server it starts to its own life)"""
 
     def __post_init__(self):
         self.condition = Condition.of(self.condition)
         check_seed(self.rng_seed, "--rng-seed")
-        check_policy_files(self.policy)
+        check_spec(self.policy)
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
         if self.num_envs > 1:
@@ -88,20 +95,6 @@ class ServeConfig:
         if self.max_outstanding <= 0:
             self.max_outstanding = max(8, 4 * self.num_envs)
         check_port_free(self.host, self.port)  # before the simulator starts, not after
-
-
-def check_policy_files(spec: str) -> None:
-    """ValueError when the expert spec names a checkpoint that is not there: the server would otherwise start, build
-    its simulator and fail every request it gets."""
-    from vla_ladder.policies import parse_spec
-
-    kind, arg = parse_spec(spec)
-    if kind == "ppo":
-        from vla_ladder.policies.ppo import checkpoint_dir
-        checkpoint_dir(arg)
-    elif kind == "lerobot":
-        from vla_ladder.policies.lerobot import check_checkpoint, parse_arg
-        check_checkpoint(parse_arg(arg)[0])
 
 
 @dataclass
@@ -133,7 +126,8 @@ class Simulator:
         backend = "physx_cuda" if cfg.num_envs > 1 else "physx_cpu"
         c = cfg.condition
         self.env = gym.make(contract.ENV_ID, obs_mode=obs_mode, regime=c.regime, split=c.split,
-                            num_objects=c.num_objects, num_envs=cfg.num_envs, sim_backend=backend)
+                            num_objects=c.num_objects, num_envs=cfg.num_envs, sim_backend=backend,
+                            robot_mesh=cfg.robot_mesh, reconfiguration_freq=1 if cfg.rebuild_scenes else 0)
         self.base = self.env.unwrapped
         self.steps = EPISODE_STEPS
         self.object_set = self.base.object_set
@@ -281,6 +275,7 @@ class EpisodeServer:
     def _welcome(self) -> bytes:
         # What the server simulates: a recorder takes its dataset's condition and expert from here.
         server = {"policy": self.cfg.policy, "condition": self.cfg.condition.key, "num_envs": self.cfg.num_envs,
+                  "robot_mesh": self.cfg.robot_mesh,
                   "object_set": self.object_set, "fps": CONTROL_HZ, "episode_steps": EPISODE_STEPS,
                   "cameras": list(CAMERA_NAMES), "image_shape": list(IMAGE_SHAPE), "state_dim": STATE_DIM,
                   "action_dim": ACTION_DIM}

@@ -1,0 +1,59 @@
+"""An instruction-blind copy of a recorded dataset: every episode's task is contract.BLIND_INSTRUCTION.
+
+A policy trained on it (and evaluated with `lerobot:CKPT?instruction=<the same text>`) sees everything the
+original policy sees but the instruction: the control that says what a learned policy scores by the layout
+alone. Videos are hard links (nothing is re-encoded); the small Parquet files that carry task indices are
+rewritten; LeRobot reads the copy as any other dataset.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import pandas as pd
+
+from vla_ladder.contract import BLIND_INSTRUCTION
+
+STAMP = "meta/vla_ladder_blind.json"
+
+
+def blind_copy(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
+    """Make (or reuse) the instruction-blind copy of the dataset at `src` at `dst`."""
+    src, dst = Path(src), Path(dst)
+    info = json.loads((src / "meta" / "info.json").read_text())
+    stamp = {"source": str(src.resolve()), "episodes": info["total_episodes"], "instruction": BLIND_INSTRUCTION}
+    if (dst / STAMP).is_file() and json.loads((dst / STAMP).read_text()) == stamp:
+        return dst
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
+    try:
+        for dirpath, _, names in os.walk(src):
+            rel = Path(dirpath).relative_to(src)
+            (tmp / rel).mkdir(parents=True, exist_ok=True)
+            for name in names:
+                # Parquet files are rewritten below; everything else (videos, JSON) is shared.
+                (shutil.copy2 if name.endswith((".parquet", ".json")) else os.link)(Path(dirpath) / name,
+                                                                                      tmp / rel / name)
+        pd.DataFrame({"task_index": [0]}, index=pd.Index([BLIND_INSTRUCTION], name="task")).to_parquet(
+            tmp / "meta" / "tasks.parquet")
+        for path in (tmp / "data").rglob("*.parquet"):
+            df = pd.read_parquet(path)
+            df["task_index"] = 0
+            df.to_parquet(path, index=False)
+        for path in (tmp / "meta" / "episodes").rglob("*.parquet"):
+            df = pd.read_parquet(path)
+            df["tasks"] = [[BLIND_INSTRUCTION]] * len(df)
+            df.to_parquet(path, index=False)
+        info["total_tasks"] = 1
+        (tmp / "meta" / "info.json").write_text(json.dumps(info, indent=4))
+        (tmp / STAMP).write_text(json.dumps(stamp))
+        if dst.exists():
+            shutil.rmtree(dst)
+        tmp.rename(dst)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return dst
