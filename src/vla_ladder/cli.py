@@ -29,6 +29,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "grid": ("vla_ladder.experiments.grid:GridConfig", "grid search over batch, chunk size and execution horizon"),
     "experiment": ("vla_ladder.experiments.experiment:ExperimentCommand", "run one of the paper's experiments"),
     "report": ("vla_ladder.report.html:ReportConfig", "write a self-contained HTML report of runs"),
+    "probe": ("vla_ladder.experiments.probes:ProbeConfig",
+              "probe instruction grounding: instruction swap, paraphrases, appearance swap"),
+    "check-dataset": ("vla_ladder.training.check_dataset:CheckDatasetConfig",
+                      "check a recorded dataset: balance, coverage, leakage, seeds, frames, actions"),
 }
 # Commands that pass everything after `--` to lerobot-train.
 LEROBOT_FLAGS_AFTER_DASHES = ("train", "grid")

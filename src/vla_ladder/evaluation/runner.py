@@ -23,7 +23,8 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import Condition, ConditionGrid
-from vla_ladder.evaluation.player import EnvSettings, Job, auto_workers, play
+from vla_ladder.evaluation.player import EnvSettings, Job, play
+from vla_ladder.machine import auto_workers
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
 from vla_ladder.policies import POLICY_KINDS, Policy, parse_spec
 
@@ -34,6 +35,9 @@ FLUSH_SECONDS = 10.0
 # Fields of EvalConfig that do not change which episodes are played or what they give: a run directory
 # written with other values of these is the same request and is resumed.
 NOT_THE_REQUEST = ("out", "workers", "overwrite")
+# Fields added after run directories existed, with the value a config.json without them meant; they become env
+# reset options of every episode when not at that value (the probes, experiments/probes.py, set them).
+PRESENTATION = {"instructions": "canonical", "appearance": "original", "instruct": 0}
 
 
 @dataclass
@@ -66,6 +70,14 @@ class EvalConfig:
     """lite (decimated visual meshes, fast on a CPU renderer) or full (ManiSkill's); physics is the same"""
     overwrite: bool = False
     """replace a run directory that holds another request (the same request is always resumed)"""
+    instructions: str = "canonical"
+    """instruction wording: canonical ("grasp the <object>"), paraphrase-train or paraphrase-heldout (drawn per
+    episode from its seed, task/paraphrases.json)"""
+    appearance: str = "original"
+    """original, or swap: the instructed object and a distractor exchange colours (task/appearance.py; CPU)"""
+    instruct: int = 0
+    """which present object the instruction names: 0 the layout's target, k its k-th distractor, in the same scene
+    (the instruction-swap probe plays 0..num_objects-1)"""
 
     def __post_init__(self):
         self.out = None if self.out is None else Path(self.out)
@@ -94,6 +106,15 @@ class EvalConfig:
             raise ValueError(f"unknown object_set {self.object_set!r}; allowed: {', '.join(OBJECT_SETS)}")
         if self.robot_mesh not in ROBOT_MESHES:
             raise ValueError(f"unknown robot_mesh {self.robot_mesh!r}; allowed: {', '.join(ROBOT_MESHES)}")
+        from vla_ladder.task.appearance import check_appearance
+        from vla_ladder.task.instructions import check_instruction_set
+        check_instruction_set(self.instructions)
+        if check_appearance(self.appearance) != "original" and self.num_envs > 1:
+            raise ValueError(f"appearance={self.appearance} paints each scene: needs num_envs=1, got {self.num_envs}")
+        fewest = min(self.grid.num_objects)
+        if isinstance(self.instruct, bool) or not 0 <= self.instruct < fewest:
+            raise ValueError(f"instruct must be a present-object rank from 0 to {fewest - 1} (the grid's fewest "
+                             f"objects: {fewest}), got {self.instruct!r}")
 
     @property
     def conditions(self) -> list[Condition]:
@@ -104,9 +125,13 @@ class EvalConfig:
         return {k: v for k, v in json.loads(json.dumps(asdict(self), default=files._default)).items()
                 if k not in NOT_THE_REQUEST}
 
+    def reset_options(self) -> tuple[tuple[str, object], ...]:
+        """Env reset options of every episode: the presentation fields that are not at their defaults."""
+        return tuple((k, getattr(self, k)) for k, default in PRESENTATION.items() if getattr(self, k) != default)
+
     def jobs(self) -> list[Job]:
-        out = self.out
-        return [Job(c, j, self.first_seed + j, video=str(out / video_name(c, j, self.first_seed + j))
+        out, options = self.out, self.reset_options()
+        return [Job(c, j, self.first_seed + j, options, video=str(out / video_name(c, j, self.first_seed + j))
                     if out is not None and j < self.videos else "")
                 for c in self.conditions for j in range(self.episodes)]
 
@@ -123,7 +148,7 @@ def open_run_dir(cfg: EvalConfig) -> list[dict]:
         raise ValueError(f"--out {str(out)!r} is a file; give a directory")
     saved = out / "config.json"
     if out.is_dir() and any(out.iterdir()):
-        same = saved.is_file() and {k: v for k, v in json.loads(saved.read_text()).items()
+        same = saved.is_file() and {k: v for k, v in {**PRESENTATION, **json.loads(saved.read_text())}.items()
                                     if k not in NOT_THE_REQUEST} == cfg.request()
         if not same and not cfg.overwrite:
             what = "another evaluation request" if saved.is_file() else "files that are not a run directory"

@@ -25,7 +25,8 @@ from vla_ladder.contract import ACTION_DIM
 from vla_ladder.policies import Policy
 from vla_ladder.task import assets
 from vla_ladder.task.layouts import REGION_CENTERS
-from vla_ladder.task.objects import NUM_OBJECTS, OBJECTS
+from vla_ladder.task.instructions import parse_instruction
+from vla_ladder.task.objects import NUM_OBJECTS, object_index
 
 
 def _retarget(obs: dict, obj: torch.Tensor, site: torch.Tensor, quat: torch.Tensor | None = None) -> dict:
@@ -103,20 +104,14 @@ class LayoutPriorPolicy(Policy):
         # Canonical pose: yaw 0, bounding-box centre resting on the table (as layouts place it).
         sites[:, 2] = geo["half_extents"][:, 2] + 1e-3
         self.sites = sites + geo["grasp_point"]
-        self._instruction_index = {o.phrase: i for i, o in enumerate(OBJECTS)}
 
     def reset(self, seeds: Sequence[int], env_ids: Sequence[int] | None = None) -> None:
         self.expert.reset(seeds, env_ids)
 
     def target_from(self, instructions: Sequence[str]) -> torch.Tensor:
-        """Object index named by each instruction ("grasp the <object>")."""
-        idx = []
-        for text in instructions:
-            name = text.removeprefix("grasp the ").strip()
-            if name not in self._instruction_index:
-                raise ValueError(f"cannot parse instruction {text!r}; expected 'grasp the <object>' with one of "
-                                 + ", ".join(self._instruction_index))
-            idx.append(self._instruction_index[name])
+        """Object index named by each instruction: "grasp the <object>" or any wording of the shipped
+        paraphrase set ("pick up the red fruit"), so the prior is a perfect language reader."""
+        idx = [object_index(parse_instruction(text).object) for text in instructions]
         return torch.as_tensor(idx, dtype=torch.long, device=self.device)
 
     def act(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:

@@ -26,6 +26,7 @@ from vla_ladder.checks import check_output_file
 from vla_ladder.evaluation.rundir import Run, load_runs
 from vla_ladder.files import write_text
 from vla_ladder.report import plots, tables
+from vla_ladder.report import probes as probe_report
 
 STRIP_EVERY = 6  # steps: 300 ms at 20 Hz
 VIDEO_MAX_BYTES = 4_000_000  # larger videos are shown as frame strips only, to keep the page loadable
@@ -267,6 +268,17 @@ def _signatures() -> str:
         f"<p>Each episode ends in one of these outcomes:</p><ul>{kinds}</ul>")
 
 
+def _probe_sections(runs: list[Run], tmp: Path) -> str:
+    """A section per grounding probe whose variants are among the runs (`vla-ladder probe` writes its variants as
+    run directories next to probe.json, so `vla-ladder report PROBE_DIR/*/` shows the probe)."""
+    parts = []
+    for i, path in enumerate(probe_report.probe_dirs([r.path for r in runs])):
+        data = probe_report.load_probe(path)
+        figures = [_png(p) for p in probe_report.plot_probe(data, tmp / f"probe_{i}.png")]
+        parts.append(probe_report.section(data, figures, str(path)))
+    return "<h2>Grounding probes</h2>" + "".join(parts) if parts else ""
+
+
 CSS = """
 body{font-family:sans-serif;margin:1.5em auto;max-width:1200px;color:#222}
 table{border-collapse:collapse;margin:.5em 0;font-size:.9em}
@@ -306,6 +318,7 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
             body += [_md_table_html(t) for _, t in paper]
         body.append("<h2>Figures</h2>")
         body += [f"<figure>{img}<figcaption class=note>{html.escape(cap)}</figcaption></figure>" for cap, img in figs]
+        body.append(_probe_sections(runs, Path(tmp)))
         body += ["<h2>Success by instructed object</h2>", _per_object_table(results),
                  "<h2>Rollouts</h2>", f"<p class=note>Up to {samples} recorded episodes of each outcome per run; "
                  f"frames every {STRIP_EVERY * 1000 // CONTROL_HZ} ms.</p>",

@@ -26,7 +26,9 @@ from mani_skill.utils.structs.types import GPUMemoryConfig, SimConfig
 from vla_ladder import contract
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import CAMERAS, CONTROL_HZ, EPISODE_STEPS, REACH_THRESHOLD, SIM_HZ
-from vla_ladder.task import assets, robot
+from vla_ladder.task import appearance, assets, robot
+from vla_ladder.task.appearance import check_appearance
+from vla_ladder.task.instructions import check_instruction_set
 from vla_ladder.task.layouts import WORKSPACE_CENTER, Layout, sample_layout
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, object_index
 
@@ -50,6 +52,16 @@ class GraspObjectEnv(BaseEnv):
     `robot_mesh` picks how the robot looks in pictures: "lite" (default; decimated visual meshes, 6x cheaper to
     render on a CPU, see task/robot.py) or "full" (ManiSkill's meshes as shipped). Physics is the same.
 
+    How an episode is presented, also from its seed, never changing the layout or the physics:
+    - `instructions`: the wording, "canonical" ("grasp the <object>"), "paraphrase-train" or "paraphrase-heldout"
+      (task/instructions.py, paraphrases.json);
+    - `appearance`: "original", or "swap": the instructed object and one present distractor exchange colours
+      (task/appearance.py; needs one env per scene, i.e. physx_cpu or num_envs=1).
+    Both are also reset options (they override the env's own for that reset), next to "instruct": an object
+    name or a present-object rank (0 the target, k the k-th distractor), one for all reset envs or a list with
+    one each, which keeps the seed's whole scene (layout, colours, robot start, physics) and instructs that object
+    instead (the instruction-swap probe; "target" instead samples another scene with that target).
+
     Success: the instructed object is grasped (both fingers push on it) at the final step. Episodes
     always run 50 steps (2.5 s at 20 Hz, physics at 100 Hz) and never terminate early. `info` also holds
     grasp_any (some object grasped at some step), reach (TCP within 5 cm of the target's box at the end),
@@ -61,6 +73,7 @@ class GraspObjectEnv(BaseEnv):
 
     def __init__(self, *args, regime: str = "small_jitter", split: str = "canonical", num_objects: int = 5,
                  target: str | None = None, object_set: str = "auto", robot_mesh: str = "lite",
+                 instructions: str = "canonical", appearance: str = "original",
                  robot_init_qpos_noise: float = 0.02, robot_uids=None, render_backend: str = "auto",
                  obs_mode: str | None = None,
                  render_mode: str | None = None, sensor_configs: dict | None = None,
@@ -69,6 +82,8 @@ class GraspObjectEnv(BaseEnv):
         if target is not None:
             object_index(target)
         self.target = target
+        self.instruction_set = check_instruction_set(instructions)
+        self.appearance = check_appearance(appearance)
         self.object_set = assets.resolve_object_set(object_set)
         if robot_mesh not in robot.ROBOT_MESHES:
             raise ValueError(f"unknown robot_mesh {robot_mesh!r}; allowed: {', '.join(robot.ROBOT_MESHES)}")
@@ -101,7 +116,16 @@ class GraspObjectEnv(BaseEnv):
                          render_mode=render_mode, sensor_configs=cams, reconfiguration_freq=reconfiguration_freq,
                          **kwargs)
         self.metadata = {**self.metadata, "object_set": self.object_set, "robot_mesh": self.robot_mesh}
+        if appearance != "original":
+            self._check_paintable()
         self._check_contract()
+
+    def _check_paintable(self) -> None:
+        # Parallel GPU sub-scenes share their render materials (ManiSkill builds every sub-scene's shapes from one
+        # builder), so colours cannot differ between envs.
+        if self.num_envs > 1:
+            raise ValueError("appearance='swap' paints each scene's objects and needs one env per scene: "
+                             f"num_envs=1 (physx_cpu, or physx_cuda with one env); got num_envs={self.num_envs}")
 
     def _check_contract(self) -> None:
         """Every stage reads the episode's shape from vla_ladder.contract: make sure this env is that."""
@@ -161,12 +185,17 @@ class GraspObjectEnv(BaseEnv):
         self.present = torch.zeros(n, NUM_OBJECTS, dtype=torch.bool, device=self.device)
         self._grasp_any = torch.zeros(n, dtype=torch.bool, device=self.device)
         self.layouts = [None] * n
+        # Each sub-scene's objects' materials as built, to repaint for colour swaps and restore after them.
+        self._looks = [[appearance.Look(obj._objs[i], k) for k, obj in enumerate(self.objs)] for i in range(n)] \
+            if render else None
 
     # ------------------------------------------------------------------ episodes
     def reset(self, seed: None | int | Sequence[int] = None, options: dict | None = None):
         """seed=s (int) gives env i the episode seed s + i; a list gives one seed per reset env.
         options["conditions"], one Condition (or key) per reset env, overrides the env's own condition for
-        these episodes (one GPU env can then train on a mixture of conditions)."""
+        these episodes (one GPU env can then train on a mixture of conditions). options["instructions"] and
+        options["appearance"] override the env's own for these episodes; options["instruct"] (an object name or
+        present-object rank, or a list with one per reset env) instructs another object of the same scene."""
         options = dict(options or {})
         env_idx = options.get("env_idx")
         idx = np.arange(self.num_envs) if env_idx is None else np.asarray(
@@ -189,6 +218,13 @@ class GraspObjectEnv(BaseEnv):
             if len(options["conditions"]) != len(idx):
                 raise ValueError(f"got {len(options['conditions'])} conditions for {len(idx)} envs being reset")
             options["conditions"] = [Condition.of(c) for c in options["conditions"]]
+        if options.get("instructions") is not None:
+            check_instruction_set(options["instructions"])
+        if options.get("appearance") is not None and check_appearance(options["appearance"]) != "original":
+            self._check_paintable()
+        instruct = options.get("instruct")
+        if isinstance(instruct, (list, tuple)) and len(instruct) != len(idx):
+            raise ValueError(f"got {len(instruct)} instruct values for {len(idx)} envs being reset")
         return super().reset(seed=None if seed is None else [int(s) for s in seeds] if env_idx is None
                              else None, options=options)
 
@@ -205,9 +241,20 @@ class GraspObjectEnv(BaseEnv):
         present = np.zeros((b, NUM_OBJECTS), dtype=bool)
         tgt = np.zeros(b, dtype=np.int64)
         conditions = options.get("conditions") or [self.condition] * b
+        instructions = options.get("instructions") or self.instruction_set
+        look = options.get("appearance") or self.appearance
+        instruct = options.get("instruct")
+        if not isinstance(instruct, (list, tuple)):
+            instruct = [instruct] * b
         for row, i in enumerate(ids):
             seed = int(self._layout_seeds[i])
-            lay = sample_layout(conditions[row], seed, target)
+            lay = sample_layout(conditions[row], seed, target, instructions, look)
+            if instruct[row] is not None:
+                lay = lay.instructed(instruct[row])
+            # A rebuilt scene has fresh materials (layouts[i] is None); a kept one may still wear the last swap.
+            worn = self.layouts[i] is not None and self.layouts[i].colour_swap is not None
+            if self._looks is not None and (lay.colour_swap is not None or worn):
+                appearance.apply_swap(self._looks[i], lay.colour_swap)
             self.layouts[i] = lay
             tgt[row] = lay.target_index
             for name, xy, yaw in zip(lay.objects, lay.xy, lay.yaw):

@@ -12,13 +12,15 @@ location shortcut the ladder removes step by step); the pairing splits permute o
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
 
 from vla_ladder.conditions import REGIMES, Condition
-from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, OBJECTS, instruction_for, object_index
+from vla_ladder.task.appearance import check_appearance, swap_partner
+from vla_ladder.task.instructions import CANONICAL, check_instruction_set, instruction_text, paraphrase_version
+from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, OBJECTS, object_index
 
 WORKSPACE_CENTER = np.array([-0.12, 0.0])
 WORKSPACE_SIZE = np.array([0.35, 0.50])  # (x depth, y width)
@@ -53,6 +55,10 @@ class Layout:
     """(k,) rotations about z in radians."""
     regions: tuple[int, ...] | None
     """Region index of each object (None in full_random)."""
+    instructions: str = CANONICAL
+    """the instruction set the wording is drawn from (task/instructions.py)"""
+    colour_swap: tuple[str, str] | None = None
+    """(instructed object, distractor) whose colours are exchanged (task/appearance.py); None: usual colours"""
 
     @property
     def target(self) -> str:
@@ -64,16 +70,42 @@ class Layout:
 
     @property
     def instruction(self) -> str:
-        return instruction_for(self.target)
+        return instruction_text(self.target, self.seed, self.instructions)
+
+    def instructed(self, obj: str | int) -> "Layout":
+        """The same scene instructing another present object (a name, or its rank in `objects`: 0 is the
+        target, k the k-th distractor): objects, positions, yaw and colours are unchanged, only which object
+        comes first (the target) and so the instruction differ. The counterfactual of the instruction-swap
+        probe, unlike sample_layout(..., target=), which samples another scene."""
+        if isinstance(obj, (int, np.integer)) and not isinstance(obj, bool):
+            if not 0 <= obj < len(self.objects):
+                raise ValueError(f"instruct rank {obj} is not a present object of seed {self.seed}: "
+                                 f"allowed 0-{len(self.objects) - 1} ({', '.join(self.objects)})")
+            k = int(obj)
+        elif obj in self.objects:
+            k = self.objects.index(obj)
+        else:
+            object_index(obj)
+            raise ValueError(f"cannot instruct {obj!r}: seed {self.seed} of {self.condition} holds only "
+                             f"{', '.join(self.objects)}")
+        order = [k] + [i for i in range(len(self.objects)) if i != k]
+        return replace(self, objects=tuple(self.objects[i] for i in order), xy=self.xy[order], yaw=self.yaw[order],
+                       regions=None if self.regions is None else tuple(self.regions[i] for i in order))
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "seed": self.seed, "regime": self.condition.regime, "split": self.condition.split, "target": self.target,
             "instruction": self.instruction,
             "positions": {n: [round(float(v), 5) for v in p] for n, p in zip(self.objects, self.xy)},
             "yaw": {n: round(float(a), 5) for n, a in zip(self.objects, self.yaw)},
             "regions": None if self.regions is None else dict(zip(self.objects, self.regions)),
         }
+        # Only episodes that use them say so: canonical, unswapped layouts read as they always did.
+        if self.instructions != CANONICAL:
+            out.update(instructions=self.instructions, paraphrases_version=paraphrase_version())
+        if self.colour_swap is not None:
+            out["colour_swap"] = list(self.colour_swap)
+        return out
 
 
 @lru_cache(maxsize=None)
@@ -101,10 +133,15 @@ def _collides(xy: np.ndarray, radii: np.ndarray, i: int) -> bool:
     return bool(np.any(d < radii[:i] + radii[i] + MIN_GAP))
 
 
-def sample_layout(condition: Condition, seed: int = 0, target: str | None = None) -> Layout:
-    """Sample one layout; a given condition and seed always give the same layout."""
+def sample_layout(condition: Condition, seed: int = 0, target: str | None = None, instructions: str = CANONICAL,
+                  appearance: str = "original") -> Layout:
+    """Sample one layout; a given condition and seed always give the same layout. `instructions` (an
+    instruction set) picks the wording and `appearance` ("swap") the colour swap, each on a random stream of its
+    own: neither changes where the objects are."""
     if not isinstance(condition, Condition):
         raise TypeError(f"sample_layout takes a Condition, got {type(condition).__name__}")
+    check_instruction_set(instructions)
+    check_appearance(appearance)
     regime, split, num_objects = condition.regime, condition.split, condition.num_objects
     if target is not None:
         object_index(target)
@@ -145,8 +182,19 @@ def sample_layout(condition: Condition, seed: int = 0, target: str | None = None
     else:  # pragma: no cover - the regions are sized so this cannot happen with the shipped objects
         raise RuntimeError(f"no collision-free layout after {MAX_TRIES} tries ({regime}, seed {seed})")
     yaw = rng.uniform(-YAW_RANGE[regime], YAW_RANGE[regime], size=num_objects)
-    return Layout(condition, int(seed), names, xy, yaw, regions)
+    partner = swap_partner(names, seed) if appearance == "swap" else None
+    return Layout(condition, int(seed), names, xy, yaw, regions, instructions,
+                  None if partner is None else (names[0], partner))
 
 
-def sample_layouts(condition: Condition, seeds=(0,), target: str | None = None) -> list[Layout]:
-    return [sample_layout(condition, int(s), target) for s in seeds]
+def sample_layouts(condition: Condition, seeds=(0,), target: str | None = None, instructions: str = CANONICAL,
+                   appearance: str = "original") -> list[Layout]:
+    return [sample_layout(condition, int(s), target, instructions, appearance) for s in seeds]
+
+
+def layout_from_dict(data: dict) -> Layout:
+    """The layout that the seed of a recorded `Layout.to_dict()` gives, sampled again (dataset checks compare
+    the two): condition, object count, instruction set and appearance as the dict says."""
+    condition = Condition(data["regime"], data["split"], len(data["positions"]))
+    return sample_layout(condition, int(data["seed"]), instructions=data.get("instructions", CANONICAL),
+                         appearance="swap" if data.get("colour_swap") else "original")

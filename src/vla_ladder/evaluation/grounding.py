@@ -1,0 +1,234 @@
+"""Grounding metrics of the probes: the same scenes played under changed instructions, wordings or colours.
+
+Each probe plays the same seeded scenes in several variants (experiments/probes.py); these functions take the
+variants' episodes (episodes.parquet rows) and say, with 95% intervals, how much the grasped object depends
+on what the instruction says:
+
+- instruction swap: per scene, which object is held under each instruction. Instruction sensitivity (the held
+  object is not the same under all instructions) and scene accuracy (the instructed object is held under every
+  instruction) are scene-level proportions: Wilson intervals. Grounded accuracy P(held = instructed | something
+  held), success over all plays and the normalised mutual information I(instructed; held) / H(instructed) pool
+  correlated plays of a scene: percentile intervals of a bootstrap over scenes.
+- paraphrases and appearance swaps: rates of each variant on the same scenes (Wilson), their paired difference
+  (bootstrap over scenes) and McNemar's exact test.
+
+An object "held" is the one grasped at the final step ("none" when nothing is), as for success.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from vla_ladder.contract import METRICS
+from vla_ladder.evaluation.compare import mcnemar_exact
+from vla_ladder.evaluation.metrics import CONDITION_KEYS, HELD_COLUMNS, NONE, condition_key, confusion
+from vla_ladder.stats import CONFIDENCE, rates, wilson
+from vla_ladder.task.instructions import CANONICAL, NOVELTIES, parse_instruction
+from vla_ladder.task.objects import OBJECT_NAMES
+
+RESAMPLES = 2000
+BOOTSTRAP_SEED = 0
+COLOUR_OUTCOMES = ("instructed", "partner", "other", "none")
+"""What is held under an appearance swap: the instructed object (follows its shape and the words), the
+partner that wears the instructed object's usual colour (follows colour), another object, nothing."""
+
+
+def _interval(value: float, lo: float, hi: float, method: str, n: int) -> dict:
+    return {"value": value, "ci95": [lo, hi], "method": method, "n": n}
+
+
+def wilson_rate(k: int, n: int) -> dict:
+    lo, hi = wilson(k, n)
+    return _interval(k / n if n else float("nan"), lo, hi, "wilson", n)
+
+
+def bootstrap(stat: Callable[[np.ndarray], np.ndarray], clusters: int, resamples: int = RESAMPLES,
+              seed: int = BOOTSTRAP_SEED) -> tuple[float, float]:
+    """Percentile interval of `stat` over resamples of `clusters` scenes with replacement; `stat` takes a
+    (resamples, clusters) index array and returns one value per resample (nan values are dropped)."""
+    if clusters == 0:
+        return float("nan"), float("nan")
+    idx = np.random.default_rng(seed).integers(0, clusters, size=(resamples, clusters))
+    values = np.asarray(stat(idx), dtype=float)
+    values = values[np.isfinite(values)]
+    if not len(values):
+        return float("nan"), float("nan")
+    tail = (1 - CONFIDENCE) / 2 * 100
+    lo, hi = np.percentile(values, [tail, 100 - tail])
+    return float(lo), float(hi)
+
+
+def normalised_mutual_information(joint: np.ndarray) -> np.ndarray:
+    """I(X; Y | S) / H(X | S) of count tables (..., s, x, y): X the instructed object, Y the held one, S which
+    objects are on the table (a stratum of scenes). The share of the instruction's entropy that the held object
+    carries: 0 when the held object does not depend on the instruction (within each set of objects), 1 when it
+    determines it. Conditioning on S keeps "both are among the objects present" from counting as information
+    when fewer than five objects are on the table (with five there is one stratum and this is I(X; Y) / H(X))."""
+    joint = np.asarray(joint, dtype=float)
+    total = joint.sum(axis=(-3, -2, -1), keepdims=True)
+    p = np.divide(joint, total, out=np.zeros_like(joint), where=total > 0)  # p(s, x, y)
+    ps = p.sum(axis=(-2, -1), keepdims=True)
+    psx, psy = p.sum(-1, keepdims=True), p.sum(-2, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mi = np.where(p > 0, p * np.log(p * ps / (psx * psy)), 0.0).sum(axis=(-3, -2, -1))
+        hx = np.where(psx > 0, -psx * np.log(psx / ps), 0.0).sum(axis=(-3, -2, -1))
+    # (clipped: float sums of an exactly independent table can land a hair below 0)
+    return np.where(hx > 0, np.clip(mi / np.where(hx > 0, hx, 1.0), 0.0, 1.0), np.nan)
+
+
+def _by_condition(df: pd.DataFrame):
+    for key, g in df.groupby(list(CONDITION_KEYS), sort=False):
+        yield condition_key(*key), g
+
+
+# ---------------------------------------------------------------------- instruction swap
+def instruction_swap(plays: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
+    """Per condition: the instruction-swap metrics of plays (episodes.parquet rows with an `instruct` column,
+    the rank of the instructed object; `target` is the instructed object). Scenes missing a variant are left out."""
+    out = {}
+    for key, g in _by_condition(plays):
+        ranks = int(g["num_objects"].iloc[0])
+        full = g.groupby("episode").filter(lambda s: s["instruct"].nunique() == ranks)
+        scenes = [s.sort_values("instruct") for _, s in full.groupby("episode", sort=True)]
+        n = len(scenes)
+        held = [s["held"].tolist() for s in scenes]
+        sensitive = sum(len(set(h)) > 1 for h in held)
+        accurate = sum(all(h == t for h, t in zip(s["held"], s["target"])) for s in scenes)
+        # Per-scene tables: the bootstrap resamples scenes by summing their tables.
+        rows, cols = list(OBJECT_NAMES), list(HELD_COLUMNS)
+        tables = np.zeros((n, len(rows), len(cols)))
+        for i, s in enumerate(scenes):
+            for t, h in zip(s["target"], s["held"]):
+                tables[i, rows.index(t), cols.index(h)] += 1
+        objects = tables[..., :len(rows)]  # the "none" column left out
+        diag, grasped = np.trace(objects, axis1=-2, axis2=-1), objects.sum(axis=(-2, -1))
+        success = np.array([s["success"].astype(bool).sum() for s in scenes], dtype=float)
+
+        def ratio(num, den):
+            return lambda idx: np.divide(num[idx].sum(1), den[idx].sum(1), out=np.full(len(idx), np.nan),
+                                         where=den[idx].sum(1) > 0)
+
+        plays_per_scene = np.full(n, float(ranks))
+        acc_value = diag.sum() / grasped.sum() if grasped.sum() else float("nan")
+        # Scenes grouped by their set of objects (the strata S of the conditional mutual information).
+        sets = [frozenset(s["target"]) for s in scenes]
+        stratum = np.array([list(dict.fromkeys(sets)).index(x) for x in sets], dtype=int)
+        onehot = np.eye(max(len(set(sets)), 1))[stratum] if n else np.zeros((0, 1))
+
+        def nmi(idx):
+            return normalised_mutual_information(np.einsum("bns,bnxy->bsxy", onehot[idx], tables[idx]))
+
+        nmi_value = float(nmi(np.arange(n)[None])[0]) if n else float("nan")
+        out[key] = {
+            "scenes": n, "plays": int(n * ranks),
+            "instruction_sensitivity": wilson_rate(sensitive, n),
+            "scene_accuracy": wilson_rate(accurate, n),
+            "grounded_accuracy": _interval(float(acc_value), *bootstrap(ratio(diag, grasped), n, resamples),
+                                           "bootstrap over scenes", int(grasped.sum())),
+            "nmi": _interval(nmi_value, *bootstrap(nmi, n, resamples), "bootstrap over scenes", int(n * ranks)),
+            "success": _interval(float(success.sum() / max(n * ranks, 1)) if n else float("nan"),
+                                 *bootstrap(ratio(success, plays_per_scene), n, resamples), "bootstrap over scenes",
+                                 int(n * ranks)),
+            "matrix": _matrix(confusion(full)),
+            "by_rank": {str(r): rates(gr) for r, gr in full.groupby("instruct")},
+        }
+    return out
+
+
+def _matrix(table: pd.DataFrame) -> dict:
+    return {"rows": list(table.index), "columns": list(table.columns), "counts": table.values.tolist()}
+
+
+# ---------------------------------------------------------------------- paired variants
+def paired(a: pd.DataFrame, b: pd.DataFrame, metrics=METRICS, resamples: int = RESAMPLES) -> dict:
+    """Per condition: both variants' rates (Wilson), and per metric the paired difference b - a with a bootstrap
+    interval over scenes and McNemar's exact p-value. Episodes pair on condition and episode index."""
+    keys = [*CONDITION_KEYS, "episode"]
+    merged = a.merge(b, on=keys, suffixes=("_a", "_b"))
+    if (merged["seed_a"] != merged["seed_b"]).any():
+        raise ValueError("the variants played different seeds; a probe compares the same scenes")
+    out = {}
+    for key, g in _by_condition(merged):
+        diffs = {}
+        for m in metrics:
+            x, y = g[f"{m}_a"].astype(bool).to_numpy(), g[f"{m}_b"].astype(bool).to_numpy()
+            d = y.astype(float) - x.astype(float)
+            lo, hi = bootstrap(lambda idx: d[idx].mean(1), len(d), resamples)
+            diffs[m] = {"value": float(d.mean()) if len(d) else float("nan"), "ci95": [lo, hi],
+                        "method": "bootstrap over scenes", "n": int(len(d)),
+                        "mcnemar_p": mcnemar_exact(int((x & ~y).sum()), int((~x & y).sum()))}
+        out[key] = {"n": int(len(g)), "difference": diffs}
+    return out
+
+
+# ---------------------------------------------------------------------- paraphrases
+def by_novelty(episodes: pd.DataFrame) -> dict:
+    """Success by what the wording holds that training wordings do not (none, verb, object, both)."""
+    novelty = pd.Series([parse_instruction(t).novelty for t in episodes["instruction"]], index=episodes.index)
+    return {kind: wilson_rate(int(episodes.loc[novelty == kind, "success"].astype(bool).sum()),
+                              int((novelty == kind).sum())) for kind in NOVELTIES if (novelty == kind).any()}
+
+
+def paraphrase(variants: dict[str, pd.DataFrame], resamples: int = RESAMPLES) -> dict:
+    """Per condition and instruction set (variants[CANONICAL] is the reference): the rates, the share of
+    wrong-object grasps, success by novelty, and the paired difference to the canonical wording."""
+    out: dict = {}
+    for name, df in variants.items():
+        diff = paired(variants[CANONICAL], df, resamples=resamples) if name != CANONICAL else {}
+        for key, g in _by_condition(df):
+            wrong = int(((g["held"] != NONE) & (g["held"] != g["target"])).sum())
+            entry = {**rates(g), "wrong_object": wilson_rate(wrong, len(g))}
+            if name != CANONICAL:
+                entry.update(by_novelty=by_novelty(g), vs_canonical=diff[key]["difference"])
+            out.setdefault(key, {})[name] = entry
+    return out
+
+
+# ---------------------------------------------------------------------- appearance swap
+def colour_outcome(held: str, target: str, partner: str) -> str:
+    if held == target:
+        return "instructed"
+    if held == partner:
+        return "partner"
+    return "none" if held == NONE else "other"
+
+
+def appearance_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
+    """Per condition, on the scenes whose instructed object had a swap partner: what is held under the swap and
+    without it (the same scenes), as shares of COLOUR_OUTCOMES with Wilson intervals; the transition table
+    original -> swap; follows-shape minus its no-swap value with a bootstrap interval and McNemar's p."""
+    keys = [*CONDITION_KEYS, "episode"]
+    merged = original.merge(swapped, on=keys, suffixes=("_o", "_s"))
+    merged["partner"] = [(json.loads(lay).get("colour_swap") or [None, None])[1] for lay in merged["layout_s"]]
+    out = {}
+    for key, g in _by_condition(merged):
+        s = g[g["partner"].notna()]
+        before = [colour_outcome(h, t, p) for h, t, p in zip(s["held_o"], s["target_o"], s["partner"])]
+        after = [colour_outcome(h, t, p) for h, t, p in zip(s["held_s"], s["target_s"], s["partner"])]
+        n = len(s)
+        trans = pd.crosstab(pd.Categorical(before, categories=COLOUR_OUTCOMES),
+                            pd.Categorical(after, categories=COLOUR_OUTCOMES), dropna=False)
+        x = np.array([o == "instructed" for o in before])
+        y = np.array([o == "instructed" for o in after])
+        d = y.astype(float) - x.astype(float)
+        lo, hi = bootstrap(lambda idx: d[idx].mean(1), n, resamples)
+        out[key] = {
+            "scenes": int(len(g)), "swapped": n,
+            "original": {o: wilson_rate(before.count(o), n) for o in COLOUR_OUTCOMES},
+            "swap": {o: wilson_rate(after.count(o), n) for o in COLOUR_OUTCOMES},
+            "follows_shape": wilson_rate(after.count("instructed"), n),
+            "follows_colour": wilson_rate(after.count("partner"), n),
+            "shape_change": {"value": float(d.mean()) if n else float("nan"), "ci95": [lo, hi],
+                             "method": "bootstrap over scenes", "n": n,
+                             "mcnemar_p": mcnemar_exact(int((x & ~y).sum()), int((~x & y).sum()))},
+            "transitions": {"rows": list(COLOUR_OUTCOMES), "columns": list(COLOUR_OUTCOMES),
+                            "counts": trans.reindex(index=list(COLOUR_OUTCOMES), columns=list(COLOUR_OUTCOMES),
+                                                    fill_value=0).astype(int).values.tolist()},
+            "pairs": {f"{a}/{b}": int(c) for (a, b), c in
+                      s.groupby(["target_s", "partner"]).size().items()},
+        }
+    return out

@@ -1,0 +1,194 @@
+"""`vla-ladder probe NAME --policy SPEC --out DIR`: does the policy grasp what it is told, or something else?
+
+Every probe plays the same seeded scenes in several variants, each an ordinary evaluation run directory under
+DIR (so `vla-ladder compare DIR/a DIR/b` and `vla-ladder report DIR/*/` work on them), then writes
+DIR/probe.json (metrics with 95% intervals, evaluation/grounding.py), DIR/<probe>.png and DIR/report.html:
+
+- instruction-swap: each scene once per present object, instructing each in turn (instruct-0 is the layout's
+  own target, instruct-k its k-th distractor; layout, colours, robot start and physics identical). Instruction
+  sensitivity, scene accuracy, grounded accuracy, the normalised mutual information between instructed and
+  held object, and the instructed x held matrix. This tells "follows the instruction through a location"
+  (layout-prior: sensitive under small jitter, not under full random) from "ignores it" (nearest: never).
+- paraphrase: canonical, paraphrase-train and paraphrase-heldout wordings of the same scenes, and the
+  distractor-free control (the same with one object on the table: a drop there is the wording upsetting the
+  motion, not object selection).
+- appearance-swap: original and swap (the instructed object and a distractor exchange colours): does the
+  policy follow the named object's shape or its usual colour?
+
+Rerunning the same command resumes every variant; another request into DIR is refused unless --overwrite.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import pandas as pd
+import tyro
+
+from vla_ladder import files
+from vla_ladder.conditions import ConditionGrid
+from vla_ladder.evaluation import grounding
+from vla_ladder.evaluation.rundir import Run, load_run
+from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
+from vla_ladder.policies import POLICY_KINDS, Policy, parse_spec
+from vla_ladder.task.appearance import SWAPS, SWAPS_VERSION
+from vla_ladder.task.instructions import INSTRUCTION_SETS, paraphrase_version
+
+PROBES = ("instruction-swap", "paraphrase", "appearance-swap")
+PROBE_FILE = "probe.json"
+CONFIG_FILE = "probe_config.json"
+FORMAT_VERSION = 1
+NOT_THE_REQUEST = ("out", "workers", "overwrite", "report", "resamples")
+
+
+@dataclass
+class ProbeConfig:
+    """Probe instruction grounding on the same seeded scenes (`vla-ladder probe NAME --policy SPEC --out DIR`)."""
+
+    name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
+    """the probe: instruction-swap, paraphrase or appearance-swap"""
+    policy: str | None = None
+    """policy spec: scripted, ppo:PATH, lerobot:DIR, nearest, layout-prior, random (required on the command line)"""
+    out: Path | None = None
+    """probe directory: one run directory per variant, probe.json, the figure, report.html (required)"""
+    grid: Annotated[ConditionGrid, tyro.conf.arg(name="")] = field(
+        default_factory=lambda: ConditionGrid(("small_jitter", "full_random")))
+    """the conditions probed (by default the two ends of the ladder, canonical, five objects)"""
+    episodes: int = 50
+    """scenes per condition (scene j plays seed first_seed + j in every variant)"""
+    first_seed: int = 0
+    """scene j of every condition plays seed first_seed + j, the seeds `vla-ladder eval` uses"""
+    workers: int = 0
+    """worker processes on the CPU backend (0: one per core); any number gives the same episodes"""
+    num_envs: int = 1
+    """episodes simulated at once (more than one needs physx_cuda; appearance-swap needs 1)"""
+    sim_backend: str = "physx_cpu"
+    """physx_cpu or physx_cuda"""
+    object_set: str = "auto"
+    """ycb, standin, or auto (YCB when its meshes are on disk)"""
+    robot_mesh: str = "lite"
+    """lite or full robot visual meshes (physics is the same)"""
+    videos: int = 0
+    """film the first K scenes of each condition in every variant"""
+    resamples: int = grounding.RESAMPLES
+    """bootstrap resamples of scenes for the intervals without a closed form"""
+    report: bool = True
+    """write report.html (the variants' results and the probe's section)"""
+    overwrite: bool = False
+    """replace a probe directory that holds another request (the same request is always resumed)"""
+
+    def __post_init__(self):
+        if self.name not in PROBES:
+            raise ValueError(f"unknown probe {self.name!r}; allowed: {', '.join(PROBES)}")
+        self.out = None if self.out is None else Path(self.out)
+        if not isinstance(self.grid, ConditionGrid):
+            self.grid = ConditionGrid(**self.grid)
+        if self.policy is not None:
+            parse_spec(self.policy)
+        if self.resamples < 100:
+            raise ValueError(f"--resamples must be >= 100, got {self.resamples}")
+        counts = self.grid.num_objects
+        if self.name in ("instruction-swap", "appearance-swap") and min(counts) < 2:
+            raise ValueError(f"{self.name} needs at least two objects on the table; got --num-objects "
+                             f"{' '.join(map(str, counts))} (allowed: 2-5)")
+        if self.name == "appearance-swap" and self.num_envs != 1:
+            raise ValueError(f"appearance-swap paints each scene's objects and needs --num-envs 1, got {self.num_envs}")
+        self.variants()  # every evaluation is configured, and so checked, before a simulator starts
+
+    def variants(self) -> dict[str, EvalConfig]:
+        """Variant name -> the evaluation that plays it (its run directory is out/<name>)."""
+        g = self.grid
+        if self.name == "instruction-swap":
+            plays = {f"instruct-{r}": dict(grid=ConditionGrid(g.regimes, g.splits, tuple(k for k in g.num_objects
+                                                                                        if k > r)), instruct=r)
+                     for r in range(max(g.num_objects))}
+        elif self.name == "paraphrase":  # with the distractor-free control: one object on the table
+            control = ConditionGrid(g.regimes, g.splits, tuple(sorted({*g.num_objects, 1}, reverse=True)))
+            plays = {s: dict(grid=control, instructions=s) for s in INSTRUCTION_SETS}
+        else:
+            plays = {a: dict(grid=g, appearance=a) for a in ("original", "swap")}
+        return {name: EvalConfig(policy=self.policy, out=None if self.out is None else self.out / name,
+                                 episodes=self.episodes, first_seed=self.first_seed, workers=self.workers,
+                                 num_envs=self.num_envs, sim_backend=self.sim_backend, videos=self.videos,
+                                 object_set=self.object_set, robot_mesh=self.robot_mesh, overwrite=self.overwrite,
+                                 **kw) for name, kw in plays.items()}
+
+    def request(self) -> dict:
+        return {k: v for k, v in json.loads(json.dumps(asdict(self), default=files._default)).items()
+                if k not in NOT_THE_REQUEST}
+
+
+def open_probe_dir(cfg: ProbeConfig) -> None:
+    """Make cfg.out ready: resume the same request, refuse another unless --overwrite (then start afresh)."""
+    out, saved = cfg.out, cfg.out / CONFIG_FILE
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {str(out)!r} is a file; give a directory")
+    previous = ({k: v for k, v in json.loads(saved.read_text()).items() if k not in NOT_THE_REQUEST}
+                if saved.is_file() else None)
+    if out.is_dir() and any(out.iterdir()) and previous != cfg.request():
+        if not cfg.overwrite:
+            what = "another probe request" if previous else "files that are not a probe directory"
+            raise ValueError(f"{out} holds {what}; rerun the same command to resume it, pick a new --out, "
+                             "or pass --overwrite")
+        shutil.rmtree(out)
+    files.write_json(saved, asdict(cfg))
+
+
+def probe_results(cfg: ProbeConfig, runs: dict[str, Run]) -> dict:
+    """The probe's metrics per condition from its finished variant runs."""
+    if cfg.name == "instruction-swap":
+        plays = pd.concat([r.episodes.assign(instruct=int(name.rsplit("-", 1)[1])) for name, r in runs.items()],
+                          ignore_index=True)
+        return grounding.instruction_swap(plays, cfg.resamples)
+    if cfg.name == "appearance-swap":
+        return grounding.appearance_swap(runs["original"].episodes, runs["swap"].episodes, cfg.resamples)
+    return grounding.paraphrase({name: r.episodes for name, r in runs.items()}, cfg.resamples)
+
+
+def run_probe(cfg: ProbeConfig, policy: Policy | None = None, progress: bool = True) -> dict:
+    """Play every variant (resuming), then write probe.json, the figure and (cfg.report) report.html."""
+    from vla_ladder.report import probes as probe_report
+
+    if cfg.out is None:
+        raise ValueError("--out DIR is required: the probe directory to write")
+    if policy is None and not cfg.policy:
+        raise ValueError("--policy SPEC is required; allowed: " + ", ".join(POLICY_KINDS))
+    open_probe_dir(cfg)
+    runs: dict[str, Run] = {}
+    for name, ec in cfg.variants().items():
+        print(f"[probe {cfg.name}] {name}: {', '.join(c.key for c in ec.conditions)}, {ec.episodes} scenes -> {ec.out}")
+        run_evaluation(ec, policy=policy, progress=progress)
+        runs[name] = load_run(ec.out)
+    first = next(iter(runs.values()))
+    data = {
+        "probe": cfg.name, "format": FORMAT_VERSION, "policy": {"spec": cfg.policy or policy.name,
+                                                                **first.summary.get("policy", {})},
+        "complete": all(r.summary.get("complete", False) for r in runs.values()),
+        "variants": {name: str(r.path.relative_to(cfg.out)) for name, r in runs.items()},
+        "config": asdict(cfg), "provenance": {**first.summary.get("provenance", {}),
+                                              "paraphrases_version": paraphrase_version(),
+                                              "swaps_version": SWAPS_VERSION, "swaps": [list(p) for p in SWAPS]},
+        "conditions": probe_results(cfg, runs),
+    }
+    files.write_json(cfg.out / PROBE_FILE, data)
+    probe_report.plot_probe(data, cfg.out / f"{cfg.name}.png")
+    if cfg.report:
+        from vla_ladder.report.html import build_report
+        spec = data["policy"]["spec"]
+        build_report(list(runs.values()), cfg.out / "report.html", title=f"vla-ladder probe {cfg.name}: {spec}",
+                     labels=[f"{spec} [{name}]" for name in runs], placements=False)
+    return data
+
+
+def run(cfg: ProbeConfig) -> int:
+    from vla_ladder.report.probes import summary_lines
+
+    data = run_probe(cfg)
+    for line in summary_lines(data):
+        print(line)
+    print((cfg.out / ("report.html" if cfg.report else PROBE_FILE)).resolve())
+    return 0

@@ -1,0 +1,224 @@
+"""The grounding probes (`vla-ladder probe`) in the report: one table and one figure per probe, from probe.json.
+
+A probe directory holds probe.json (experiments/probes.py) and its variants' run directories; the report finds
+a probe next to any run it is given (a run directory whose parent holds probe.json) or is handed the probe
+directories directly. Every value is shown with its 95% interval: Wilson for proportions over scenes, a
+bootstrap over scenes where plays of one scene are pooled (grounded accuracy, mutual information).
+"""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+import numpy as np
+
+from vla_ladder.report.plots import _plt, _save, plot_confusion
+
+PROBE_FILE = "probe.json"
+SWAP_METRICS = {"instruction_sensitivity": "instruction sensitivity", "scene_accuracy": "scene accuracy",
+                "grounded_accuracy": "grounded accuracy", "nmi": "NMI", "success": "success"}
+COLOUR_OUTCOMES = ("instructed", "partner", "other", "none")
+COLOUR_NAMES = {"instructed": "instructed object (shape)", "partner": "colour partner (colour)",
+                "other": "another object", "none": "nothing"}
+WORDINGS = ("canonical", "paraphrase-train", "paraphrase-heldout")
+EXPLAIN = {
+    "instruction-swap": "Each scene is played once per present object, instructing each in turn; only the "
+    "instruction changes. <b>Instruction sensitivity</b>: share of scenes whose held object is not the same under "
+    "all instructions. <b>Scene accuracy</b>: share of scenes where the instructed object is held under every "
+    "instruction. <b>Grounded accuracy</b>: P(held = instructed | something held). <b>NMI</b>: I(instructed; "
+    "held) / H(instructed), 0 when the held object does not depend on the instruction, 1 when it determines "
+    "it. A location shortcut is sensitive where objects sit in their usual regions and not elsewhere; a policy "
+    "that ignores the instruction is never sensitive.",
+    "paraphrase": "The same scenes with the canonical wording, training paraphrases and held-out paraphrases "
+    "(task/paraphrases.json); one-object conditions are the distractor-free control: a drop there is the wording "
+    "upsetting the motion, not object selection. Δ is the paired difference to the canonical wording (bootstrap "
+    "over scenes) with McNemar's exact p.",
+    "appearance-swap": "The same scenes with the instructed object and one distractor exchanging colours "
+    "(task/appearance.py). Shares of what is held, without the swap → with it: the instructed object (follows "
+    "shape and words) or its colour partner, which now wears the instructed object's usual colour (follows "
+    "colour). Scenes whose instructed object has no swap partner are left out.",
+}
+
+
+def load_probe(path: str | Path) -> dict:
+    """probe.json of a probe directory; ValueError when it is not one."""
+    path = Path(path)
+    file = path / PROBE_FILE
+    if not file.is_file():
+        raise ValueError(f"{path} is not a probe directory: no {PROBE_FILE} (written by `vla-ladder probe`)")
+    return json.loads(file.read_text())
+
+
+def probe_dirs(run_paths) -> list[Path]:
+    """The probes that runs belong to: the parents of run directories that hold probe.json, in run order."""
+    return list(dict.fromkeys(Path(p).resolve().parent for p in run_paths
+                              if (Path(p).resolve().parent / PROBE_FILE).is_file()))
+
+
+def _pct(x) -> str:
+    return "–" if x is None or x != x else f"{100 * x:.0f}"
+
+
+def _cell(entry: dict, scale: str = "pct") -> str:
+    """"value [lo, hi]" of a {value, ci95} entry, in % or (scale="unit") with two decimals."""
+    fmt = _pct if scale == "pct" else (lambda x: "–" if x != x else f"{x:.2f}")
+    lo, hi = entry["ci95"]
+    return f"{fmt(entry['value'])}<span class=ci> [{fmt(lo)}, {fmt(hi)}]</span>"
+
+
+def _rate(cond: dict, metric: str) -> str:
+    return _cell({"value": cond[metric], "ci95": cond["ci95"][metric]})
+
+
+def _delta(entry: dict) -> str:
+    lo, hi = entry["ci95"]
+    sign = lambda x: "–" if x != x else f"{100 * x:+.0f}"  # noqa: E731
+    return f"{sign(entry['value'])}<span class=ci> [{sign(lo)}, {sign(hi)}], p={entry['mcnemar_p']:.2g}</span>"
+
+
+def _table(head: list[str], rows: list[list[str]]) -> str:
+    return ("<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>"
+            + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows) + "</table>")
+
+
+def table_html(data: dict) -> str:
+    """The probe's table: one row per condition (and wording for the paraphrase probe)."""
+    conds, name = data["conditions"], data["probe"]
+    if name == "instruction-swap":
+        head = ["condition", "scenes", *SWAP_METRICS.values()]
+        rows = [[html.escape(k), str(c["scenes"])] + [_cell(c[m], "unit" if m == "nmi" else "pct")
+                                                      for m in SWAP_METRICS] for k, c in conds.items()]
+    elif name == "paraphrase":
+        head = ["condition", "wording", "n", "success", "grasp-any", "reach", "wrong object", "Δ success vs canonical",
+                "success by novelty"]
+        rows = []
+        for key, variants in conds.items():
+            for wording in [w for w in WORDINGS if w in variants]:
+                c = variants[wording]
+                novelty = ", ".join(f"{k} {_pct(v['value'])} (n={v['n']})" for k, v in c.get("by_novelty", {}).items())
+                rows.append([html.escape(key), wording, str(c["n"]), _rate(c, "success"), _rate(c, "grasp_any"),
+                             _rate(c, "reach"), _cell(c["wrong_object"]),
+                             _delta(c["vs_canonical"]["success"]) if "vs_canonical" in c else "", novelty])
+    else:
+        head = ["condition", "swapped scenes", *(f"{COLOUR_NAMES[o]}: no swap → swap" for o in COLOUR_OUTCOMES),
+                "Δ follows shape"]
+        rows = [[html.escape(k), f"{c['swapped']} of {c['scenes']}"]
+                + [f"{_cell(c['original'][o])} → {_cell(c['swap'][o])}" for o in COLOUR_OUTCOMES]
+                + [_delta(c["shape_change"])] for k, c in conds.items()]
+    unit = " (NMI on [0, 1])" if name == "instruction-swap" else ""
+    return _table(head, rows) + f"<p class=note>In %, 95% intervals in brackets{unit}.</p>"
+
+
+def matrices_html(data: dict) -> str:
+    """The pooled instructed x held matrices (instruction swap) or transition tables (appearance swap)."""
+    key = {"instruction-swap": "matrix", "appearance-swap": "transitions"}.get(data["probe"])
+    if key is None:
+        return ""
+    parts = []
+    for cond, c in data["conditions"].items():
+        m = c[key]
+        rows = [[f"<b>{html.escape(r)}</b>", *map(str, counts)] for r, counts in zip(m["rows"], m["counts"])]
+        corner = "instructed \\ held" if key == "matrix" else "no swap \\ swap"
+        parts.append(f"<p>{html.escape(cond)}</p>" + _table([corner, *map(html.escape, m["columns"])], rows))
+    return "<details><summary>Counts</summary>" + "".join(parts) + "</details>"
+
+
+def section(data: dict, figures: list[str], where: str) -> str:
+    """The HTML of one probe: heading, what it measures, its table, figures (already <img> tags), counts."""
+    spec = data["policy"].get("spec", "?")
+    done = "" if data.get("complete", True) else " <b>(incomplete: rerun the probe command to finish it)</b>"
+    return (f"<h3>{html.escape(data['probe'])}: {html.escape(spec)} <span class=ci>{html.escape(where)}</span></h3>"
+            f"<p class=note>{EXPLAIN[data['probe']]}{done}</p>" + table_html(data) + "".join(figures)
+            + matrices_html(data))
+
+
+# ---------------------------------------------------------------------- figures
+def plot_probe(data: dict, path: str | Path) -> list[Path]:
+    """The probe's figure at `path` (and, for the instruction swap, its matrices next to it)."""
+    path = Path(path)
+    draw = {"instruction-swap": _plot_swap, "paraphrase": _plot_paraphrase, "appearance-swap": _plot_appearance}
+    out = [draw[data["probe"]](data, path)]
+    if data["probe"] == "instruction-swap":
+        panels = {k: {"confusion": c["matrix"]} for k, c in data["conditions"].items()}
+        out.append(plot_confusion(panels, path.with_name(path.stem + "_matrix.png")))
+    return out
+
+
+def _bars(ax, groups: list[str], series: dict[str, list[dict]], ylabel: str) -> None:
+    """Grouped bars with interval whiskers: series name -> one {value, ci95} per group (in [0, 1])."""
+    width = 0.8 / max(len(series), 1)
+    for j, (label, entries) in enumerate(series.items()):
+        v = np.array([e["value"] for e in entries], dtype=float) * 100
+        ci = np.array([e["ci95"] for e in entries], dtype=float).reshape(-1, 2) * 100
+        err = np.nan_to_num(np.abs(np.stack([v - ci[:, 0], ci[:, 1] - v])))
+        # (yerr as nested lists: matplotlib 3.10 warns on a (2, 1) array)
+        ax.bar(np.arange(len(groups)) + (j - (len(series) - 1) / 2) * width, np.nan_to_num(v), width,
+               yerr=err.tolist(), capsize=3, label=label, alpha=0.85)
+    ax.set_xticks(range(len(groups)), [g.replace("/", "\n", 1) for g in groups], fontsize=7)
+    ax.set_ylim(0, 105)
+    ax.set_ylabel(ylabel)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=7)
+
+
+def _plot_swap(data: dict, path: Path) -> Path:
+    plt = _plt()
+    conds = data["conditions"]
+    fig, ax = plt.subplots(figsize=(max(5.0, 2.2 * len(conds)), 3.6))
+    _bars(ax, list(conds), {label: [c[m] for c in conds.values()] for m, label in SWAP_METRICS.items()},
+          "% (NMI × 100), 95% interval")
+    ax.set_title(f"Instruction swap: {data['policy'].get('spec', '')}")
+    return _save(fig, path)
+
+
+def _plot_paraphrase(data: dict, path: Path) -> Path:
+    plt = _plt()
+    conds = data["conditions"]
+    series = {w: [{"value": c[w]["success"], "ci95": c[w]["ci95"]["success"]} if w in c else
+                  {"value": np.nan, "ci95": [np.nan, np.nan]} for c in conds.values()] for w in WORDINGS}
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.8 * len(conds)), 3.6))
+    _bars(ax, list(conds), series, "success (%), 95% Wilson interval")
+    ax.set_title(f"Paraphrases: {data['policy'].get('spec', '')}")
+    return _save(fig, path)
+
+
+def _plot_appearance(data: dict, path: Path) -> Path:
+    plt = _plt()
+    conds = data["conditions"]
+    fig, ax = plt.subplots(figsize=(6.5, max(2.4, 0.9 * len(conds) + 1.2)))
+    labels, rows = [], []
+    for key, c in conds.items():
+        for variant, text in (("original", "no swap"), ("swap", "swap")):
+            labels.append(f"{key}  {text}")
+            rows.append([c[variant][o]["value"] for o in COLOUR_OUTCOMES])
+    shares = np.nan_to_num(np.array(rows, dtype=float).reshape(-1, len(COLOUR_OUTCOMES))) * 100
+    left = np.zeros(len(labels))
+    colours = ("tab:green", "tab:orange", "tab:gray", "lightgray")
+    for j, o in enumerate(COLOUR_OUTCOMES):
+        ax.barh(range(len(labels)), shares[:, j], left=left, color=colours[j], label=COLOUR_NAMES[o])
+        left += shares[:, j]
+    ax.set_yticks(range(len(labels)), labels, fontsize=7)
+    ax.invert_yaxis()
+    ax.set_xlim(0, 100)
+    ax.set_xlabel("share of swapped scenes (%): what is held at the end")
+    ax.legend(fontsize=7, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2)
+    return _save(fig, path)
+
+
+def summary_lines(data: dict) -> list[str]:
+    """One line per condition for the terminal."""
+    lines, name = [], data["probe"]
+    for key, c in data["conditions"].items():
+        if name == "instruction-swap":
+            lines.append(f"{key}: scenes={c['scenes']} sensitivity={c['instruction_sensitivity']['value']:.2f} "
+                         f"grounded_accuracy={c['grounded_accuracy']['value']:.2f} nmi={c['nmi']['value']:.2f} "
+                         f"success={c['success']['value']:.2f}")
+        elif name == "paraphrase":
+            lines.append(f"{key}: success " + ", ".join(f"{w} {c[w]['success']:.2f}" for w in WORDINGS if w in c))
+        else:
+            lines.append(f"{key}: swapped={c['swapped']} follows_shape={c['follows_shape']['value']:.2f} "
+                         f"(no swap {c['original']['instructed']['value']:.2f}) "
+                         f"follows_colour={c['follows_colour']['value']:.2f}")
+    return lines

@@ -1,0 +1,308 @@
+"""`vla-ladder check-dataset DIR`: what no LeRobot validator checks and this project's claims rest on.
+
+A pairings experiment means something only if its training data never showed a held-out object-region pair; a
+ladder rung only if its data hold the layouts their seeds say. Before training on a recorded dataset, this
+command checks, from LeRobot's files and the provenance the recorder writes (vla_ladder.recordings):
+
+- structure: LeRobot v3 features of the contract, one provenance row per episode;
+- seeds: no seed recorded twice (a duplicate is a replayed scene counted twice);
+- layouts: every episode's seed regenerates its recorded layout (objects, positions, yaw, regions, target,
+  wording) in the recording's condition, and LeRobot's task is its instruction;
+- frames: every episode has contract.EPISODE_STEPS frames, numbered 0..T-1, as many as its provenance says;
+- actions: finite and inside the normalised action box [-1, 1]; states finite;
+- balance: every object instructed about equally often (chi-square against uniform, when at least five
+  episodes per object are expected);
+- coverage: every object-region pair the recording's condition produces (expected >= --min-expected times)
+  occurs at least once;
+- leakage: a canonical or pairings_id dataset holds no held-out object-region pair (layouts.HELD_OUT_REGIONS),
+  for any object on the table, instructed or not.
+
+Every violation is one line on stderr and the exit status is 1; the JSON summary (counts, tables, p-value,
+violations) goes to --out or stdout.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections import Counter
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import pandas as pd
+import tyro
+
+from vla_ladder import files
+from vla_ladder.conditions import Condition
+from vla_ladder.contract import ACTION_KEY, EPISODE_STEPS, STATE_KEY
+from vla_ladder.recordings import read_provenance, read_recording
+from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, layout_from_dict
+from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
+from vla_ladder.training.dataset import check_features, read_info
+
+ACTION_TOLERANCE = 1e-5
+COVERAGE_SEEDS = 2000
+"""layouts sampled to estimate how often the recording's condition puts each object in each region"""
+
+
+@dataclass
+class CheckDatasetConfig:
+    """Check a recorded dataset: balance, coverage, leakage, seeds, layouts, frames, actions (exit 1 on a violation)."""
+
+    dataset: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DIR")]
+    """dataset directory written by `vla-ladder record`"""
+    out: Path | None = None
+    """write the JSON summary here (default: print it)"""
+    balance_alpha: float = 0.001
+    """a chi-square p-value below this flags unbalanced instructions"""
+    min_expected: float = 5.0
+    """flag an object-region pair never recorded when the condition makes it expected at least this often"""
+
+    def __post_init__(self):
+        self.dataset = Path(self.dataset)
+        if not 0 < self.balance_alpha < 1:
+            raise ValueError(f"--balance-alpha must be in (0, 1), got {self.balance_alpha}")
+        if self.min_expected <= 0:
+            raise ValueError(f"--min-expected must be > 0, got {self.min_expected}")
+
+
+def region_of(xy, regions: dict | None, name: str) -> int:
+    """The region an object sits in: its recorded region, or (full random) the nearest region centre."""
+    if regions is not None:
+        return int(regions[name])
+    return int(np.argmin(np.linalg.norm(REGION_CENTERS - np.asarray(xy), axis=1)))
+
+
+def occupancy(layout: dict) -> list[tuple[str, int]]:
+    """(object, region) of every object on the table of a recorded layout."""
+    return [(name, region_of(xy, layout.get("regions"), name)) for name, xy in layout["positions"].items()]
+
+
+@lru_cache(maxsize=None)
+def pair_probabilities(condition: Condition) -> np.ndarray:
+    """(objects, regions) expected occupancy per episode under `condition`, from COVERAGE_SEEDS sampled layouts."""
+    from vla_ladder.task.layouts import sample_layout
+
+    counts = np.zeros((NUM_OBJECTS, len(REGION_CENTERS)))
+    for seed in range(COVERAGE_SEEDS):
+        for name, region in occupancy(sample_layout(condition, seed).to_dict()):
+            counts[OBJECT_NAMES.index(name), region] += 1
+    return counts / COVERAGE_SEEDS
+
+
+class Checker:
+    """Runs every check on one dataset, collecting violations ("check: message") and the summary."""
+
+    def __init__(self, cfg: CheckDatasetConfig):
+        self.cfg, self.root = cfg, cfg.dataset
+        self.info = read_info(self.root)
+        self.recording = read_recording(self.root)
+        if self.recording is None:
+            raise ValueError(f"{self.root} is not a vla-ladder recording (no meta/vla_ladder_recording.json); "
+                             "check-dataset checks datasets written by `vla-ladder record`")
+        self.prov = read_provenance(self.root)
+        self.layouts = [json.loads(s) for s in self.prov["layout"]] if len(self.prov) else []
+        self.violations: list[str] = []
+        self.summary: dict = {}
+
+    def flag(self, check: str, message: str) -> None:
+        self.violations.append(f"{check}: {message}")
+
+    def run(self) -> dict:
+        for check in (self.structure, self.seeds, self.layouts_regenerate, self.frames, self.actions, self.balance,
+                      self.coverage, self.leakage):
+            check()
+        return {"dataset": str(self.root), "recording": self.recording.to_dict(), "episodes": int(len(self.prov)),
+                "frames": int(self.info.get("total_frames", 0)), "ok": not self.violations,
+                "violations": self.violations, "checks": self.summary}
+
+    # ------------------------------------------------------------------ checks
+    def structure(self) -> None:
+        try:
+            check_features(self.info, self.root)
+        except ValueError as e:
+            self.flag("structure", str(e))
+        total = int(self.info.get("total_episodes", 0))
+        indices = self.prov["episode_index"].tolist() if len(self.prov) else []
+        if indices != list(range(total)):
+            self.flag("structure", f"provenance covers episodes {_ranges(indices)} but info.json has {total} "
+                                   f"(0-{total - 1})")
+        self.summary["structure"] = {"total_episodes": total, "provenance_rows": len(indices)}
+
+    def seeds(self) -> None:
+        counts = Counter(int(s) for s in self.prov.get("seed", []))
+        for seed, n in sorted(counts.items()):
+            if n > 1:
+                episodes = self.prov.loc[self.prov["seed"] == seed, "episode_index"].tolist()
+                self.flag("seeds", f"seed {seed} recorded {n} times (episodes {', '.join(map(str, episodes))})")
+        self.summary["seeds"] = {"distinct": len(counts), "duplicated": sum(n > 1 for n in counts.values())}
+
+    def layouts_regenerate(self) -> None:
+        condition = self.recording.condition
+        tasks = self._episode_tasks()
+        bad = 0
+        for (_, row), layout in zip(self.prov.iterrows(), self.layouts):
+            ep = f"episode {row['episode_index']} (seed {row['seed']})"
+            recorded_condition = Condition(layout["regime"], layout["split"], len(layout["positions"]))
+            problems = []
+            if recorded_condition != condition:
+                problems.append(f"layout of {recorded_condition}, the recording is of {condition}")
+            elif int(layout["seed"]) != int(row["seed"]):
+                problems.append(f"its layout is of seed {layout['seed']}")
+            else:
+                try:
+                    again = layout_from_dict(layout).to_dict()
+                    problems += [f"{k} {layout.get(k)!r} but the seed gives {again.get(k)!r}"
+                                 for k in sorted(set(again) | set(layout)) if not _same(layout.get(k), again.get(k))]
+                except (ValueError, KeyError) as e:
+                    problems.append(f"cannot regenerate its layout: {e}")
+            if row["target"] != layout["target"] or row["instruction"] != layout["instruction"]:
+                problems.append(f"provenance target/instruction {row['target']!r}/{row['instruction']!r} differ "
+                                f"from its layout's {layout['target']!r}/{layout['instruction']!r}")
+            task = tasks.get(int(row["episode_index"]))
+            if task is not None and task != [layout["instruction"]]:
+                problems.append(f"LeRobot task {task} is not the instruction {layout['instruction']!r}")
+            if problems:
+                bad += 1
+                self.flag("layouts", f"{ep}: " + "; ".join(problems))
+        self.summary["layouts"] = {"checked": len(self.layouts), "mismatched": bad}
+
+    def frames(self) -> None:
+        data = self._data([])
+        lengths = self._episodes_meta().set_index("episode_index")["length"].to_dict()
+        recorded = dict(zip(self.prov["episode_index"], self.prov["num_frames"])) if len(self.prov) else {}
+        for ep, g in data.groupby("episode_index"):
+            idx = g["frame_index"].to_numpy()
+            problems = []
+            if len(g) != EPISODE_STEPS:
+                problems.append(f"{len(g)} frames, the contract has {EPISODE_STEPS}")
+            if not np.array_equal(np.sort(idx), np.arange(len(g))):
+                problems.append("frame_index is not 0..T-1")
+            if lengths.get(ep) != len(g) or (ep in recorded and recorded[ep] != len(g)):
+                problems.append(f"episode metadata says {lengths.get(ep)} frames, provenance {recorded.get(ep)}, "
+                                f"data holds {len(g)}")
+            if problems:
+                self.flag("frames", f"episode {ep}: " + "; ".join(problems))
+        missing = sorted(set(lengths) - set(data["episode_index"]))
+        if missing:
+            self.flag("frames", f"episodes {_ranges(missing)} have no frames in data/")
+        per_episode = sorted({int(n) for n in data.groupby("episode_index").size()})
+        self.summary["frames"] = {"total": int(len(data)), "per_episode": per_episode}
+
+    def actions(self) -> None:
+        data = self._data([ACTION_KEY, STATE_KEY])
+        action = np.stack(data[ACTION_KEY].to_numpy()) if len(data) else np.zeros((0, 7))
+        state = np.stack(data[STATE_KEY].to_numpy()) if len(data) else np.zeros((0, 15))
+        outside = ~np.isfinite(action) | (np.abs(action) > 1 + ACTION_TOLERANCE)
+        for ep, g in data[outside.any(axis=1)].groupby("episode_index"):
+            a = np.stack(g[ACTION_KEY].to_numpy())
+            self.flag("actions", f"episode {ep}: {len(g)} frames with actions outside [-1, 1] or not finite "
+                                 f"(from frame {int(g['frame_index'].min())}; extremes {np.nanmin(a):.3g}, "
+                                 f"{np.nanmax(a):.3g})")
+        for ep, g in data[~np.isfinite(state).all(axis=1)].groupby("episode_index"):
+            self.flag("actions", f"episode {ep}: {len(g)} frames with a non-finite state")
+        self.summary["actions"] = {"min": action.min(axis=0).tolist() if len(action) else [],
+                                   "max": action.max(axis=0).tolist() if len(action) else []}
+
+    def balance(self) -> None:
+        from scipy.stats import chisquare
+
+        counts = Counter(self.prov.get("target", []))
+        observed = np.array([counts.get(o, 0) for o in OBJECT_NAMES])
+        n = int(observed.sum())
+        out: dict = {"counts": dict(zip(OBJECT_NAMES, observed.tolist())), "p_value": None}
+        if n >= 5 * NUM_OBJECTS:
+            p = float(chisquare(observed).pvalue)
+            out["p_value"] = p
+            if p < self.cfg.balance_alpha:
+                self.flag("balance", f"instructions per object {out['counts']} are not uniform (chi-square p={p:.2g} "
+                                     f"< {self.cfg.balance_alpha}); n={n}")
+        else:
+            out["note"] = f"{n} episodes: too few to test balance (needs {5 * NUM_OBJECTS})"
+        self.summary["balance"] = out
+
+    def coverage(self) -> None:
+        counts = np.zeros((NUM_OBJECTS, len(REGION_CENTERS)), dtype=int)
+        for layout in self.layouts:
+            for name, region in occupancy(layout):
+                counts[OBJECT_NAMES.index(name), region] += 1
+        expected = pair_probabilities(self.recording.condition) * len(self.layouts)
+        for o, r in zip(*np.nonzero((counts == 0) & (expected >= self.cfg.min_expected))):
+            self.flag("coverage", f"{OBJECT_NAMES[o]} never in region {r} although {self.recording.condition} puts it "
+                                  f"there {expected[o, r]:.1f} times in {len(self.layouts)} episodes on average")
+        self.summary["coverage"] = {"rows": list(OBJECT_NAMES), "columns": list(range(len(REGION_CENTERS))),
+                                    "counts": counts.tolist(), "expected": np.round(expected, 2).tolist()}
+
+    def leakage(self) -> None:
+        split = self.recording.condition.split
+        if split == "pairings_ood" or self.recording.condition.regime == "full_random":
+            self.summary["leakage"] = {"checked": False, "note": f"{split} data hold held-out pairs by design"
+                                       if split == "pairings_ood" else "full random has no regions"}
+            return
+        leaks = 0
+        for row, layout in zip(self.prov.itertuples(index=False), self.layouts):
+            held_out = [f"{name} in region {r}" for name, r in occupancy(layout)
+                        if r in HELD_OUT_REGIONS[OBJECT_NAMES.index(name)]]
+            if held_out:
+                leaks += 1
+                self.flag("leakage", f"episode {row.episode_index} (seed {row.seed}) holds held-out pairs: "
+                                     + ", ".join(held_out))
+        self.summary["leakage"] = {"checked": True, "episodes_with_held_out_pairs": leaks,
+                                   "held_out": {o: sorted(HELD_OUT_REGIONS[i]) for i, o in enumerate(OBJECT_NAMES)}}
+
+    # ------------------------------------------------------------------ LeRobot files
+    def _episodes_meta(self) -> pd.DataFrame:
+        paths = sorted((self.root / "meta" / "episodes").glob("*/*.parquet"))
+        if not paths:
+            return pd.DataFrame(columns=["episode_index", "length", "tasks"])
+        return pd.concat([pd.read_parquet(p, columns=["episode_index", "length", "tasks"]) for p in paths],
+                         ignore_index=True)
+
+    def _episode_tasks(self) -> dict[int, list[str]]:
+        meta = self._episodes_meta()
+        return {int(e): list(t) for e, t in zip(meta["episode_index"], meta["tasks"])}
+
+    def _data(self, keys: list[str]) -> pd.DataFrame:
+        paths = sorted((self.root / "data").glob("*/*.parquet"))
+        cols = ["episode_index", "frame_index", *keys]
+        if not paths:
+            return pd.DataFrame(columns=cols)
+        return pd.concat([pd.read_parquet(p, columns=cols) for p in paths], ignore_index=True)
+
+
+def _same(a, b) -> bool:
+    """Equal, with floats compared to the 1e-5 m / rad the layout dict is rounded to."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) or isinstance(b, float):
+        return isinstance(a, (int, float)) and isinstance(b, (int, float)) and abs(a - b) <= 2e-5
+    return a == b
+
+
+def _ranges(values) -> str:
+    values = sorted(int(v) for v in values)
+    return f"{values[0]}-{values[-1]} ({len(values)})" if values else "none"
+
+
+def check_dataset(cfg: CheckDatasetConfig) -> dict:
+    """The summary of every check (`ok`, `violations`, per-check tables); ValueError if DIR is not a dataset."""
+    return Checker(cfg).run()
+
+
+def run(cfg: CheckDatasetConfig) -> int:
+    summary = check_dataset(cfg)
+    for line in summary["violations"]:
+        print(f"check-dataset: {line}", file=sys.stderr)
+    if cfg.out is not None:
+        files.write_json(cfg.out, summary)
+        print(f"wrote {cfg.out}")
+    else:
+        print(json.dumps(summary, indent=2, default=files._default))
+    state = "ok" if summary["ok"] else f"{len(summary['violations'])} violation(s)"
+    print(f"{cfg.dataset}: {summary['episodes']} episodes, {summary['frames']} frames: {state}", file=sys.stderr)
+    return 0 if summary["ok"] else 1

@@ -1,0 +1,124 @@
+"""`vla-ladder check-dataset` on a dataset recorded by `vla-ladder record`, and on copies broken on purpose."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from vla_ladder.cli import main
+from vla_ladder.conditions import Condition
+from vla_ladder.recordings import PROVENANCE_DIR
+from vla_ladder.task.layouts import HELD_OUT_REGIONS, sample_layout
+from vla_ladder.task.objects import OBJECT_NAMES
+from vla_ladder.training.check_dataset import CheckDatasetConfig, Checker, occupancy, pair_probabilities
+
+
+def test_pair_probabilities_follow_the_split():
+    canonical = pair_probabilities(Condition("small_jitter", num_objects=5))
+    assert np.allclose(canonical, np.eye(5))  # object i always in region i
+    pid = pair_probabilities(Condition("small_jitter", "pairings_id", 3))
+    for i in range(5):
+        assert all(pid[i, r] == 0 for r in HELD_OUT_REGIONS[i]) and pid[i].sum() == pytest.approx(3 / 5, abs=0.05)
+    lay = sample_layout(Condition("full_random", num_objects=2), 0).to_dict()
+    assert [name for name, _ in occupancy(lay)] == list(lay["positions"])
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory) -> Path:
+    """Three successful scripted episodes of small_jitter/pairings_id/2, recorded by the real pipeline."""
+    root = tmp_path_factory.mktemp("data") / "pid"
+    argv = ["record", "--out", str(root), "--episodes", "3", "--regime", "small_jitter", "--split", "pairings_id",
+            "--num-objects", "2"]
+    for _ in range(3):  # an overloaded machine can drop the server connection; rerunning resumes
+        rc = main(argv)
+        if rc != 1:
+            break
+    assert rc == 0
+    return root
+
+
+def check(root: Path, tmp_path: Path, capsys, *flags) -> tuple[int, dict, list[str]]:
+    out = tmp_path / f"{root.name}.json"
+    rc = main(["check-dataset", str(root), "--out", str(out), *flags])
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("check-dataset: ")]
+    return rc, json.loads(out.read_text()), [line.removeprefix("check-dataset: ") for line in lines]
+
+
+@pytest.mark.slow
+def test_a_recorded_dataset_passes(recorded, tmp_path, capsys):
+    rc, summary, lines = check(recorded, tmp_path, capsys)
+    assert rc == 0 and summary["ok"] and lines == [] and summary["violations"] == []
+    assert summary["episodes"] == 3 and summary["frames"] == 150
+    checks = summary["checks"]
+    assert checks["frames"]["per_episode"] == [50] and checks["layouts"] == {"checked": 3, "mismatched": 0}
+    assert np.array(checks["coverage"]["counts"]).sum() == 6  # two objects in each of three episodes
+    assert checks["leakage"]["checked"] and checks["leakage"]["episodes_with_held_out_pairs"] == 0
+    assert sum(checks["balance"]["counts"].values()) == 3 and checks["balance"]["p_value"] is None
+    assert all(-1 <= v <= 1 for v in checks["actions"]["min"] + checks["actions"]["max"])
+
+
+def _provenance(root: Path) -> tuple[Path, pd.DataFrame]:
+    path = sorted((root / PROVENANCE_DIR).glob("*.parquet"))[0]
+    return path, pd.read_parquet(path)
+
+
+@pytest.mark.slow
+def test_a_leaky_dataset_built_on_purpose_is_caught(recorded, tmp_path, capsys):
+    leaky = tmp_path / "leaky"
+    shutil.copytree(recorded, leaky)
+    path, prov = _provenance(leaky)
+    # Episode 1 gets the layout its seed has on *held-out* pairings, relabelled as training data: the kind of
+    # mix-up (two recordings merged, a wrong --split) that makes an OOD result meaningless.
+    seed = int(prov.loc[1, "seed"])
+    ood = sample_layout(Condition("small_jitter", "pairings_ood", 2), seed).to_dict()
+    ood["split"] = "pairings_id"
+    prov.loc[1, ["layout", "target", "instruction"]] = [json.dumps(ood), ood["target"], ood["instruction"]]
+    prov.loc[2, "seed"] = prov.loc[0, "seed"]  # a seed recorded twice
+    prov.to_parquet(path, index=False)
+    data_path = sorted((leaky / "data").glob("*/*.parquet"))[0]
+    data = pd.read_parquet(data_path)
+    action = data.at[7, "action"].copy()
+    action[2] = 1.5  # outside the normalised action box
+    data.at[7, "action"] = action
+    data = data.drop(index=data.index[(data["episode_index"] == 2) & (data["frame_index"] == 49)])
+    data.to_parquet(data_path, index=False)
+
+    rc, summary, lines = check(leaky, tmp_path, capsys)
+    assert rc == 1 and not summary["ok"] and lines == summary["violations"]
+    held_out = [f"{n} in region {r}" for n, r in occupancy(ood) if r in HELD_OUT_REGIONS[OBJECT_NAMES.index(n)]]
+    assert held_out and f"leakage: episode 1 (seed {seed}) holds held-out pairs: {', '.join(held_out)}" in lines
+    assert any(line.startswith("layouts: episode 1 ") and "but the seed gives" in line for line in lines)
+    assert any(line.startswith(f"seeds: seed {int(prov.loc[0, 'seed'])} recorded 2 times (episodes 0, 2)")
+               for line in lines)
+    assert any(line.startswith("actions: episode 0: 1 frames with actions outside [-1, 1]") for line in lines)
+    assert any(line.startswith("frames: episode 2: 49 frames, the contract has 50") for line in lines)
+    assert summary["checks"]["leakage"]["episodes_with_held_out_pairs"] == 1
+
+
+@pytest.mark.slow
+def test_balance_and_coverage_flag_what_a_condition_should_produce(recorded, tmp_path):
+    checker = Checker(CheckDatasetConfig(recorded, min_expected=0.1))
+    checker.coverage()
+    # Three episodes cannot show every pair pairings_id/2 produces; with a low enough bar the gaps are reported.
+    assert checker.violations and all(v.startswith("coverage: ") and "never in region" in v
+                                      for v in checker.violations)
+    checker = Checker(CheckDatasetConfig(recorded))
+    checker.prov = pd.DataFrame({"target": ["apple"] * 20 + ["mug"] * 5})
+    checker.balance()
+    assert len(checker.violations) == 1 and checker.violations[0].startswith(
+        "balance: instructions per object {'apple': 20, 'orange': 0, 'rubiks_cube': 0, 'mug': 5")
+
+
+def test_bad_input_is_one_line(tmp_path, capsys):
+    assert main(["check-dataset", str(tmp_path / "nope")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    (tmp_path / "ds" / "meta").mkdir(parents=True)
+    (tmp_path / "ds" / "meta" / "info.json").write_text(json.dumps({"codebase_version": "v3.0", "features": {}}))
+    assert main(["check-dataset", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err
+    assert "is not a vla-ladder recording" in err and len(err.strip().splitlines()) == 1
+    assert main(["check-dataset", str(tmp_path / "ds"), "--balance-alpha", "2"]) == 2
+    assert "--balance-alpha must be in (0, 1)" in capsys.readouterr().err

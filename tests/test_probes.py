@@ -1,0 +1,255 @@
+"""The grounding probes: their metrics on constructed plays, their commands, their report section, and their
+calibration by the reference policies in the real simulator (CPU, state only)."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from report_fixtures import make_run
+
+from vla_ladder.cli import main
+from vla_ladder.conditions import Condition, ConditionGrid
+from vla_ladder.evaluation import grounding
+from vla_ladder.evaluation.rundir import load_run
+from vla_ladder.evaluation.runner import EvalConfig, open_run_dir
+from vla_ladder.experiments.probes import ProbeConfig, open_probe_dir, run_probe
+from vla_ladder.files import write_json
+from vla_ladder.report import probes as probe_report
+from vla_ladder.report.html import build_report
+from vla_ladder.task.layouts import sample_layout
+
+CHROMIUM = "/usr/bin/chromium"
+
+
+def plays(choose, regime="small_jitter", k=5, scenes=12) -> pd.DataFrame:
+    """Instruction-swap plays of a made-up policy: choose(layout instructing rank r, rank, scene) -> held."""
+    rows = []
+    for j in range(scenes):
+        base = sample_layout(Condition(regime, num_objects=k), j)
+        for r in range(k):
+            lay = base.instructed(r)
+            held = choose(lay, r, j)
+            rows.append(dict(regime=regime, split="canonical", num_objects=k, episode=j, seed=j, instruct=r,
+                             target=lay.target, instruction=lay.instruction, held=held, success=held == lay.target,
+                             grasp_any=held != "none", reach=held == lay.target, layout=json.dumps(lay.to_dict())))
+    return pd.DataFrame(rows)
+
+
+def metrics(df, key="small_jitter/canonical/5"):
+    return grounding.instruction_swap(df, resamples=300)[key]
+
+
+def test_instruction_swap_metrics_tell_grounded_from_blind_policies():
+    grounded = metrics(plays(lambda lay, r, j: lay.target))
+    assert grounded["scenes"] == 12 and grounded["plays"] == 60
+    for m in ("instruction_sensitivity", "scene_accuracy", "grounded_accuracy", "nmi", "success"):
+        assert grounded[m]["value"] == pytest.approx(1.0), m
+    assert grounded["grounded_accuracy"]["ci95"] == [1.0, 1.0]
+    assert grounded["instruction_sensitivity"]["ci95"][0] == pytest.approx(0.757, abs=1e-3)  # Wilson, 12 of 12
+    counts = np.array(grounded["matrix"]["counts"])
+    assert grounded["matrix"]["columns"][-1] == "none" and counts[:, :5].trace() == 60 and counts.sum() == 60
+
+    blind = metrics(plays(lambda lay, r, j: sorted(lay.objects)[0]))  # one object per scene, whatever is said
+    assert blind["instruction_sensitivity"]["value"] == 0 and blind["scene_accuracy"]["value"] == 0
+    assert blind["nmi"]["value"] == pytest.approx(0.0, abs=1e-12) and blind["nmi"]["ci95"][1] < 1e-9
+    assert blind["grounded_accuracy"]["value"] == pytest.approx(0.2)
+    # With three of five objects on the table the held object is always "one of those present": the mutual
+    # information conditions on the object set, so a blind policy still scores 0.
+    three = metrics(plays(lambda lay, r, j: sorted(lay.objects)[0], k=3), "small_jitter/canonical/3")
+    assert three["nmi"]["value"] == pytest.approx(0.0, abs=1e-12)
+    pooled = grounding.normalised_mutual_information(
+        pd.crosstab(plays(lambda lay, r, j: sorted(lay.objects)[0], k=3)["target"],
+                    plays(lambda lay, r, j: sorted(lay.objects)[0], k=3)["held"]).to_numpy()[None])
+    assert pooled > 0.05  # what conditioning removes
+
+    nothing = metrics(plays(lambda lay, r, j: "none"))
+    assert np.isnan(nothing["grounded_accuracy"]["value"]) and nothing["nmi"]["value"] == 0.0
+
+    half = metrics(plays(lambda lay, r, j: lay.target if j % 2 else lay.objects[-1] if r == 0 else lay.target))
+    assert half["instruction_sensitivity"]["value"] == 1.0 and half["scene_accuracy"]["value"] == 0.5
+    lo, hi = half["grounded_accuracy"]["ci95"]
+    assert half["grounded_accuracy"]["value"] == pytest.approx(54 / 60) and lo < 54 / 60 < hi <= 1.0
+    assert 0 < half["nmi"]["value"] < 1 and half["nmi"]["ci95"][0] <= half["nmi"]["value"] <= half["nmi"]["ci95"][1]
+
+
+def test_incomplete_scenes_are_left_out():
+    df = plays(lambda lay, r, j: lay.target)
+    df = df[~((df["episode"] == 3) & (df["instruct"] == 4))]
+    assert metrics(df)["scenes"] == 11
+
+
+def test_paired_and_appearance_metrics():
+    a = plays(lambda lay, r, j: lay.target)
+    a = a[a["instruct"] == 0].drop(columns="instruct")
+    b = a.assign(success=[j >= 4 for j in a["episode"]], held=[t if j >= 4 else "none" for t, j in
+                                                                zip(a["target"], a["episode"])])
+    diff = grounding.paired(a, b, resamples=300)["small_jitter/canonical/5"]["difference"]["success"]
+    assert diff["value"] == pytest.approx(-4 / 12) and diff["ci95"][1] < 0
+    assert diff["mcnemar_p"] == pytest.approx(0.125)  # 4 discordant pairs, all one way
+    rows = []
+    for j in range(12):
+        lay = sample_layout(Condition("small_jitter"), j, appearance="swap")
+        partner = lay.colour_swap[1] if lay.colour_swap else None
+        held = partner if partner and j % 2 else lay.target
+        rows.append(dict(regime="small_jitter", split="canonical", num_objects=5, episode=j, seed=j,
+                         target=lay.target, held=held, layout=json.dumps(lay.to_dict())))
+    swapped = pd.DataFrame(rows)
+    plain = [json.dumps(sample_layout(Condition("small_jitter"), j).to_dict()) for j in range(12)]
+    original = swapped.assign(held=swapped["target"], layout=plain)
+    c = grounding.appearance_swap(original, swapped, resamples=300)["small_jitter/canonical/5"]
+    n = c["swapped"]
+    followed = sum(1 for r in rows if r["held"] != r["target"])
+    assert 0 < n < 12 and c["follows_colour"]["value"] == pytest.approx(followed / n)
+    assert c["original"]["instructed"]["value"] == 1.0
+    assert c["follows_shape"]["value"] == pytest.approx(1 - followed / n)
+    assert c["transitions"]["counts"][0][:2] == [n - followed, followed] and c["shape_change"]["value"] < 0
+
+
+def test_probe_and_eval_configs_reject_bad_input_before_any_work(tmp_path, capsys):
+    cases = [
+        (["probe", "bogus", "--policy", "nearest", "--out", str(tmp_path / "p")],
+         "unknown probe 'bogus'; allowed: instruction-swap, paraphrase, appearance-swap"),
+        (["probe", "appearance-swap", "--policy", "nearest", "--out", str(tmp_path / "p"), "--num-objects", "1"],
+         "appearance-swap needs at least two objects on the table"),
+        (["probe", "instruction-swap", "--policy", "teleport", "--out", str(tmp_path / "p")], "unknown policy"),
+        (["probe", "instruction-swap", "--out", str(tmp_path / "p")], "--policy SPEC is required"),
+        (["eval", "--policy", "nearest", "--out", str(tmp_path / "e"), "--num-objects", "3", "--instruct", "3"],
+         "instruct must be a present-object rank from 0 to 2"),
+        (["eval", "--policy", "nearest", "--out", str(tmp_path / "e"), "--instructions", "poetic"],
+         "unknown instruction set 'poetic'; allowed: canonical, paraphrase-train, paraphrase-heldout"),
+        (["eval", "--policy", "nearest", "--out", str(tmp_path / "e"), "--appearance", "neon"],
+         "unknown appearance 'neon'; allowed: original, swap"),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "p").exists() and not (tmp_path / "e").exists()
+
+
+def test_probe_variants_share_seeds_and_a_probe_dir_refuses_another_request(tmp_path):
+    cfg = ProbeConfig("instruction-swap", policy="nearest", out=tmp_path / "p",
+                      grid=ConditionGrid(("small_jitter",), ("canonical",), (2, 4)), episodes=3)
+    variants = cfg.variants()
+    assert list(variants) == ["instruct-0", "instruct-1", "instruct-2", "instruct-3"]
+    assert [c.num_objects for c in variants["instruct-2"].conditions] == [4]
+    assert variants["instruct-1"].jobs()[0].options == (("instruct", 1),)
+    assert {j.seed for j in variants["instruct-3"].jobs()} == {0, 1, 2}
+    para = ProbeConfig("paraphrase", policy="nearest", out=tmp_path / "q").variants()
+    assert [c.num_objects for c in para["paraphrase-heldout"].conditions] == [5, 1, 5, 1]  # distractor-free control
+    assert para["paraphrase-train"].jobs()[0].options == (("instructions", "paraphrase-train"),)
+    open_probe_dir(cfg)
+    open_probe_dir(cfg)  # the same request resumes
+    other = ProbeConfig("instruction-swap", policy="scripted", out=tmp_path / "p")
+    with pytest.raises(ValueError, match="holds another probe request.*--overwrite"):
+        open_probe_dir(other)
+
+
+def test_run_directories_from_before_the_presentation_fields_still_resume(tmp_path):
+    cfg = EvalConfig("nearest", out=tmp_path / "run", episodes=2)
+    saved = {k: v for k, v in json.loads(json.dumps(cfg.request())).items()
+             if k not in ("instructions", "appearance", "instruct")}
+    write_json(tmp_path / "run" / "config.json", saved)
+    assert open_run_dir(cfg) == []
+    with pytest.raises(ValueError, match="another evaluation request"):
+        open_run_dir(EvalConfig("nearest", out=tmp_path / "run", episodes=2, instructions="paraphrase-heldout"))
+
+
+def make_probe(root: Path) -> Path:
+    """A probe directory of constructed instruction-swap variants (report_fixtures' run directories)."""
+    kinds = {0: ["success", "success", "wrong_object"], 1: ["wrong_object", "success", "grasp_lost"]}
+    for r, k in kinds.items():
+        make_run(root / f"instruct-{r}", "nearest", [("small_jitter", "canonical", 2)], k)
+    df = pd.concat([load_run(root / f"instruct-{r}").episodes.assign(instruct=r) for r in kinds])
+    write_json(root / "probe.json", {"probe": "instruction-swap", "policy": {"spec": "nearest"}, "complete": True,
+                                     "conditions": grounding.instruction_swap(df, 300)})
+    return root
+
+
+def test_the_report_shows_a_probe_found_next_to_its_variant_runs(tmp_path):
+    probe = make_probe(tmp_path / "probe")
+    runs = [load_run(probe / "instruct-0"), load_run(probe / "instruct-1")]
+    assert probe_report.probe_dirs([r.path for r in runs]) == [probe.resolve()]
+    page = build_report(runs, tmp_path / "r.html", placements=False).read_text()
+    assert "Grounding probes" in page and "instruction sensitivity" in page and "Counts" in page
+    assert 'alt="probe_0"' in page and 'alt="probe_0_matrix"' in page
+    plain = build_report([load_run(make_run(tmp_path / "plain", "nearest", [("small_jitter", "canonical", 2)],
+                                            ["success"]))], tmp_path / "p.html", placements=False).read_text()
+    assert "Grounding probes" not in plain
+
+
+# ---------------------------------------------------------------------- the real simulator
+def probe(tmp_path, name, policy, regimes, scenes, **kw) -> dict:
+    cfg = ProbeConfig(name, policy=policy, out=tmp_path / f"{name}-{policy}", grid=ConditionGrid(tuple(regimes)),
+                      episodes=scenes, workers=1, report=False, resamples=500, **kw)
+    return run_probe(cfg, progress=False)
+
+
+@pytest.mark.slow
+def test_instruction_swap_calibration_scripted_nearest_layout_prior(tmp_path):
+    scripted = probe(tmp_path, "instruction-swap", "scripted", ["full_random"], 3)["conditions"]
+    c = scripted["full_random/canonical/5"]
+    for m in ("instruction_sensitivity", "scene_accuracy", "grounded_accuracy", "nmi", "success"):
+        assert c[m]["value"] >= 0.9, (m, c[m])
+    nearest = probe(tmp_path, "instruction-swap", "nearest", ["full_random"], 3)
+    c = nearest["conditions"]["full_random/canonical/5"]
+    assert c["instruction_sensitivity"]["value"] == 0 and c["nmi"]["value"] == pytest.approx(0, abs=1e-9)
+    assert c["grounded_accuracy"]["value"] == pytest.approx(0.2)
+    prior = probe(tmp_path, "instruction-swap", "layout-prior", ["small_jitter", "full_random"], 4)["conditions"]
+    small, full = prior["small_jitter/canonical/5"], prior["full_random/canonical/5"]
+    assert small["instruction_sensitivity"]["value"] >= 0.75 and small["grounded_accuracy"]["value"] >= 0.8
+    assert small["nmi"]["value"] >= 0.6
+    assert full["success"]["value"] <= small["success"]["value"] - 0.5
+    assert full["nmi"]["value"] < small["nmi"]["value"] and full["scene_accuracy"]["value"] == 0
+    # The variants are run directories: instruct-0 is exactly `vla-ladder eval` on the same seeds.
+    root = tmp_path / "instruction-swap-nearest"
+    assert json.loads((root / "probe.json").read_text())["variants"]["instruct-4"] == "instruct-4"
+    assert main(["compare", str(root / "instruct-0"), str(root / "instruct-1")]) == 0
+    assert (root / "instruction-swap.png").stat().st_size > 5000
+
+
+@pytest.mark.slow
+def test_paraphrase_and_appearance_probes_in_the_simulator(tmp_path):
+    data = probe(tmp_path, "paraphrase", "layout-prior", ["small_jitter"], 2)
+    runs = {v: load_run(tmp_path / "paraphrase-layout-prior" / v) for v in data["variants"]}
+    texts = {v: set(r.episodes["instruction"]) for v, r in runs.items()}
+    assert all(t.startswith("grasp the ") for t in texts["canonical"]) and not texts["canonical"] & \
+        texts["paraphrase-heldout"]
+    for key in ("small_jitter/canonical/5", "small_jitter/canonical/1"):  # the layout prior reads every wording
+        c = data["conditions"][key]
+        assert c["paraphrase-heldout"]["success"] == c["canonical"]["success"] >= 0.5
+        assert c["paraphrase-heldout"]["vs_canonical"]["success"]["value"] == 0
+    app = probe(tmp_path, "appearance-swap", "scripted", ["small_jitter"], 2)
+    c = app["conditions"]["small_jitter/canonical/5"]
+    assert c["swapped"] >= 1 and c["follows_shape"]["value"] == 1.0 and c["follows_colour"]["value"] == 0.0
+    swap_layouts = load_run(tmp_path / "appearance-swap-scripted" / "swap").episodes["layout"]
+    assert any("colour_swap" in json.loads(lay) for lay in swap_layouts)
+
+
+@pytest.mark.slow
+def test_probe_report_renders_in_chromium(tmp_path):
+    assert Path(CHROMIUM).exists(), "Debian's chromium is missing: scripts/setup.sh installs it"
+    from playwright.sync_api import sync_playwright
+
+    probe = make_probe(tmp_path / "probe")
+    out = build_report([load_run(probe / "instruct-0"), load_run(probe / "instruct-1")], tmp_path / "r.html",
+                       placements=False)
+    moved = shutil.copy(out, tmp_path / "elsewhere.html")
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--headless", "--no-sandbox", "--disable-gpu"])
+        try:
+            page = browser.new_page(viewport={"width": 1200, "height": 900})
+            page.goto(f"file://{moved}")
+            page.wait_for_function("[...document.images].every(i => i.complete)", timeout=30000)
+            images = dict(page.evaluate("[...document.images].map(i => [i.alt, i.naturalWidth])"))
+            text = page.inner_text("body")
+            cells = page.evaluate("[...document.querySelectorAll('table')].find(t => t.innerText.includes("
+                                  "'instruction sensitivity')).rows[1].innerText")
+        finally:
+            browser.close()
+    assert images["probe_0"] > 300 and images["probe_0_matrix"] > 300
+    assert "Grounding probes" in text and "instruction-swap: nearest" in text
+    assert cells.split("\t")[:2] == ["small_jitter/canonical/2", "3"]
