@@ -33,6 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
               "probe instruction grounding: instruction swap, paraphrases, appearance swap"),
     "check-dataset": ("vla_ladder.training.check_dataset:CheckDatasetConfig",
                       "check a recorded dataset: balance, coverage, leakage, seeds, frames, actions"),
+    "study": ("vla_ladder.experiments.study:StudyCommand", "record, train, evaluate and report a learned policy"),
 }
 # Commands that pass everything after `--` to lerobot-train.
 LEROBOT_FLAGS_AFTER_DASHES = ("train", "grid")
@@ -71,6 +72,9 @@ def parse(name: str, argv: list[str]):
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    # OpenMP threads that outnumber free cores spin for each other (10x slower steps measured on a busy
+    # 2-core machine); passive waiting costs nothing when cores are free. Read when torch first loads.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if not argv or argv[0] in ("-h", "--help"):
         print(usage())
         return 0 if argv else 2

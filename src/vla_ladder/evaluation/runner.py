@@ -26,7 +26,7 @@ from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.evaluation.player import EnvSettings, Job, play
 from vla_ladder.machine import auto_workers
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
-from vla_ladder.policies import POLICY_KINDS, Policy, parse_spec
+from vla_ladder.policies import POLICY_KINDS, Policy, check_spec
 
 SIM_BACKENDS = ("physx_cpu", "physx_cuda")
 OBJECT_SETS = ("auto", "ycb", "standin")
@@ -91,8 +91,9 @@ class EvalConfig:
             raise ValueError(f"videos must be an integer >= 0, got {self.videos!r}")
         if self.workers < 0:
             raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
-        if self.first_seed < 0:
-            raise ValueError(f"first_seed must be >= 0, got {self.first_seed}")
+        if self.first_seed < 0 or self.first_seed + self.episodes > 2**32:
+            raise ValueError(f"first_seed must be >= 0 and first_seed + episodes <= 2**32 (numpy seeds), got "
+                             f"{self.first_seed} + {self.episodes}")
         if self.sim_backend not in SIM_BACKENDS:
             raise ValueError(f"unknown sim_backend {self.sim_backend!r}; allowed: {', '.join(SIM_BACKENDS)}")
         if self.sim_backend == "physx_cpu" and self.num_envs != 1:
@@ -189,7 +190,7 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
     if policy is None:
         if not cfg.policy:
             raise ValueError("--policy SPEC is required; allowed: " + ", ".join(POLICY_KINDS))
-        parse_spec(cfg.policy)  # an unknown spec fails before any simulator starts or file is written
+        check_spec(cfg.policy)  # an unknown spec or a missing checkpoint fails before any file is written
     spec = cfg.policy or policy.name
     rows = open_run_dir(cfg) if cfg.out is not None else []
     done = {(r["regime"], r["split"], r["num_objects"], r["episode"]) for r in rows}

@@ -293,9 +293,10 @@ pre{background:#f7f7f7;padding:.5em;overflow-x:auto}
 
 
 def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder evaluation report", samples: int = 2,
-                 with_video: bool = True, placements: bool = True, labels: list[str] | None = None) -> Path:
+                 with_video: bool = True, placements: bool = True, labels: list[str] | None = None,
+                 sections: list[tuple[str, str]] | None = None) -> Path:
     """Write the HTML page for `runs` to `out` and return its path; `labels` name the runs' policies
-    (default: their policy specs)."""
+    (default: their policy specs); `sections` ((title, HTML) pairs, e.g. a study's tables) come first."""
     labels = labels or [r.label for r in runs]
     if len(labels) != len(runs):
         raise ValueError(f"got {len(labels)} labels for {len(runs)} runs")
@@ -309,6 +310,7 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
             f"{len(runs)} run(s); versions: {html.escape(', '.join(f'{k} {v}' for k, v in prov.items()))}</p>",
             "<ul>" + "".join(f"<li>{html.escape(label)}: <code>{html.escape(str(r.path))}</code>, "
                              f"{len(r.episodes)} episodes</li>" for r, label in zip(runs, labels)) + "</ul>",
+            *[part for heading, fragment in sections or () for part in (f"<h2>{html.escape(heading)}</h2>", fragment)],
             "<h2>Reading the metrics</h2>", _signatures(),
             "<h2>Results per condition</h2>", _conditions_table(results),
         ]
