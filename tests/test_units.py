@@ -10,7 +10,7 @@ pytestmark = pytest.mark.slow  # each unit is a child process running the simula
 
 
 def _eval_unit(tmp_path, policy: str, name: str) -> Unit:
-    return Unit(name, "eval", "vla_ladder.experiments.study:eval_unit",
+    return Unit(name, "eval", "vla_ladder.experiments.units:eval_unit",
                 {"policy": policy, "out": str(tmp_path / name), "episodes": 1, "workers": 1,
                  "grid": {"regimes": ["small_jitter"], "splits": ["canonical"], "num_objects": [2]}})
 

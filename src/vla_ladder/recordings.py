@@ -35,10 +35,12 @@ class Recording:
     """cameras stored as MP4 video (LeRobot's default) or as PNG images inside the Parquet files"""
     robot_mesh: str = "lite"
     """how the robot looked in the pictures (see vla_ladder.task.robot)"""
+    instructions: str = "canonical"
+    """the instruction set worded from: canonical, paraphrase-train or paraphrase-heldout"""
 
     def to_dict(self) -> dict:
         return {"policy": self.policy, "condition": self.condition.key, "first_seed": self.first_seed,
-                "video": self.video, "robot_mesh": self.robot_mesh}
+                "video": self.video, "robot_mesh": self.robot_mesh, "instructions": self.instructions}
 
     @classmethod
     def from_dict(cls, data: dict, format_version: int = FORMAT_VERSION) -> "Recording":
@@ -46,7 +48,7 @@ class Recording:
             data = {"policy": data["policy"], "first_seed": data["seed"], "video": data["video"], "robot_mesh": "full",
                     "condition": Condition(data["regime"], data["split"], data["num_objects"]).key}
         return cls(data["policy"], Condition.parse(data["condition"]), int(data["first_seed"]), bool(data["video"]),
-                   data.get("robot_mesh", "lite"))
+                   data.get("robot_mesh", "lite"), data.get("instructions", "canonical"))
 
     def differences(self, other: "Recording") -> list[str]:
         mine, theirs = self.to_dict(), other.to_dict()

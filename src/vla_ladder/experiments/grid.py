@@ -3,9 +3,11 @@
 One model is trained per (batch size, chunk size) with LeRobot training (`--train.*`: the flags of
 `vla-ladder train`); each is evaluated by the evaluation runner (`--eval.*`: the flags of `vla-ladder eval`)
 once per execution horizon <= its chunk size, always on the same seeded episodes. Both configs are parsed
-and checked before the first training starts. The best run has the highest success rate, ties broken
-by grasp-anything, then reach. Runs go one after another; a rerun of the same command skips every model
-already trained and every evaluation already written, so an interrupted grid resumes.
+and checked before the first training starts. Every training and evaluation is a unit (experiments/units.py):
+a child process with its log in OUT/logs/, marked done in OUT/units/; with --ray they run as Ray tasks, on a
+local Ray or the cluster at --ray-address, each evaluation after its model's training. The best run has the
+highest success rate, ties broken by grasp-anything, then reach. A rerun of the same command skips every unit
+already done, so an interrupted grid resumes.
 
     OUT/runs/b{B}_c{C}/train/          LeRobot run (checkpoints/last/pretrained_model)
     OUT/runs/b{B}_c{C}/eval_h{H}/      eval run directory (episodes.parquet, summary.json, ...)
@@ -16,7 +18,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -24,8 +25,9 @@ import pandas as pd
 
 from vla_ladder import files
 from vla_ladder.contract import METRICS
-from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
-from vla_ladder.training.train import TrainConfig, check_offline_assets, checkpoint_dir, train
+from vla_ladder.evaluation.runner import EvalConfig
+from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
+from vla_ladder.training.train import TrainConfig, check_offline_assets, checkpoint_dir
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +53,10 @@ class GridConfig:
     """action chunk sizes trained"""
     horizons: tuple[int, ...] = PAPER_HORIZONS
     """execution horizons (n_action_steps) evaluated per model, those <= its chunk size"""
+    ray: bool = False
+    """run the trainings and evaluations as Ray tasks (a local Ray, or the cluster at --ray-address)"""
+    ray_address: str | None = None
+    """address of a running Ray cluster (implies --ray)"""
 
     def __post_init__(self):
         self.out = Path(self.out)
@@ -83,49 +89,44 @@ def best_row(df: pd.DataFrame) -> dict:
     return order.iloc[0].to_dict()
 
 
-def evaluate(base: EvalConfig, spec: str, out: Path) -> dict:
-    """Run the evaluation runner on one checkpoint + horizon and return its summary."""
-    return run_evaluation(replace(base, policy=spec, out=out))
+def units(cfg: GridConfig) -> tuple[list[Unit], list[tuple[int, int, int, Unit]]]:
+    """The training units, and (batch, chunk, horizon, unit) for every evaluation."""
+    trains, evals = [], []
+    for bs in cfg.batch_sizes:
+        for cs in cfg.chunk_sizes:
+            model_dir = cfg.out / "runs" / f"b{bs}_c{cs}"
+            train = replace(cfg.train, out=model_dir / "train", batch_size=bs, chunk_size=cs, n_action_steps=cs)
+            trains.append(Unit(f"train-b{bs}_c{cs}", "train", "vla_ladder.experiments.units:train_unit",
+                               _plain(asdict(train)), cpus=2))
+            for h in cfg.horizons:
+                if h <= cs:
+                    spec = f"lerobot:{checkpoint_dir(model_dir / 'train')}?n_action_steps={h}"
+                    ev = replace(cfg.eval, policy=spec, out=model_dir / f"eval_h{h}")
+                    evals.append((bs, cs, h, Unit(f"eval-b{bs}_c{cs}_h{h}", "eval",
+                                                  "vla_ladder.experiments.units:eval_unit", _plain(asdict(ev)),
+                                                  cpus=2, after=[f"train-b{bs}_c{cs}"])))
+    return trains, evals
 
 
-def _done_rows(out: Path) -> dict[tuple[int, int, int], dict]:
-    """Rows of an earlier, interrupted invocation whose evaluations finished (grid.parquet is rewritten
-    after each evaluation, so a row there means a whole run directory)."""
-    path = out / "grid.parquet"
-    if not path.is_file():
-        return {}
-    return {(r["batch_size"], r["chunk_size"], r["n_action_steps"]): r
-            for r in pd.read_parquet(path).to_dict("records") if (Path(r["eval_dir"]) / "summary.json").is_file()}
+def _plain(data: dict) -> dict:
+    """A config as the JSON a unit carries (paths as strings, no derived attributes)."""
+    return {k: v for k, v in json.loads(json.dumps(data, default=files._default)).items()}
 
 
 def run_grid(cfg: GridConfig) -> pd.DataFrame:
-    out = cfg.out
-    done = _done_rows(out)
+    trains, evals = units(cfg)
+    every = trains + [u for *_, u in evals]
+    if cfg.ray or cfg.ray_address:
+        results = run_units_on_ray(every, cfg.out, cfg.ray_address)
+    else:
+        results = run_units(every, cfg.out)
     rows = []
-    for bs in cfg.batch_sizes:
-        for cs in cfg.chunk_sizes:
-            model_dir = out / "runs" / f"b{bs}_c{cs}"
-            train_dir = model_dir / "train"
-            ckpt = checkpoint_dir(train_dir)
-            if not (ckpt / "config.json").is_file() or not (train_dir / "vla_ladder_train.json").is_file():
-                if train_dir.exists():
-                    log.warning("removing the unfinished training run %s", train_dir)
-                    shutil.rmtree(train_dir)
-                log.info("grid: training batch %d, chunk %d", bs, cs)
-                train(replace(cfg.train, out=train_dir, batch_size=bs, chunk_size=cs, n_action_steps=cs))
-            for h in cfg.horizons:
-                if h > cs:
-                    continue
-                if (bs, cs, h) in done:
-                    rows.append(done[(bs, cs, h)])
-                    continue
-                spec = f"lerobot:{ckpt}?n_action_steps={h}"
-                log.info("grid: evaluating b%d_c%d with horizon %d", bs, cs, h)
-                summary = evaluate(cfg.eval, spec, model_dir / f"eval_h{h}")
-                rows.append({"batch_size": bs, "chunk_size": cs, "n_action_steps": h, "policy": spec,
-                             "train_dir": str(train_dir), "eval_dir": str(model_dir / f"eval_h{h}"),
-                             **overall(summary)})
-                files.write_parquet(out / "grid.parquet", pd.DataFrame(rows))
+    for bs, cs, h, unit in evals:
+        summary = json.loads((Path(unit.config["out"]) / "summary.json").read_text())
+        rows.append({"batch_size": bs, "chunk_size": cs, "n_action_steps": h, "policy": unit.config["policy"],
+                     "train_dir": str(cfg.out / "runs" / f"b{bs}_c{cs}" / "train"), "eval_dir": unit.config["out"],
+                     **overall(summary)})
+    del results
     return pd.DataFrame(rows)
 
 

@@ -17,15 +17,13 @@ continues interrupted ones; each unit's config and log land in DIR/units/ and DI
 from __future__ import annotations
 
 import json
-import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import tyro
 
 from vla_ladder import files
-from vla_ladder.conditions import Condition, parse_regimes
-from vla_ladder.contract import METRICS
+from vla_ladder.conditions import parse_regimes
 from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
 
@@ -65,33 +63,6 @@ def _plain(data):
     return json.loads(json.dumps(data, default=files._default))
 
 
-# ---------------------------------------------------------------------- unit functions (run in children)
-def record_unit(config: dict) -> dict:
-    from vla_ladder.recording.record import RecordConfig, run
-    cfg = RecordConfig(out=config["out"], episodes=config["episodes"], condition=Condition.parse(config["condition"]),
-                       policy=config["policy"], first_seed=config["first_seed"], workers=config["workers"])
-    if run(cfg) != 0:
-        raise RuntimeError(f"recording {cfg.out} stopped before {cfg.episodes} episodes")
-    from vla_ladder.recordings import read_recording_state
-    return read_recording_state(cfg.out)["counters"]
-
-
-def train_unit(config: dict) -> dict:
-    from vla_ladder.training.train import TrainConfig, train
-    out = Path(config["out"])
-    if out.exists():  # a training run killed half-way starts over
-        shutil.rmtree(out)
-    ckpt = train(TrainConfig(**config))
-    info = json.loads((out / "vla_ladder_train.json").read_text())
-    return {"checkpoint": str(ckpt), "wall_s": info["wall_s"]}
-
-
-def eval_unit(config: dict) -> dict:
-    from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
-    summary = run_evaluation(EvalConfig(**config))
-    return {"conditions": {k: {m: c[m] for m in ("n", *METRICS)} for k, c in summary["conditions"].items()}}
-
-
 # ---------------------------------------------------------------------- planning
 def model_id(policy: PolicySpec, dataset: DatasetSpec, batch: int, chunk: int) -> str:
     return f"{policy.name}-{dataset.name}-b{batch}c{chunk}"
@@ -123,7 +94,7 @@ class Study:
 
     # -- record
     def record_units(self) -> list[Unit]:
-        return [Unit(f"record-{d.name}", "record", "vla_ladder.experiments.study:record_unit",
+        return [Unit(f"record-{d.name}", "record", "vla_ladder.experiments.units:record_unit",
                      {"out": str(self.dataset_dir(d)), "episodes": d.episodes, "condition": d.condition,
                       "policy": d.expert, "first_seed": d.first_seed, "workers": self.cmd.workers}, cpus=2)
                 for d in self.cfg.datasets]
@@ -160,7 +131,7 @@ class Study:
                                   "save_freq": save_freq, "log_freq": max(p.steps // 20, 1),
                                   "num_workers": self.cfg.num_workers, "device": self.device,
                                   "lerobot_args": args}
-                        units.append(Unit(f"train-{mid}", "train", "vla_ladder.experiments.study:train_unit",
+                        units.append(Unit(f"train-{mid}", "train", "vla_ladder.experiments.units:train_unit",
                                           config, cpus=2, after=[f"record-{d.name}"]))
         return units
 
@@ -207,7 +178,7 @@ class Study:
                     cfg = self.eval_config(self.spec(p, mid, h), self.root / "select" / f"{mid}-h{h}", own,
                                            g.select_episodes,
                                            g.select_first_seed, 0)
-                    units.append(Unit(f"select-{mid}-h{h}", "select", "vla_ladder.experiments.study:eval_unit",
+                    units.append(Unit(f"select-{mid}-h{h}", "select", "vla_ladder.experiments.units:eval_unit",
                                       cfg, cpus=2, after=[f"train-{mid}"]))
         return units
 
@@ -239,14 +210,14 @@ class Study:
             cfg = self.eval_config(self.spec(p, best["model"], best["horizon"]), self.root / "eval" /
                                    f"{p.name}-{d.name}", eval_grid(d, self.cfg),
                                    ev.episodes, ev.first_seed, ev.videos)
-            units.append(Unit(f"eval-{p.name}-{d.name}", "eval", "vla_ladder.experiments.study:eval_unit", cfg,
+            units.append(Unit(f"eval-{p.name}-{d.name}", "eval", "vla_ladder.experiments.units:eval_unit", cfg,
                               cpus=2, after=[f"train-{best['model']}"]))
         grids = {json.dumps(eval_grid(d, self.cfg), sort_keys=True) for d in self.cfg.datasets}
         for ref in ev.reference_policies:
             for i, grid in enumerate(sorted(grids)):
                 cfg = self.eval_config(ref, self.root / "eval" / f"reference-{ref}-{i}", json.loads(grid),
                                        ev.episodes, ev.first_seed, 0)
-                units.append(Unit(f"eval-reference-{ref}-{i}", "eval", "vla_ladder.experiments.study:eval_unit",
+                units.append(Unit(f"eval-reference-{ref}-{i}", "eval", "vla_ladder.experiments.units:eval_unit",
                                   cfg, cpus=2))
         return units
 
@@ -266,7 +237,23 @@ class Study:
                                        self.root / "curves" / f"{best['model']}-{step}", own,
                                        ev.curve_episodes, g.select_first_seed + g.select_episodes, 0)
                 units.append(Unit(f"curve-{best['model']}-{step}", "curve",
-                                  "vla_ladder.experiments.study:eval_unit", cfg, cpus=2))
+                                  "vla_ladder.experiments.units:eval_unit", cfg, cpus=2))
+        return units
+
+    def probe_units(self, chosen: dict) -> list[Unit]:
+        ev = self.cfg.evaluation
+        units = []
+        for p, d, _ in self.models():
+            if p.blind:
+                continue
+            best = chosen[(p.name, d.name)]
+            own = {"regimes": [d.cond.regime], "splits": [d.cond.split], "num_objects": [d.cond.num_objects]}
+            for name in ev.probes:
+                cfg = {"name": name, "policy": self.spec(p, best["model"], best["horizon"]),
+                       "out": str(self.root / "probes" / f"{p.name}-{d.name}-{name}"), "grid": own,
+                       "episodes": ev.probe_episodes, "first_seed": ev.first_seed, "workers": self.cmd.workers}
+                units.append(Unit(f"probe-{p.name}-{d.name}-{name}", "probe",
+                                  "vla_ladder.experiments.units:probe_unit", cfg, cpus=2))
         return units
 
     # -- the whole study
@@ -282,6 +269,7 @@ class Study:
         files.write_json(root / "selection.json", {f"{p}/{d}": v for (p, d), v in chosen.items()})
         results = self.run_phase(self.eval_units(chosen))
         curves = self.run_phase(self.curve_units(chosen))
+        results.update(self.run_phase(self.probe_units(chosen)))
         from vla_ladder.experiments.study_results import write_results
         return write_results(self, chosen, results, curves)
 

@@ -130,6 +130,11 @@ class EvaluationSpec:
     curve_episodes: int = 0
     """evaluate every saved checkpoint on this many validation episodes of the training condition (the
     learning curve; 0: none)"""
+    probes: list[str] = field(default_factory=list)
+    """grounding probes (vla-ladder probe) run on every instruction-reading model in its training condition:
+    instruction-swap, paraphrase, appearance-swap (blind models are skipped: they cannot follow an instruction)"""
+    probe_episodes: int = 20
+    """scenes per probe"""
 
     def __post_init__(self):
         _positive(self, "episodes")
@@ -137,7 +142,11 @@ class EvaluationSpec:
         for p in self.reference_policies:
             if p not in REFERENCE_POLICIES:
                 raise ValueError(f"reference_policies: unknown {p!r}; allowed: {', '.join(REFERENCE_POLICIES)}")
-        if self.videos < 0 or self.curve_episodes < 0 or self.first_seed < 0:
+        from vla_ladder.experiments.probes import PROBES
+        for p in self.probes:
+            if p not in PROBES:
+                raise ValueError(f"probes: unknown {p!r}; allowed: {', '.join(PROBES)}")
+        if self.videos < 0 or self.curve_episodes < 0 or self.first_seed < 0 or self.probe_episodes < 1:
             raise ValueError("videos, curve_episodes and first_seed must be >= 0")
 
 

@@ -57,8 +57,9 @@ def write_results(study, chosen: dict, results: dict, curves_results: dict) -> P
             runs.append(load_run(run_dir))
             labels.append(f"{ref} #{run_dir.name.rsplit('-', 1)[1]}")
     curves = curve_points(study, chosen)
+    probes = {uid.removeprefix("probe-"): r for uid, r in results.items() if uid.startswith("probe-")}
     summary = {"study": cfg.name, "description": cfg.description, "cells": cells,
-               "selection": {f"{p}/{d}": v for (p, d), v in chosen.items()}, "curves": curves,
+               "selection": {f"{p}/{d}": v for (p, d), v in chosen.items()}, "curves": curves, "probes": probes,
                "units": {k: v for k, v in results.items()}, "provenance": files.provenance()}
     files.write_json(root / "summary.json", summary)
     paper = reference_data("paper.json")
@@ -67,6 +68,9 @@ def write_results(study, chosen: dict, results: dict, curves_results: dict) -> P
     files.write_text(tables / "matrix.tex", present.matrix_latex(cells))
     files.write_text(tables / "paper_comparison.md", present.paper_comparison_markdown(cells, paper))
     sections = [("Study: train regime x eval regime", present.matrix_html(cells))]
+    if probes:
+        files.write_text(tables / "probes.md", present.probes_markdown(probes))
+        sections.append(("Study: grounding probes", present.probes_html(probes)))
     pairings = present.pairings_html(cells)
     if pairings:
         sections.append(("Study: held-out object-region pairings", pairings))

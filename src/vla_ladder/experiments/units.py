@@ -15,6 +15,7 @@ import importlib
 import json
 import multiprocessing
 import os
+import shutil
 import signal
 import sys
 import time
@@ -23,6 +24,8 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from vla_ladder import files
+from vla_ladder.conditions import Condition
+from vla_ladder.contract import METRICS
 
 
 @dataclass
@@ -189,3 +192,36 @@ def run_units_on_ray(units: Sequence[Unit], root: Path, address: str | None = No
         results[uid] = ray.get(ref)
         print(f"[study] done {uid}", flush=True)
     return results
+
+
+# ---------------------------------------------------------------------- the stages as units (run in children)
+def record_unit(config: dict) -> dict:
+    from vla_ladder.recording.record import RecordConfig, run
+    cfg = RecordConfig(out=config["out"], episodes=config["episodes"], condition=Condition.parse(config["condition"]),
+                       policy=config["policy"], first_seed=config["first_seed"], workers=config["workers"])
+    if run(cfg) != 0:
+        raise RuntimeError(f"recording {cfg.out} stopped before {cfg.episodes} episodes")
+    from vla_ladder.recordings import read_recording_state
+    return read_recording_state(cfg.out)["counters"]
+
+
+def train_unit(config: dict) -> dict:
+    from vla_ladder.training.train import TrainConfig, train
+    out = Path(config["out"])
+    if out.exists():  # a training run killed half-way starts over
+        shutil.rmtree(out)
+    ckpt = train(TrainConfig(**config))
+    info = json.loads((out / "vla_ladder_train.json").read_text())
+    return {"checkpoint": str(ckpt), "wall_s": info["wall_s"]}
+
+
+def probe_unit(config: dict) -> dict:
+    from vla_ladder.experiments.probes import ProbeConfig, run_probe
+    data = run_probe(ProbeConfig(**config), progress=False)
+    return {"probe": data["probe"], "conditions": data["conditions"]}
+
+
+def eval_unit(config: dict) -> dict:
+    from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
+    summary = run_evaluation(EvalConfig(**config))
+    return {"conditions": {k: {m: c[m] for m in ("n", *METRICS)} for k, c in summary["conditions"].items()}}

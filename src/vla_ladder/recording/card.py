@@ -121,7 +121,7 @@ def write_card(root: str | Path) -> Path:
 def _robot_mesh(prov: pd.DataFrame, state: dict) -> str:
     if "robot_mesh" in prov and len(prov):
         return ", ".join(sorted(prov["robot_mesh"].astype(str).unique()))
-    return state.get("robot_mesh") or DEFAULT_ROBOT_MESH
+    return state.get("config", {}).get("robot_mesh") or state.get("robot_mesh") or DEFAULT_ROBOT_MESH
 
 
 def _seeds(config: dict, state: dict, prov: pd.DataFrame) -> str:

@@ -48,6 +48,9 @@ class RecordConfig:
     """parallel envs of each local server (more than one needs a GPU)"""
     robot_mesh: str = "lite"
     """how the local servers render the robot: lite (decimated visual meshes) or full (ManiSkill's)"""
+    instructions: str = "canonical"
+    """how the local servers word instructions: canonical, paraphrase-train (record these to evaluate on held-out
+    paraphrases) or paraphrase-heldout"""
     first_seed: int = 0
     """first episode seed; later ones follow and never repeat, across servers and resumes"""
     video: bool = True
@@ -71,6 +74,8 @@ class RecordConfig:
             raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
         if self.robot_mesh not in ("lite", "full"):
             raise ValueError(f"unknown robot_mesh {self.robot_mesh!r}; allowed: lite, full")
+        from vla_ladder.task.instructions import check_instruction_set
+        check_instruction_set(self.instructions)
         for url in self.server:
             if not url.startswith(("ws://", "wss://")):
                 raise ValueError(f"--server {url!r}: expected ws://HOST:PORT or wss://HOST:PORT")
@@ -82,18 +87,19 @@ def recording_of(cfg: RecordConfig) -> Recording:
     """What the dataset will be a recording of: the local server's settings, or what the servers say they
     serve (from their welcome messages)."""
     if not cfg.server:
-        return Recording(cfg.policy, cfg.condition, cfg.first_seed, cfg.video, cfg.robot_mesh)
+        return Recording(cfg.policy, cfg.condition, cfg.first_seed, cfg.video, cfg.robot_mesh, cfg.instructions)
     served = {url: asyncio.run(_welcome(url, cfg.token)) for url in cfg.server}
-    kinds = {(info["policy"], info["condition"], info.get("robot_mesh", "full")) for info in served.values()}
+    kinds = {(info["policy"], info["condition"], info.get("robot_mesh", "full"), info.get("instructions", "canonical"))
+             for info in served.values()}
     if len(kinds) > 1:
         raise ValueError("the servers serve different things: " + "; ".join(
             f"{url}: {info['policy']} on {info['condition']}" for url, info in served.items()))
-    policy, key, robot_mesh = kinds.pop()
+    policy, key, robot_mesh, instructions = kinds.pop()
     condition = Condition.parse(key)
     if cfg.condition not in (Condition(), condition):
         raise ValueError(f"--server {cfg.server[0]} serves {condition} but the command asks for {cfg.condition}; "
                          "drop the condition flags (the servers' condition is recorded) or start matching servers")
-    return Recording(policy, condition, cfg.first_seed, cfg.video, robot_mesh)
+    return Recording(policy, condition, cfg.first_seed, cfg.video, robot_mesh, instructions)
 
 
 async def _welcome(url: str, token: str | None) -> dict:
@@ -164,7 +170,8 @@ def run(cfg: RecordConfig) -> int:
 
 def check_server(recording: Recording, url: str, info: dict) -> None:
     """A server must simulate exactly the condition and expert this dataset records."""
-    want = {"policy": recording.policy, "condition": recording.condition.key, "robot_mesh": recording.robot_mesh}
+    want = {"policy": recording.policy, "condition": recording.condition.key, "robot_mesh": recording.robot_mesh,
+            "instructions": recording.instructions}
     wrong = [f"{k}={info.get(k)!r} (recording: {v!r})" for k, v in want.items() if info.get(k) != v]
     if wrong:
         raise ValueError(f"server {url} runs " + ", ".join(wrong) + "; start it with the recording's arguments")
@@ -211,7 +218,8 @@ class LocalServer:
         c = recording.condition
         cmd = [sys.executable, "-m", "vla_ladder.cli", "serve", "--policy", recording.policy, "--regime", c.regime,
                "--split", c.split, "--num-objects", str(c.num_objects), "--num-envs", str(num_envs),
-               "--robot-mesh", recording.robot_mesh, "--host", "127.0.0.1", "--port", "0", "--exit-on-stdin-close"]
+               "--robot-mesh", recording.robot_mesh, "--instructions", recording.instructions,
+               "--host", "127.0.0.1", "--port", "0", "--exit-on-stdin-close"]
         env = dict(os.environ)
         if threads:  # several servers on one machine: one renderer thread each instead of all fighting for all
             env.update(LP_NUM_THREADS=str(threads), OMP_NUM_THREADS=str(threads))

@@ -73,6 +73,8 @@ class ServeConfig:
     replay differ by millimetres; the layout, target and instruction of a seed never differ)"""
     robot_mesh: str = "lite"
     """lite (decimated visual meshes, fast on a CPU renderer) or full (ManiSkill's); physics is the same"""
+    instructions: str = "canonical"
+    """how episodes are worded: canonical ("grasp the <object>"), paraphrase-train or paraphrase-heldout"""
     exit_on_stdin_close: bool = False
     """exit when stdin closes (how `record` ties the local server it starts to its own life)"""
 
@@ -127,7 +129,8 @@ class Simulator:
         c = cfg.condition
         self.env = gym.make(contract.ENV_ID, obs_mode=obs_mode, regime=c.regime, split=c.split,
                             num_objects=c.num_objects, num_envs=cfg.num_envs, sim_backend=backend,
-                            robot_mesh=cfg.robot_mesh, reconfiguration_freq=1 if cfg.rebuild_scenes else 0)
+                            robot_mesh=cfg.robot_mesh, instructions=cfg.instructions,
+                            reconfiguration_freq=1 if cfg.rebuild_scenes else 0)
         self.base = self.env.unwrapped
         self.steps = EPISODE_STEPS
         self.object_set = self.base.object_set
@@ -175,6 +178,7 @@ class Simulator:
             header = {
                 "type": "episode", "seed": int(seed), "instruction": instructions[i], "layout": layouts[i],
                 "target": layouts[i]["target"], "condition": self.cfg.condition.key, "object_set": self.object_set,
+                "robot_mesh": self.cfg.robot_mesh, "instructions": self.cfg.instructions,
                 "expert": self.expert, "metrics": metrics, "num_frames": T, "sim_seconds": sim_s,
             }
             arrays = {**{f"images.{cam}": frames[cam][i] for cam in CAMERA_NAMES},
@@ -275,7 +279,7 @@ class EpisodeServer:
     def _welcome(self) -> bytes:
         # What the server simulates: a recorder takes its dataset's condition and expert from here.
         server = {"policy": self.cfg.policy, "condition": self.cfg.condition.key, "num_envs": self.cfg.num_envs,
-                  "robot_mesh": self.cfg.robot_mesh,
+                  "robot_mesh": self.cfg.robot_mesh, "instructions": self.cfg.instructions,
                   "object_set": self.object_set, "fps": CONTROL_HZ, "episode_steps": EPISODE_STEPS,
                   "cameras": list(CAMERA_NAMES), "image_shape": list(IMAGE_SHAPE), "state_dim": STATE_DIM,
                   "action_dim": ACTION_DIM}

@@ -245,6 +245,7 @@ def _provenance_row(index: int, episode) -> dict[str, Any]:
         **_condition_columns(Condition.parse(h["condition"])), "target": h["target"],
         "instruction": h["instruction"], "layout": json.dumps(h["layout"], default=files._default),
         "expert": json.dumps(h["expert"], default=files._default), "object_set": h["object_set"],
+        "robot_mesh": h.get("robot_mesh", "full"), "instructions": h.get("instructions", "canonical"),
         "success": bool(m["success"]), "grasp_any": bool(m["grasp_any"]), "reach": bool(m["reach"]),
         "lifted": bool(m["lifted"]), "held": m["held"], "reach_dist": float(m["reach_dist"]),
         "num_frames": int(episode.num_frames), "server": episode.server,

@@ -162,3 +162,39 @@ def plot_curves(curves: dict[str, list[dict]], path: str | Path) -> Path:
         fig.savefig(tmp, format="png", dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+PROBE_METRICS = {"instruction-swap": ("instruction_sensitivity", "grounded_accuracy", "nmi"),
+                 "paraphrase": None, "appearance-swap": None}
+
+
+def _metric(m: dict) -> str:
+    lo, hi = m["ci95"]
+    return f"{_pct(m['value'])} [{_pct(lo)}, {_pct(hi)}]"
+
+
+def probe_rows(probes: dict[str, dict]) -> list[list[str]]:
+    """probes: model label -> probe.json data (or a unit's {probe, conditions}); one row per metric."""
+    rows = []
+    for model, data in probes.items():
+        for cond, metrics in data["conditions"].items():
+            for name, m in metrics.items():
+                if isinstance(m, dict) and "value" in m and "ci95" in m:
+                    rows.append([model, data["probe"], cond, name.replace("_", " "), _metric(m), str(m.get("n", ""))])
+    return rows
+
+
+def probes_markdown(probes: dict[str, dict]) -> str:
+    head = ["Model", "Probe", "Condition", "Metric", "Value [95% CI]", "n"]
+    lines = ["**Grounding probes of the learned policies (docs/probes.md says how to read them).**", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join(r) + " |" for r in probe_rows(probes)]
+    return "\n".join(lines) + "\n"
+
+
+def probes_html(probes: dict[str, dict]) -> str:
+    rows = "".join("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in r) + "</tr>" for r in probe_rows(probes))
+    return ("<table><tr><th>model</th><th>probe</th><th>condition</th><th>metric</th><th>value [95% CI]</th>"
+            f"<th>n</th></tr>{rows}</table><p class=note>Rates in %. Instruction sensitivity: share of scenes whose "
+            "grasped object changes with the instruction; grounded accuracy: P(grasped = instructed | something "
+            "grasped); NMI: mutual information of instruction and grasped object, normalised.</p>")

@@ -66,8 +66,13 @@ SIZES = {"tiny": TINY, "small": SMALL, "smolvlm2-500m": SMOLVLM2_500M}
 
 
 def _corpus() -> list[str]:
-    words = [instruction_for(name) for name in OBJECT_NAMES]
-    words += ["pick up the", "grasp", "Assistant:", "User:", "\n"]
+    """Every wording of every instruction set (training and held-out): a word a policy never trained on still
+    gets its own token, whose embedding stays where initialisation left it."""
+    from vla_ladder.contract import BLIND_INSTRUCTION
+    from vla_ladder.task.instructions import INSTRUCTION_SETS, wordings
+    words = [instruction_for(name) for name in OBJECT_NAMES] + [BLIND_INSTRUCTION]
+    words += [w.text for name in OBJECT_NAMES for s in INSTRUCTION_SETS for w in wordings(name, s)]
+    words += ["Assistant:", "User:", "\n"]
     return words
 
 
