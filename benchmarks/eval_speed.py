@@ -1,55 +1,115 @@
-"""Evaluation throughput of `run_evaluation` on CPU: episodes/s state-only and with filmed episodes.
+"""Evaluation throughput against worker processes: episodes/s of `vla-ladder eval`, state only and filmed.
 
-    .venv/bin/python benchmarks/eval_speed.py [--episodes 20] [--filmed 2]
+    .venv/bin/python benchmarks/eval_speed.py [--episodes 20] [--filmed 4] [--workers 1 2]
 
-Writes benchmarks/results/eval_speed.json. The machine's load average is recorded with the figures
-because the CPU may be shared.
+For each --workers N it times `run_evaluation` (what `vla-ladder eval --workers N` runs) on one condition with
+the scripted expert:
+  state  - state-only episodes (no renderer);
+  filmed - every episode filmed: both 256x256 cameras rendered every step (on the GPU when there is one,
+           else lavapipe) and encoded to MP4.
+Wall time includes starting the N workers (imports, building the env); the start-up is also timed alone
+(one episode per worker) so that the steady rate, (episodes - N) / (wall - start-up), can be given. The
+runs for different N must give the same episodes: the result says whether they did.
+
+Writes benchmarks/results/eval_speed.json (eval_speed_cuda.json where a CUDA GPU renders), or --out.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-from vla_ladder import io
-from vla_ladder.evaluation.runner import run_evaluation
+import pandas as pd
+import torch
+import tyro
 
-RESULT = Path(__file__).parent / "results" / "eval_speed.json"
+from vla_ladder import files
+from vla_ladder.conditions import ConditionGrid
+from vla_ladder.contract import EPISODE_STEPS
+from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
+from vla_ladder.machine import cores
+
+RESULTS = Path(__file__).parent / "results"
 
 
-def timed(**kwargs) -> float:
+@dataclass
+class Args:
+    """Evaluation episodes/s against worker processes, state only and filmed."""
+
+    episodes: int = 20
+    """state-only episodes per measurement"""
+    filmed: int = 4
+    """filmed episodes per measurement (0 skips the filmed runs)"""
+    workers: tuple[int, ...] = (1, 2)
+    """worker counts to measure"""
+    regime: str = "full_random"
+    """placement regime of the episodes"""
+    num_objects: int = 5
+    """objects on the table"""
+    robot_mesh: str = "lite"
+    """lite or full robot visual meshes (what filmed episodes render)"""
+    first_seed: int = 0
+    """episode j plays seed first_seed + j"""
+    out: Path | None = None
+    """result JSON (default: benchmarks/results/eval_speed.json, eval_speed_cuda.json with a GPU)"""
+
+
+def timed(args: Args, episodes: int, workers: int, filmed: bool) -> tuple[float, pd.DataFrame]:
+    """Wall seconds of one evaluation, and its episodes (without the video column)."""
+    grid = ConditionGrid(regimes=(args.regime,), num_objects=(args.num_objects,))
     with tempfile.TemporaryDirectory() as tmp:
-        t = time.perf_counter()
-        run_evaluation("scripted", out=tmp, progress=False, **kwargs)
-        return time.perf_counter() - t
+        cfg = EvalConfig(policy="scripted", out=Path(tmp), grid=grid, episodes=episodes, first_seed=args.first_seed,
+                         workers=workers, videos=episodes if filmed else 0, robot_mesh=args.robot_mesh)
+        t0 = time.perf_counter()
+        run_evaluation(cfg, progress=False)
+        wall = time.perf_counter() - t0
+        return wall, pd.read_parquet(Path(tmp) / "episodes.parquet").drop(columns="video")
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--episodes", type=int, default=20)
-    p.add_argument("--filmed", type=int, default=2, help="episodes with MP4 videos of both cameras")
-    args = p.parse_args()
-    timed(regimes=["small_jitter"], episodes=1)  # warm-up: imports and the first env in the process
-    state_s = timed(regimes=["full_random"], episodes=args.episodes)
-    video_s = timed(regimes=["full_random"], episodes=args.filmed, videos=args.filmed)
+def measure(args: Args, workers: int, filmed: bool) -> tuple[dict, pd.DataFrame]:
+    n = args.filmed if filmed else args.episodes
+    startup, _ = timed(args, workers, workers, filmed)  # one episode per worker: start-up plus one episode
+    wall, episodes = timed(args, n, workers, filmed)
+    steady = (n - workers) / (wall - startup) if n > workers and wall > startup else None
+    row = {"kind": "filmed" if filmed else "state", "workers": workers, "episodes": n, "wall_s": round(wall, 2),
+           "episodes_per_s": round(n / wall, 3), "env_steps_per_s": round(EPISODE_STEPS * n / wall, 1),
+           "startup_and_first_episode_s": round(startup, 2),
+           "steady_episodes_per_s": None if steady is None else round(steady, 3),
+           "success": float(episodes["success"].mean())}
+    print(f"{row['kind']:6s} workers {workers}: {n} episodes in {wall:.1f} s = {row['episodes_per_s']} episodes/s "
+          f"(start-up + 1 episode {startup:.1f} s; steady {row['steady_episodes_per_s']} episodes/s)", flush=True)
+    return row, episodes
+
+
+def main(args: Args) -> None:
+    gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else None
+    load_before = os.getloadavg()[0]
+    timed(args, 1, 1, False)  # warm-up: the first env of this machine (asset caches, the lite robot's meshes)
+    rows, same = [], {}
+    for kind, filmed in (("state", False), ("filmed", True)):
+        if filmed and args.filmed < 1:
+            continue
+        played = []
+        for n in args.workers:
+            row, episodes = measure(args, n, filmed)
+            rows.append(row)
+            played.append(episodes)
+        same[kind] = all(p.equals(played[0]) for p in played[1:])
     result = {
-        "backend": "physx_cpu", "num_envs": 1, "policy": "scripted", "num_objects": 5,
-        "state_only": {"episodes": args.episodes, "wall_s": round(state_s, 2),
-                       "episodes_per_s": round(args.episodes / state_s, 3),
-                       "env_steps_per_s": round(50 * args.episodes / state_s, 1)},
-        "filmed": {"episodes": args.filmed, "wall_s": round(video_s, 2),
-                   "s_per_episode": round(video_s / args.filmed, 2)},
-        "load_average_1min": os.getloadavg()[0], "cpu_count": os.cpu_count(),
-        "provenance": io.provenance(),
+        "benchmark": "eval_speed", "policy": "scripted", "sim_backend": "physx_cpu",
+        "condition": f"{args.regime}/canonical/{args.num_objects}", "robot_mesh": args.robot_mesh,
+        "renderer": "cuda" if gpu else "lavapipe (CPU)", "rows": rows,
+        "same_episodes_for_every_worker_count": same,
+        "machine": {"cores": cores(), "gpu": gpu, "load_average_1min": [load_before, os.getloadavg()[0]]},
+        "provenance": files.provenance(),
     }
-    io.write_json(RESULT, result)
-    print(f"state only: {result['state_only']['episodes_per_s']} episodes/s "
-          f"({result['state_only']['env_steps_per_s']} env steps/s); filmed: "
-          f"{result['filmed']['s_per_episode']} s/episode (load {result['load_average_1min']:.1f}); wrote {RESULT}")
+    out = args.out or RESULTS / ("eval_speed_cuda.json" if gpu else "eval_speed.json")
+    files.write_json(out, result)
+    print(f"same episodes for every worker count: {same}; load {os.getloadavg()[0]:.1f}; wrote {out}")
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))

@@ -7,44 +7,48 @@ with random weights (latency does not depend on them):
   - with --full: SmolVLA at its real size (SmolVLM2-500M backbone truncated to 16 layers, as
     lerobot/smolvla_base), built offline from a local config.
 
-    python benchmarks/policy_latency.py [--full] [--device cpu|cuda] [--threads N] [--batch 1] [--repeats 5]
+    .venv/bin/python benchmarks/policy_latency.py [--full] [--device cpu|cuda] [--threads N] [--batch 1] [--repeats 5]
 
-Writes benchmarks/results/policy_latency_<device>.json.
+Writes benchmarks/results/policy_latency_<device>.json (cpu or cuda; --out elsewhere). Rows of earlier runs with
+other models, batches or thread counts stay in the file; a re-measured one is replaced.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import statistics
-import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import torch  # noqa: E402
+import tyro  # noqa: E402
 
-from vla_ladder import io  # noqa: E402
-from vla_ladder.training.dataset import ACTION_DIM, CAMERA_KEYS, STATE_DIM, STATE_KEY  # noqa: E402
+from vla_ladder import files  # noqa: E402
+from vla_ladder.contract import ACTION_DIM, ACTION_KEY, CAMERA_KEYS, IMAGE_SHAPE, STATE_DIM, STATE_KEY  # noqa: E402
+from vla_ladder.machine import cores  # noqa: E402
 from vla_ladder.training.tiny import build_vlm_dir  # noqa: E402
 
 CHUNK = 16
+CHW = (IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1])  # how LeRobot declares a camera
 
 
 def features():
     from lerobot.configs import FeatureType, PolicyFeature
 
-    inputs = {k: PolicyFeature(FeatureType.VISUAL, (3, 256, 256)) for k in CAMERA_KEYS}
+    inputs = {k: PolicyFeature(FeatureType.VISUAL, CHW) for k in CAMERA_KEYS}
     inputs[STATE_KEY] = PolicyFeature(FeatureType.STATE, (STATE_DIM,))
-    return inputs, {"action": PolicyFeature(FeatureType.ACTION, (ACTION_DIM,))}
+    return inputs, {ACTION_KEY: PolicyFeature(FeatureType.ACTION, (ACTION_DIM,))}
 
 
 def stats():
-    unit = lambda d: {"mean": torch.zeros(d), "std": torch.ones(d), "min": -torch.ones(d), "max": torch.ones(d),  # noqa: E731
-                      "q01": -torch.ones(d), "q99": torch.ones(d)}
-    return {STATE_KEY: unit(STATE_DIM), "action": unit(ACTION_DIM)}
+    def unit(d: int) -> dict:
+        return {"mean": torch.zeros(d), "std": torch.ones(d), "min": -torch.ones(d), "max": torch.ones(d),
+                "q01": -torch.ones(d), "q99": torch.ones(d)}
+    return {STATE_KEY: unit(STATE_DIM), ACTION_KEY: unit(ACTION_DIM)}
 
 
 def build(kind: str, device: str, vlm_root: Path):
@@ -75,7 +79,7 @@ def build(kind: str, device: str, vlm_root: Path):
 
 def observation(batch: int, device: str) -> dict:
     g = torch.Generator().manual_seed(0)
-    obs = {k: torch.rand(batch, 3, 256, 256, generator=g).to(device) for k in CAMERA_KEYS}
+    obs = {k: torch.rand(batch, *CHW, generator=g).to(device) for k in CAMERA_KEYS}
     obs[STATE_KEY] = torch.randn(batch, STATE_DIM, generator=g).to(device)
     obs["task"] = ["grasp the apple"] * batch
     return obs
@@ -108,15 +112,27 @@ def time_chunks(kind: str, device: str, batch: int, repeats: int, vlm_root: Path
     return row
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--batch", type=int, default=1)
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--full", action="store_true", help="also the full-size SmolVLA architecture")
-    p.add_argument("--full-repeats", type=int, default=3)
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
-    args = p.parse_args(argv)
+@dataclass
+class Args:
+    """Inference latency per action chunk of tiny (and full-size) LeRobot policies."""
+
+    device: str = "cpu"
+    """torch device of the policies: cpu, cuda, cuda:1, ..."""
+    batch: int = 1
+    """observations per chunk (parallel episodes of a batched evaluation)"""
+    repeats: int = 5
+    """timed chunks per tiny model (after one warm-up chunk)"""
+    full: bool = False
+    """also the full-size SmolVLA architecture (450M parameters)"""
+    full_repeats: int = 3
+    """timed chunks of the full-size SmolVLA"""
+    threads: int | None = None
+    """torch CPU threads (default: torch's choice)"""
+    out: Path | None = None
+    """result JSON (default: benchmarks/results/policy_latency_<cpu|cuda>.json)"""
+
+
+def main(args: Args) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     load_before = os.getloadavg()[0]
@@ -126,19 +142,19 @@ def main(argv=None) -> int:
             rows.append(time_chunks(kind, args.device, args.batch, args.repeats, Path(tmp)))
         if args.full:
             rows.append(time_chunks("smolvla-full", args.device, args.batch, args.full_repeats, Path(tmp)))
+    gpu = torch.cuda.get_device_name(torch.device(args.device)) if args.device.startswith("cuda") else None
     for row in rows:
-        row.update(torch_threads=torch.get_num_threads(), load_average_1min=[load_before, os.getloadavg()[0]])
-    out = Path(__file__).parent / "results" / f"policy_latency_{args.device.split(':')[0]}.json"
-    # Rows of earlier invocations (other models, thread counts) stay; a re-measured one is replaced.
+        row.update(torch_threads=torch.get_num_threads(), load_average_1min=[load_before, os.getloadavg()[0]],
+                   gpu=gpu)
+    out = args.out or Path(__file__).parent / "results" / f"policy_latency_{args.device.split(':')[0]}.json"
     key = lambda r: (r["policy"], r["device"], r["batch"], r.get("torch_threads"))  # noqa: E731
     old = json.loads(out.read_text())["results"] if out.is_file() else []
     fresh = {key(r) for r in rows}
     rows = [r for r in old if key(r) not in fresh] + rows
-    io.write_json(out, {"benchmark": "policy_latency", "cpu_count": os.cpu_count(), "results": rows,
-                        "provenance": io.provenance()})
+    files.write_json(out, {"benchmark": "policy_latency", "cpu_count": os.cpu_count(), "cores": cores(),
+                           "results": rows, "provenance": files.provenance()})
     print(f"wrote {out}")
-    return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main(tyro.cli(Args))

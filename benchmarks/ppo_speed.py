@@ -1,45 +1,74 @@
 """Env-steps/s of PPO expert training (rollout + update, the training loop only), and optionally the
 wall-clock a finished training run took to reach a success rate.
 
-    .venv/bin/python benchmarks/ppo_speed.py                                      # CPU: 1 env, then 2
-    .venv/bin/python benchmarks/ppo_speed.py --sim-backend physx_cuda --num-envs 1024 4096
-    .venv/bin/python benchmarks/ppo_speed.py --sim-backend physx_cuda --from-run runs/ppo
+    .venv/bin/python benchmarks/ppo_speed.py                        # CPU: 1 env, then 2 (one process each)
+    python benchmarks/ppo_speed.py --num-envs 16                     # GPU machine: 16 CPU envs, networks on CUDA
+    python benchmarks/ppo_speed.py --sim-backend physx_cuda --num-envs 1024 4096 --from-run runs/ppo
+                                                                     # needs SAPIEN's PhysX GPU library (docs/gpu.md)
 
-Writes benchmarks/results/ppo_speed_cpu.json (or _cuda.json).
+Each measurement is `vla-ladder train-expert` for --iterations iterations (50 steps per env each) from scratch
+with the paper's settings otherwise, on full_random with 5 objects. Writes benchmarks/results/ppo_speed_cpu.json,
+or ppo_speed_cuda.json when the networks run on a CUDA GPU (--out elsewhere).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import platform
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+import tyro
 
-from vla_ladder import io
-from vla_ladder.experts import ppo
+from vla_ladder import files
+from vla_ladder.conditions import ConditionGrid
+from vla_ladder.contract import EPISODE_STEPS
+from vla_ladder.machine import cores
+from vla_ladder.ppo.config import Args as PPOArgs
+from vla_ladder.ppo.train import train
 
 RESULTS = Path(__file__).parent / "results"
 
 
-def measure(sim_backend: str, num_envs: int, iterations: int) -> dict:
+@dataclass
+class Args:
+    """Env-steps/s of PPO expert training, and time to a success rate of a finished run."""
+
+    sim_backend: str = "physx_cpu"
+    """physx_cpu (one process per env) or physx_cuda (GPU-parallel envs)"""
+    num_envs: tuple[int, ...] = ()
+    """env counts to measure (default: 1 2 on physx_cpu, 1024 on physx_cuda)"""
+    iterations: int = 3
+    """training iterations (50 steps per env) per measurement"""
+    cuda: bool = True
+    """run the networks on CUDA when there is a GPU"""
+    from_run: Path | None = None
+    """also report the time a finished run (its evals.json) took to reach --target success"""
+    target: float = 0.9
+    """evaluation success rate for --from-run"""
+    out: Path | None = None
+    """result JSON (default: benchmarks/results/ppo_speed_<cpu|cuda>.json)"""
+
+
+def measure(args: Args, num_envs: int) -> dict:
     """Train `iterations` PPO iterations from scratch with the paper's settings otherwise."""
     with tempfile.TemporaryDirectory() as tmp:
-        args = ppo.Args(out=tmp, sim_backend=sim_backend, num_envs=num_envs, progress=False,
-                        total_timesteps=iterations * num_envs * 50, eval_freq=10**9, eval_episodes=1,
-                        regimes=("full_random",), num_objects=(5,))
+        ppo = PPOArgs(out=Path(tmp), sim_backend=args.sim_backend, num_envs=num_envs, cuda=args.cuda, progress=False,
+                      total_timesteps=args.iterations * num_envs * EPISODE_STEPS, eval_freq=10**9, eval_episodes=1,
+                      grid=ConditionGrid(regimes=("full_random",), num_objects=(5,)))
         t0 = time.perf_counter()
-        state = ppo.train(args)
+        state = train(ppo)
         total = time.perf_counter() - t0
-    return {"sim_backend": sim_backend, "num_envs": num_envs, "iterations": iterations,
-            "env_steps": state["global_step"], "train_loop_s": round(state["wall_s"], 2),
-            "env_steps_per_s": round(state["global_step"] / state["wall_s"], 1),
-            "last_iteration_env_steps_per_s": round(state["sps"], 1),
-            "wall_s_including_startup_and_final_eval": round(total, 1)}
+    row = {"sim_backend": args.sim_backend, "num_envs": num_envs, "iterations": args.iterations,
+           "env_steps": state["global_step"], "train_loop_s": round(state["wall_s"], 2),
+           "env_steps_per_s": round(state["global_step"] / state["wall_s"], 1),
+           "last_iteration_env_steps_per_s": round(state["sps"], 1),
+           "wall_s_including_startup_and_final_eval": round(total, 1)}
+    print(json.dumps(row), flush=True)
+    return row
 
 
 def time_to_success(run: Path, target: float) -> dict:
@@ -52,32 +81,23 @@ def time_to_success(run: Path, target: float) -> dict:
                       **{m: evals[-1]["all"][m] for m in ("success", "grasp_any", "reach")}} if evals else None}
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--sim-backend", default="physx_cpu", choices=ppo.SIM_BACKENDS)
-    p.add_argument("--num-envs", type=int, nargs="+", default=None,
-                   help="env counts to measure (default: 1 2 on CPU, 1024 on GPU)")
-    p.add_argument("--iterations", type=int, default=3, help="training iterations (50 steps per env) each")
-    p.add_argument("--from-run", type=Path, help="also report time to --target success of this finished run")
-    p.add_argument("--target", type=float, default=0.9)
-    a = p.parse_args()
-    counts = a.num_envs or ([1, 2] if a.sim_backend == "physx_cpu" else [1024])
-    rows = []
-    for n in counts:
-        rows.append(measure(a.sim_backend, n, a.iterations))
-        print(json.dumps(rows[-1]))
-    result = {"benchmark": "ppo_speed", "rows": rows,
-              "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                          "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
-                          "load_average_1min": round(os.getloadavg()[0], 2)},
-              "provenance": io.provenance()}
-    if a.from_run:
-        result["time_to_success"] = time_to_success(a.from_run, a.target)
+def main(args: Args) -> None:
+    gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else None
+    load_before = os.getloadavg()[0]
+    counts = args.num_envs or ((1, 2) if args.sim_backend == "physx_cpu" else (1024,))
+    rows = [measure(args, n) for n in counts]
+    network = "cuda" if gpu and (args.cuda or args.sim_backend == "physx_cuda") else "cpu"
+    result = {"benchmark": "ppo_speed", "network_device": network, "rows": rows,
+              "machine": {"cores": cores(), "cpu_count": os.cpu_count(), "gpu": gpu,
+                          "load_average_1min": [load_before, os.getloadavg()[0]]},
+              "provenance": files.provenance()}
+    if args.from_run:
+        result["time_to_success"] = time_to_success(args.from_run, args.target)
         print(json.dumps(result["time_to_success"]))
-    kind = "cpu" if a.sim_backend == "physx_cpu" else "cuda"
-    io.write_json(RESULTS / f"ppo_speed_{kind}.json", result)
-    print(f"wrote {RESULTS / f'ppo_speed_{kind}.json'}")
+    out = args.out or RESULTS / f"ppo_speed_{network}.json"
+    files.write_json(out, result)
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))

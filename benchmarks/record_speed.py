@@ -1,86 +1,148 @@
-"""Recording throughput on this machine, end to end and stage by stage.
+"""Recording throughput on this machine: demos/s end to end against worker processes, and stage by stage.
 
-End to end: `vla-ladder record` with its embedded server (simulation and writing in two processes, video
-encoding on CPU): successful demos/s and frames/s. Then each stage alone, in this process, on the same
-kind of episodes, to say where the time goes:
-  render   - Simulator.run: physics + expert + both 256x256 cameras, per episode; physics + expert alone
-             is timed on a state-only env, the difference is rendering;
-  transfer - a real episode message (protocol.encode -> WebSocket over 127.0.0.1 -> decode);
-  encode   - DatasetStore.add (LeRobot add_frame/save_episode: AV1 video by default) plus the commit.
+    .venv/bin/python benchmarks/record_speed.py [--episodes 8] [--workers 1 2] [--num-objects 2]
 
-    python benchmarks/record_speed.py [--episodes 4] [--num-objects 2] [--out benchmarks/results/record_speed_cpu.json]
+End to end: `vla-ladder record --workers N` for each N (N local `vla-ladder serve` processes simulate and
+render, the recorder receives and writes): successful demos/s with start-up included, and as the recorder
+reports it once its servers are up. Then each stage alone, in this process, on the same kind of
+episodes, with and without the per-episode scene rebuild (ServeConfig.rebuild_scenes; `record`'s local servers
+do not rebuild, evaluation does), to say where the time goes:
+  physics  - physics + the scripted expert on a state-only env, per episode (reset included);
+  render   - the server's Simulator.run (physics + expert + both 256x256 cameras) minus physics;
+  transfer - a real episode message: protocol.encode -> WebSocket over 127.0.0.1 -> decode;
+  encode   - DatasetStore.add: LeRobot add_frame/save_episode, AV1 video (and PNG images for comparison);
+  write    - DatasetStore commit (finalize, statistics, card, fsync, atomic swap), per episode it held.
+The servers run in parallel and the writer is one process, so the pipeline runs at its slowest stage, with
+simulation divided among N workers, and no faster than the cores allow: the result names that bottleneck.
+
+Writes benchmarks/results/record_speed_cpu.json (record_speed_cuda.json where a CUDA GPU renders), or --out.
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import os
+import re
 import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("MS_SKIP_ASSET_DOWNLOAD_PROMPT", "1")
-os.environ.setdefault("SVT_LOG", "1")
+os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its configuration for every video otherwise
 
-from vla_ladder import io  # noqa: E402
+import torch  # noqa: E402
+import tyro  # noqa: E402
 
-REGIME = "small_jitter"
+from vla_ladder import files  # noqa: E402
+from vla_ladder.conditions import Condition  # noqa: E402
+from vla_ladder.contract import EPISODE_STEPS  # noqa: E402
+from vla_ladder.machine import cores  # noqa: E402
+
+RESULTS = Path(__file__).parent / "results"
 
 
-def end_to_end(episodes: int, num_objects: int, work: Path) -> dict:
-    out = work / "e2e"
-    cmd = [sys.executable, "-m", "vla_ladder.cli", "record", "--regime", REGIME, "--num-objects", str(num_objects),
-           "--episodes", str(episodes), "--out", str(out), "--commit-every", "1"]
-    t0 = time.perf_counter()
-    subprocess.run(cmd, check=True)
-    wall = time.perf_counter() - t0
-    from vla_ladder.recording.writer import read_recording_state
+@dataclass
+class Args:
+    """Recording demos/s end to end against workers, and seconds per episode of each stage."""
+
+    episodes: int = 8
+    """successful demos per end-to-end run, and episodes per stage measurement"""
+    workers: tuple[int, ...] = (1, 2)
+    """`record --workers` counts to measure end to end"""
+    regime: str = "small_jitter"
+    """placement regime"""
+    num_objects: int = 2
+    """objects on the table"""
+    robot_mesh: str = "lite"
+    """lite or full robot visual meshes"""
+    end_to_end: bool = True
+    """run `vla-ladder record` (--no-end-to-end: the stages only)"""
+    out: Path | None = None
+    """result JSON (default: benchmarks/results/record_speed_<cpu|cuda>.json)"""
+
+
+def end_to_end(args: Args, workers: int, work: Path) -> dict:
+    out = work / f"e2e-{workers}"
+    cmd = [sys.executable, "-m", "vla_ladder.cli", "record", "--out", str(out), "--episodes", str(args.episodes),
+           "--workers", str(workers), "--regime", args.regime, "--num-objects", str(args.num_objects),
+           "--robot-mesh", args.robot_mesh]
+    log = work / f"record-{workers}.log"
+    started = time.time()
+    with open(log, "w") as f:
+        proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT)
+    wall = time.time() - started
+    if proc.returncode != 0:
+        sys.exit(f"`{' '.join(cmd[2:])}` failed ({proc.returncode}):\n{log.read_text()[-3000:]}")
+    from vla_ladder.recordings import read_provenance, read_recording_state
+
     c = read_recording_state(out)["counters"]
-    return {"episodes_saved": c["saved"], "episodes_attempted": c["attempted"], "wall_s": wall,
-            "demos_per_s": c["saved"] / wall, "frames_per_s": 50 * c["saved"] / wall,
-            "note": "includes start-up: imports and building the simulator (~30-50 s here)"}
+    first = min(datetime.fromisoformat(t).timestamp() for t in read_provenance(out)["recorded_at"])
+    # The recorder's last progress line: demos/s since its servers were ready (start-up excluded).
+    done = re.findall(r"done: .* ([0-9.]+) demos/s saved", log.read_text())
+    row = {"workers": workers, "episodes_saved": c["saved"], "episodes_attempted": c["attempted"],
+           "wall_s": round(wall, 1), "demos_per_s": round(c["saved"] / wall, 4),
+           "frames_per_s": round(EPISODE_STEPS * c["saved"] / wall, 2), "first_demo_after_s": round(first - started, 1),
+           "after_startup_demos_per_s": float(done[-1]) if done else None}
+    print(f"end to end, --workers {workers}: {c['saved']} demos ({c['attempted']} attempted) in {wall:.0f} s = "
+          f"{row['demos_per_s']} demos/s with start-up (first after {row['first_demo_after_s']} s), "
+          f"{row['after_startup_demos_per_s']} demos/s once the servers were up", flush=True)
+    return row
 
 
-def render(episodes: int, num_objects: int) -> tuple[dict, list]:
-    import torch
-
-    from vla_ladder.policies import load_policy
-    from vla_ladder.recording.client import Episode
-    from vla_ladder.recording.protocol import decode, encode
-    from vla_ladder.recording.server import ServerConfig, Simulator
-
-    t0 = time.perf_counter()
-    sim = Simulator(ServerConfig(regime=REGIME, num_objects=num_objects))
-    build = time.perf_counter() - t0
-    results, times = [], []
-    for seed in range(episodes):
-        t = time.perf_counter()
-        (r,) = sim.run([seed])
-        times.append(time.perf_counter() - t)
-        results.append(Episode.from_message(decode(encode({**r.header, "has_frames": True}, r.arrays)), "local"))
-    sim.close()
-    # The same episodes without cameras: physics + expert only.
+def physics(args: Args, rebuild: bool) -> dict:
+    """Physics + expert, no cameras: s per episode, reset apart."""
     import gymnasium as gym
-    env = gym.make("GraspObject-v1", obs_mode="state_dict", regime=REGIME, num_objects=num_objects)
+
+    import vla_ladder.task.env  # noqa: F401  (registers GraspObject-v1)
+    from vla_ladder.contract import ENV_ID
+    from vla_ladder.policies import load_policy
+
+    env = gym.make(ENV_ID, obs_mode="state_dict", regime=args.regime, num_objects=args.num_objects,
+                   reconfiguration_freq=1 if rebuild else 0)
     expert = load_policy("scripted")
-    state_times = []
-    for seed in range(episodes):
+    env.reset(seed=10**6)  # warm-up
+    resets, steps = [], []
+    for seed in range(args.episodes):
         t = time.perf_counter()
         obs, _ = env.reset(seed=seed)
         expert.reset([seed])
-        for _ in range(50):
+        t1 = time.perf_counter()
+        for _ in range(EPISODE_STEPS):
             obs, *_ = env.step(expert.act(obs, env.unwrapped.instructions).to(torch.float32))
-        state_times.append(time.perf_counter() - t)
+        resets.append(t1 - t)
+        steps.append(time.perf_counter() - t1)
     env.close()
-    per_ep = sum(times) / len(times)
-    physics = sum(state_times) / len(state_times)
-    return {"simulator_build_s": build, "s_per_episode": per_ep, "physics_and_expert_s_per_episode": physics,
-            "rendering_s_per_episode": per_ep - physics, "steps_per_s": 50 / per_ep,
-            "successes": sum(e.success for e in results)}, results
+    return {"reset_s": sum(resets) / len(resets), "steps_s": sum(steps) / len(steps)}
+
+
+def simulate(args: Args, rebuild: bool) -> tuple[dict, list]:
+    """The server's Simulator (physics + expert + both cameras): s per episode, reset apart, and its episodes."""
+    from vla_ladder.recording.client import Episode
+    from vla_ladder.recording.protocol import decode, encode
+    from vla_ladder.recording.server import ServeConfig, Simulator
+
+    t0 = time.perf_counter()
+    sim = Simulator(ServeConfig(condition=Condition(args.regime, "canonical", args.num_objects), port=0,
+                                rebuild_scenes=rebuild, robot_mesh=args.robot_mesh))
+    build = time.perf_counter() - t0
+    sim.run([10**6])  # warm-up: the first render
+    totals, steps, episodes = [], [], []
+    for seed in range(args.episodes):
+        t = time.perf_counter()
+        (r,) = sim.run([seed])
+        totals.append(time.perf_counter() - t)
+        steps.append(r.header["sim_seconds"])
+        episodes.append(Episode.from_message(decode(encode({**r.header, "has_frames": True}, r.arrays)), "local"))
+    sim.close()
+    total = sum(totals) / len(totals)
+    step = sum(steps) / len(steps)
+    return {"build_s": build, "episode_s": total, "reset_s": total - step, "steps_s": step,
+            "success_rate": sum(e.success for e in episodes) / len(episodes)}, episodes
 
 
 def transfer(episode, repeats: int = 5) -> dict:
@@ -115,11 +177,14 @@ def transfer(episode, repeats: int = 5) -> dict:
     return {"message_bytes": size, "s_per_episode": per, "MB_per_s": size / per / 1e6}
 
 
-def encode(episodes: list, work: Path, video: bool) -> dict:
-    from vla_ladder.recording.writer import DatasetStore, RecordingConfig
+def encode_and_write(args: Args, episodes: list, work: Path, video: bool) -> dict:
+    """DatasetStore.add for every episode (encode), then one commit of them all (write)."""
+    from vla_ladder.recording.store import DatasetStore
+    from vla_ladder.recordings import Recording
 
-    store = DatasetStore(work / ("video" if video else "images"), RecordingConfig(
-        regime=REGIME, num_objects=episodes[0].header["num_objects"], video=video), commit_every=10**6)
+    recording = Recording(policy="scripted", condition=Condition(args.regime, "canonical", args.num_objects),
+                          video=video, robot_mesh=args.robot_mesh)
+    store = DatasetStore(work / ("video" if video else "images"), recording, commit_every=10**6)
     t0 = time.perf_counter()
     for e in episodes:
         store.count(True)
@@ -129,51 +194,76 @@ def encode(episodes: list, work: Path, video: bool) -> dict:
     store.close()
     commit = time.perf_counter() - t
     size = sum(f.stat().st_size for f in store.root.rglob("*") if f.is_file())
-    return {"s_per_episode": (added + commit) / len(episodes), "add_s_per_episode": added / len(episodes),
-            "commit_s": commit, "bytes_per_episode": size / len(episodes)}
+    n = len(episodes)
+    return {"encode_s_per_episode": added / n, "write_s_per_episode": commit / n, "commit_s": commit,
+            "episodes_per_commit": n, "bytes_per_episode": size / n}
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--episodes", type=int, default=4)
-    p.add_argument("--num-objects", type=int, default=2)
-    p.add_argument("--out", default=str(Path(__file__).parent / "results" / "record_speed_cpu.json"))
-    args = p.parse_args()
+def pipeline(stages: dict, success: float, workers: int, n_cores: int) -> dict:
+    """Seconds per saved demo of each stage given its parallelism, the slowest one, and the bound it sets."""
+    per_demo = {"physics": stages["physics"] / success / workers, "render": stages["render"] / success / workers,
+                "transfer": stages["transfer"], "encode": stages["encode"], "write": stages["write"]}
+    slowest = max(per_demo, key=per_demo.get)
+    cpu = {k: v * (workers if k in ("physics", "render") else 1) for k, v in per_demo.items()}  # CPU s per demo
+    stage_bound, core_bound = 1 / per_demo[slowest], n_cores / sum(cpu.values())
+    return {"workers": workers, "s_per_demo": per_demo, "slowest_stage": slowest,
+            "stage_bound_demos_per_s": stage_bound, "cores_bound_demos_per_s": core_bound,
+            "demos_per_s_bound": min(stage_bound, core_bound),
+            "bottleneck": slowest if stage_bound <= core_bound else f"cores ({max(cpu, key=cpu.get)}: largest share)"}
+
+
+def main(args: Args) -> None:
+    gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else None
+    load_before = os.getloadavg()[0]
+    result: dict = {"benchmark": "record_speed", "policy": "scripted", "robot_mesh": args.robot_mesh,
+                    "condition": Condition(args.regime, "canonical", args.num_objects).key,
+                    "renderer": "cuda" if gpu else "lavapipe (CPU)"}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        print("end to end ...", flush=True)
-        e2e = end_to_end(args.episodes, args.num_objects, work)
-        print("render ...", flush=True)
-        rend, eps = render(args.episodes, args.num_objects)
-        ok = [e for e in eps if e.success] or eps  # encoding cost does not depend on success
-        print("transfer ...", flush=True)
-        trans = transfer(eps[0])
-        print("encode ...", flush=True)
-        enc_video = encode(ok, work, video=True)
-        enc_images = encode(ok, work, video=False)
-    stages = {"render": rend["s_per_episode"], "transfer": trans["s_per_episode"], "encode": enc_video["s_per_episode"]}
-    # Server and writer are separate processes, so once started the pipeline runs at its slowest stage
-    # (given a core each); the writer keeps only the expert's successes.
-    success_rate = e2e["episodes_saved"] / e2e["episodes_attempted"]
-    steady = success_rate / max(stages.values())
-    result = {
-        "machine": f"{os.cpu_count()} CPU cores, no GPU (software Vulkan rendering); load average "
-                   f"{os.getloadavg()[0]:.1f} at the end",
-        "condition": {"regime": REGIME, "num_objects": args.num_objects, "policy": "scripted", "num_envs": 1},
-        "end_to_end": e2e, "render": rend, "transfer": trans, "encode_video": enc_video, "encode_images": enc_images,
-        "stage_s_per_episode": stages, "bottleneck": max(stages, key=stages.get),
-        "steady_state_bound": {"demos_per_s": steady, "frames_per_s": 50 * steady,
-                               "how": "expert success rate / slowest stage's s per episode"},
-        "provenance": io.provenance(),
-    }
-    io.write_json(args.out, result)
-    print(f"end to end: {e2e['demos_per_s']:.3f} successful demos/s, {e2e['frames_per_s']:.1f} frames/s "
-          f"({e2e['episodes_saved']} saved of {e2e['episodes_attempted']} in {e2e['wall_s']:.0f} s with start-up); "
-          f"steady-state bound {steady:.3f} demos/s, {50 * steady:.1f} frames/s")
-    print("per episode: " + ", ".join(f"{k} {v:.2f} s" for k, v in stages.items())
-          + f" (rendering {rend['rendering_s_per_episode']:.2f} s of the render stage)")
-    print(f"bottleneck: {result['bottleneck']}; wrote {args.out}")
+        if args.end_to_end:
+            result["end_to_end"] = [end_to_end(args, n, work) for n in args.workers]
+        stages = {}
+        for rebuild in (False, True):
+            print(f"stages, rebuild_scenes={rebuild} ...", flush=True)
+            phys, (sim, episodes) = physics(args, rebuild), simulate(args, rebuild)
+            stages[rebuild] = {"physics_and_expert": phys, "simulator": sim}
+        ok = [e for e in episodes if e.success] or episodes
+        for e in ok:  # encoding does not depend on success, but only successes are written
+            e.header["metrics"]["success"] = True
+        print("transfer, encode, write ...", flush=True)
+        trans = transfer(ok[0])
+        video = encode_and_write(args, ok, work, video=True)
+        images = encode_and_write(args, ok, work, video=False)
+    success = stages[False]["simulator"]["success_rate"] or 1 / args.episodes
+    n_cores = cores()
+    per_episode, bounds = {}, {}
+    for rebuild, s in stages.items():
+        phys = s["physics_and_expert"]["reset_s"] + s["physics_and_expert"]["steps_s"]
+        key = "rebuild" if rebuild else "no_rebuild"
+        per_episode[key] = {"physics": phys, "render": s["simulator"]["episode_s"] - phys,
+                            "transfer": trans["s_per_episode"], "encode": video["encode_s_per_episode"],
+                            "write": video["write_s_per_episode"]}
+        bounds[key] = [pipeline(per_episode[key], success, n, n_cores) for n in args.workers]
+    result.update({
+        "stages": {"no_rebuild": stages[False], "rebuild": stages[True]}, "transfer": trans,
+        "encode_and_write_video": video, "encode_and_write_images": images,
+        "stage_s_per_episode": per_episode, "expert_success_rate": success,
+        "steady_state_bounds": bounds,
+        "how": "s_per_demo: a stage's seconds per episode / expert success rate / workers for the simulation stages "
+               "(one server process each); the writer (encode, write) is one process. The pipeline runs at its "
+               "slowest stage, and no faster than cores / the CPU seconds one demo costs in all stages.",
+        "machine": {"cores": n_cores, "gpu": gpu, "load_average_1min": [load_before, os.getloadavg()[0]]},
+        "provenance": files.provenance(ok[0].header["object_set"]),
+    })
+    out = args.out or RESULTS / f"record_speed_{'cuda' if gpu else 'cpu'}.json"
+    files.write_json(out, result)
+    for key, stage in per_episode.items():
+        print(f"{key}: s per episode: " + ", ".join(f"{k} {v:.2f}" for k, v in stage.items()))
+        for b in bounds[key]:
+            print(f"  --workers {b['workers']}: bound {b['demos_per_s_bound']:.3f} demos/s, bottleneck "
+                  f"{b['bottleneck']}")
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))
