@@ -12,8 +12,9 @@ export HF_HUB_OFFLINE=1 TRANSFORMERS_OFFLINE=1 MS_SKIP_ASSET_DOWNLOAD_PROMPT=1 W
 OUT=${1:-outputs}
 EPISODES=${VLA_LADDER_EPISODES:-20}
 mkdir -p "$OUT"
-.venv/bin/vla-ladder placements --regime all --n 500 --seed 0 --json "$OUT/placements.json" --plot "$OUT/placements.png"
-.venv/bin/vla-ladder render --regime all --seed 0 --out "$OUT/renders"
-.venv/bin/vla-ladder experiment ladder --policy scripted --policy nearest --policy layout-prior --policy random \
+.venv/bin/vla-ladder placements --regimes all --n 500 --first-seed 0 --json "$OUT/placements.json" \
+  --plot "$OUT/placements.png"
+.venv/bin/vla-ladder render --regimes all --seed 0 --out "$OUT/renders"
+.venv/bin/vla-ladder experiment ladder --policy scripted nearest layout-prior random \
   --episodes "$EPISODES" --videos 1 --out "$OUT/ladder"
 echo "report: $(cd "$OUT/ladder" && pwd)/report.html"

@@ -359,3 +359,18 @@ def test_os_errors_are_described_with_their_path_and_fix():
     e = FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), "/runs/ppo/model.safetensors")
     assert checks.os_error_message(e) == "/runs/ppo/model.safetensors: No such file or directory; check the path"
     assert checks.os_error_message(OSError("weird")) == "weird"
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["experiment", "ladder", "--policy", "scripted", "--policy", "nearest", "--out", "x"], "--policy"),
+    (["record", "--server", "ws://127.0.0.1:1", "--server=ws://127.0.0.1:2", "--episodes", "1", "--out", "x"],
+     "--server"),
+    (["eval", "--policy", "random", "--episodes", "1", "--episodes", "2", "--out", "x"], "--episodes"),
+])
+def test_a_flag_given_twice_is_refused_not_silently_dropped(argv, flag, capsys, tmp_path, monkeypatch):
+    """tyro keeps a repeated flag's last value: `--policy a --policy b` would evaluate b alone."""
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{flag} is given twice" in err and "Traceback" not in err
+    assert not (tmp_path / "x").exists()

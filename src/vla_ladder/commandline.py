@@ -17,8 +17,23 @@ def parse_config(cls: type[T], argv: list[str], prog: str, description: str | No
     rejects raises ValueError with the message that names what is allowed."""
     import tyro
 
+    check_no_repeated_flags(argv)
     with _one_line_value_errors():
         return tyro.cli(cls, args=argv, prog=prog, description=description, default=default)
+
+
+def check_no_repeated_flags(argv: list[str]) -> None:
+    """ValueError for a flag given twice. tyro (like argparse) would keep the last one only, so
+    `--policy a --policy b` would silently evaluate b alone; a list flag takes all its values after one flag."""
+    seen = set()
+    for arg in argv:
+        if arg == "--":
+            break
+        if arg.startswith("--"):
+            flag = arg.split("=", 1)[0]
+            if flag in seen:
+                raise ValueError(f"{flag} is given twice; give a list's values after one {flag} (e.g. {flag} A B)")
+            seen.add(flag)
 
 
 @contextmanager

@@ -145,7 +145,8 @@ def eval_configs(entry: PolicyEntry, conditions: list[Condition], base: EvalConf
         groups.setdefault((c.split, c.num_objects), []).append(c.regime)
     return [EvalConfig(policy=entry.spec, out=out / f"{split}-{k}obj",
                        grid=ConditionGrid(tuple(regimes), (split,), (k,)), episodes=base.episodes,
-                       first_seed=base.first_seed, num_envs=base.num_envs, sim_backend=base.sim_backend,
+                       first_seed=base.first_seed, workers=base.workers, num_envs=base.num_envs,
+                       sim_backend=base.sim_backend,
                        videos=base.videos, object_set=base.object_set)
             for (split, k), regimes in groups.items()]
 
@@ -208,6 +209,8 @@ class ExperimentCommand:
     """first episode seed (default: the config's)"""
     videos: int = 0
     """record videos of the first N episodes per condition"""
+    workers: int = 0
+    """worker processes playing episodes on the CPU backend (0: one per core, capped by memory)"""
     num_envs: int = 1
     """episodes simulated at once (needs physx_cuda)"""
     sim_backend: str = "physx_cpu"
@@ -230,7 +233,8 @@ class ExperimentCommand:
                       for ec in eval_configs(e, conds, self.base_eval(), self.out / "runs" / e.slug)]
 
     def base_eval(self) -> EvalConfig:
-        return EvalConfig(episodes=self.config.episodes, first_seed=self.config.first_seed, num_envs=self.num_envs,
+        return EvalConfig(episodes=self.config.episodes, first_seed=self.config.first_seed, workers=self.workers,
+                          num_envs=self.num_envs,
                           sim_backend=self.sim_backend, videos=self.videos)
 
 

@@ -48,6 +48,8 @@ class RecordConfig:
     """parallel envs of each local server (more than one needs a GPU)"""
     robot_mesh: str = "lite"
     """how the local servers render the robot: lite (decimated visual meshes) or full (ManiSkill's)"""
+    rebuild_scenes: bool = False
+    """local servers rebuild the CPU scene every episode, so each recorded seed replays bit for bit (slower)"""
     instructions: str = "canonical"
     """how the local servers word instructions: canonical, paraphrase-train (record these to evaluate on held-out
     paraphrases) or paraphrase-heldout"""
@@ -133,7 +135,8 @@ def run(cfg: RecordConfig) -> int:
         else:
             from vla_ladder.machine import auto_workers
             n = auto_workers(cfg.workers)
-            local = [LocalServer(recording, cfg.num_envs, threads=1 if n > 1 else 0) for _ in range(n)]
+            local = [LocalServer(recording, cfg.num_envs, threads=1 if n > 1 else 0, rebuild=cfg.rebuild_scenes)
+                     for _ in range(n)]
             urls = [s.wait_ready() for s in local]  # they start side by side
         source = EpisodeSource(urls, store.reserve_seeds, cfg.episodes - store.saved,
                                check_server=lambda url, info: check_server(recording, url, info),
@@ -214,12 +217,13 @@ class LocalServer:
     """`vla-ladder serve` as a child process on 127.0.0.1 with a free port, tied to this process: it exits
     when our end of its stdin closes, so even a kill -9 of the recorder does not leave it behind."""
 
-    def __init__(self, recording: Recording, num_envs: int = 1, threads: int = 0):
+    def __init__(self, recording: Recording, num_envs: int = 1, threads: int = 0, rebuild: bool = False):
         c = recording.condition
         cmd = [sys.executable, "-m", "vla_ladder.cli", "serve", "--policy", recording.policy, "--regime", c.regime,
                "--split", c.split, "--num-objects", str(c.num_objects), "--num-envs", str(num_envs),
                "--robot-mesh", recording.robot_mesh, "--instructions", recording.instructions,
-               "--host", "127.0.0.1", "--port", "0", "--exit-on-stdin-close"]
+               "--host", "127.0.0.1", "--port", "0", "--exit-on-stdin-close",
+               *(["--rebuild-scenes"] if rebuild else [])]
         env = dict(os.environ)
         if threads:  # several servers on one machine: one renderer thread each instead of all fighting for all
             env.update(LP_NUM_THREADS=str(threads), OMP_NUM_THREADS=str(threads))
