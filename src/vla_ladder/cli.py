@@ -31,6 +31,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("vla_ladder.report.html:ReportConfig", "write a self-contained HTML report of runs"),
     "probe": ("vla_ladder.experiments.probes:ProbeConfig",
               "probe instruction grounding: instruction swap, paraphrases, appearance swap"),
+    "rebuild-provenance": ("vla_ladder.recording.provenance:RebuildProvenanceConfig",
+                           "give a dataset made by lerobot-edit-dataset its vla-ladder provenance back"),
     "check-dataset": ("vla_ladder.training.check_dataset:CheckDatasetConfig",
                       "check a recorded dataset: balance, coverage, leakage, seeds, frames, actions"),
     "study": ("vla_ladder.experiments.study:StudyCommand", "record, train, evaluate and report a learned policy"),

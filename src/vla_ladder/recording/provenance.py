@@ -14,11 +14,13 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import tyro
 
 from vla_ladder import files
 from vla_ladder.contract import ACTION_KEY, STATE_KEY
@@ -111,3 +113,24 @@ def _derived_state(states: list[dict], episodes: int, sources: list) -> dict:
             "updated": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "provenance": first.get("provenance", {}),
             "derived_from": [str(Path(s).resolve()) for s in sources]}
+
+
+@dataclass
+class RebuildProvenanceConfig:
+    """Give a dataset that LeRobot's editing tools made from recordings its vla-ladder provenance back."""
+
+    dataset: tyro.conf.Positional[Path]
+    """the edited LeRobotDataset (lerobot-edit-dataset's output)"""
+    sources: tuple[Path, ...]
+    """the recordings it was made from (for an in-place edit: DATASET_old)"""
+
+    def __post_init__(self):
+        for p in (self.dataset, *self.sources):
+            if not (Path(p) / "meta" / "info.json").is_file():
+                raise ValueError(f"{p} is not a LeRobotDataset (no meta/info.json)")
+
+
+def run(cfg: RebuildProvenanceConfig) -> int:
+    prov = rebuild(cfg.dataset, list(cfg.sources))
+    print(f"rebuilt the provenance of {len(prov)} episodes in {cfg.dataset}")
+    return 0
