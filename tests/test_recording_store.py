@@ -35,7 +35,8 @@ def synthetic_episode(seed: int, frames: int = FRAMES):
     shade = np.random.default_rng(seed).integers(0, 255, size=3)
     image = ((ramp[:, None, None] + shade) % 256).astype(np.uint8) * np.ones((1, 256, 1), np.uint8)
     header = {"seed": seed, "instruction": layout.instruction, "layout": layout.to_dict(), "target": layout.target,
-              "condition": "small_jitter/canonical/2", "object_set": "standin",
+              "condition": "small_jitter/canonical/2", "object_set": "standin", "robot_mesh": "lite",
+              "instructions": "canonical",
               "expert": {"spec": "scripted", "name": "scripted"}, "num_frames": frames, "has_frames": True,
               "metrics": {"success": True, "grasp_any": True, "reach": True, "lifted": True,
                           "held": layout.target, "reach_dist": 0.0}}

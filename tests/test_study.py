@@ -42,6 +42,8 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         "horizons: no horizon in [8] fits a chunk size in [4]": _micro(**{"grid.horizons": [8]}),
         "reference_policies: unknown 'oracle'": _micro(**{"evaluation.reference_policies": ["oracle"]}),
         "overlap the evaluation or validation seeds": _micro(**{"datasets.0.first_seed": 1}),
+        "policies[x].datasets: unknown dataset 'fr'": {**_micro(), "policies": [
+            {"name": "x", "type": "act", "steps": 1, "datasets": ["fr"]}]},
     }
     for message, data in bad.items():
         path = tmp_path / "study.json"
@@ -52,6 +54,24 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         assert not (tmp_path / "out").exists()
     assert main(["study", "nano", "--out", str(tmp_path / "out")]) == 2
     assert "allowed: " in capsys.readouterr().err
+
+
+def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
+    """cpu-mini's blind control is trained on sj only: no unit of it on pid or fr, every other model planned."""
+    from vla_ladder.experiments.study import Study, StudyCommand
+
+    study = Study(StudyCommand("cpu-mini", out=tmp_path / "s"))
+    models = [(p.name, d.name) for p, d, _ in study.models()]
+    assert models == [("SmolVLA-scratch", "sj"), ("SmolVLA-scratch", "pid"), ("SmolVLA-scratch", "fr"),
+                      ("SmolVLA-scratch-blind", "sj")]
+    trains = {u.id: u for u in study.train_units()}
+    assert sorted(trains) == sorted(f"train-{p}-{d}-b16c16" for p, d in models)
+    assert trains["train-SmolVLA-scratch-blind-sj-b16c16"].config["dataset"] == str(tmp_path / "s/data/sj-blind")
+    assert [u.id for u in study.select_units()] == [f"select-{p}-{d}-b16c16-h{h}" for p, d in models for h in (4, 8)]
+    # Blind models are not probed: they cannot follow an instruction.
+    chosen = study.best({})
+    assert [u.id for u in study.probe_units(chosen)] == [f"probe-SmolVLA-scratch-{d}-instruction-swap"
+                                                         for d in ("sj", "pid", "fr")]
 
 
 def _done_markers(root: Path) -> dict[str, float]:

@@ -116,23 +116,20 @@ class Study:
 
     def train_units(self) -> list[Unit]:
         units = []
-        g = self.cfg.grid
-        for p in self.cfg.policies:
+        for p, d, bcs in self.models():
             args = self.lerobot_args(p)
-            for d in self.cfg.datasets:
-                for b in g.batch_sizes:
-                    for c in g.chunk_sizes:
-                        mid = model_id(p, d, b, c)
-                        save_freq = max(p.steps // 4, 1) if self.cfg.evaluation.curve_episodes else p.steps
-                        data = self.blind_dir(d) if p.blind else self.dataset_dir(d)
-                        config = {"policy_type": p.type, "dataset": str(data),
-                                  "out": str(self.root / "models" / mid), "pretrained": p.pretrained,
-                                  "batch_size": b, "chunk_size": c, "n_action_steps": c, "steps": p.steps,
-                                  "save_freq": save_freq, "log_freq": max(p.steps // 20, 1),
-                                  "num_workers": self.cfg.num_workers, "device": self.device,
-                                  "lerobot_args": args}
-                        units.append(Unit(f"train-{mid}", "train", "vla_ladder.experiments.units:train_unit",
-                                          config, cpus=2, after=[f"record-{d.name}"]))
+            for b, c in bcs:
+                mid = model_id(p, d, b, c)
+                save_freq = max(p.steps // 4, 1) if self.cfg.evaluation.curve_episodes else p.steps
+                data = self.blind_dir(d) if p.blind else self.dataset_dir(d)
+                config = {"policy_type": p.type, "dataset": str(data),
+                          "out": str(self.root / "models" / mid), "pretrained": p.pretrained,
+                          "batch_size": b, "chunk_size": c, "n_action_steps": c, "steps": p.steps,
+                          "save_freq": save_freq, "log_freq": max(p.steps // 20, 1),
+                          "num_workers": self.cfg.num_workers, "device": self.device,
+                          "lerobot_args": args}
+                units.append(Unit(f"train-{mid}", "train", "vla_ladder.experiments.units:train_unit",
+                                  config, cpus=2, after=[f"record-{d.name}"]))
         return units
 
     def blind_dir(self, d: DatasetSpec) -> Path:
@@ -140,9 +137,9 @@ class Study:
 
     def make_blind_copies(self) -> None:
         """Instruction-blind copies of the recorded datasets, for the blind policies (hard links, seconds)."""
-        if any(p.blind for p in self.cfg.policies):
-            from vla_ladder.training.blind import blind_copy
-            for d in self.cfg.datasets:
+        from vla_ladder.training.blind import blind_copy
+        for p, d, _ in self.models():
+            if p.blind:  # a second blind policy on the same dataset reuses the copy
                 blind_copy(self.dataset_dir(d), self.blind_dir(d))
 
     def spec(self, p: PolicySpec, mid: str, horizon: int, step: str = "last") -> str:
@@ -156,10 +153,12 @@ class Study:
 
     # -- select and evaluate
     def models(self):
+        """(policy, dataset, [(batch, chunk), ...]) for every policy and each dataset it is trained on."""
         g = self.cfg.grid
         for p in self.cfg.policies:
             for d in self.cfg.datasets:
-                yield p, d, [(b, c) for b in g.batch_sizes for c in g.chunk_sizes]
+                if not p.datasets or d.name in p.datasets:
+                    yield p, d, [(b, c) for b in g.batch_sizes for c in g.chunk_sizes]
 
     def eval_config(self, spec: str, out: Path, grid: dict, episodes: int, first_seed: int, videos: int) -> dict:
         return {"policy": spec, "out": str(out), "grid": grid, "episodes": episodes, "first_seed": first_seed,

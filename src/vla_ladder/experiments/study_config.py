@@ -16,7 +16,6 @@ from vla_ladder.conditions import Condition, ConditionGrid
 
 PRESETS_PACKAGE = "vla_ladder.configs.study"
 REFERENCE_POLICIES = ("scripted", "nearest", "layout-prior", "random")
-VLM_SIZES = ("tiny", "small", "smolvlm2-500m")
 
 
 @dataclass
@@ -62,11 +61,14 @@ class PolicySpec:
     pretrained: str = "none"
     """none (from scratch), a local checkpoint directory, or a hub id"""
     vlm: str | None = None
-    """smolvla from scratch offline: build a local VLM of this size (tiny, small, smolvlm2-500m) as its backbone"""
+    """smolvla from scratch offline: build a local VLM of this size (training/tiny.py SIZES: tiny, small, small64,
+    smolvlm2-500m) as its backbone"""
     image_size: int | None = None
     """smolvla: side of the square images its vision tower sees (resize_imgs_with_padding); default: the VLM's"""
     lerobot_args: list[str] = field(default_factory=list)
     """further lerobot-train flags, e.g. --policy.optimizer_lr=3e-4"""
+    datasets: list[str] = field(default_factory=list)
+    """names of the datasets this policy is trained on (empty: every dataset of the study)"""
     blind: bool = False
     """train and evaluate without the instruction (every episode's instruction is contract.BLIND_INSTRUCTION):
     the instruction-blind control of the same architecture, which scores what the layout alone allows"""
@@ -77,8 +79,9 @@ class PolicySpec:
         if self.type not in allowed:
             raise ValueError(f"type: unknown policy type {self.type!r}; allowed: {', '.join(allowed)}")
         _positive(self, "steps")
-        if self.vlm is not None and self.vlm not in VLM_SIZES:
-            raise ValueError(f"vlm: unknown size {self.vlm!r}; allowed: {', '.join(VLM_SIZES)}")
+        from vla_ladder.training.tiny import SIZES
+        if self.vlm is not None and self.vlm not in SIZES:
+            raise ValueError(f"vlm: unknown size {self.vlm!r}; allowed: {', '.join(SIZES)}")
         if self.vlm is not None and self.type != "smolvla":
             raise ValueError(f"vlm: only smolvla has a VLM backbone, not {self.type!r}")
         if not all(isinstance(a, str) and a.startswith("--") for a in self.lerobot_args):
@@ -172,6 +175,12 @@ class StudyConfig:
             names = [x.name for x in items]
             if len(set(names)) != len(names):
                 raise ValueError(f"{what}: names must be unique, got {names}")
+        names = [d.name for d in self.datasets]
+        for p in self.policies:
+            for name in p.datasets:
+                if name not in names:
+                    raise ValueError(f"policies[{p.name}].datasets: unknown dataset {name!r}; allowed: "
+                                     f"{', '.join(names)}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device: unknown {self.device!r}; allowed: auto, cpu, cuda")
         ev, sel = self.evaluation, self.grid

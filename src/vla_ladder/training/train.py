@@ -126,8 +126,7 @@ class TrainConfig:
                              f"({self.chunk_size})")
         if self.train_seed < 0:
             raise ValueError(f"--train-seed must be >= 0, got {self.train_seed}")
-        if self.out is not None:
-            check_new_dir(self.out)
+        # `out` is checked by train(), not here: a grid or study builds configs for runs that already exist.
 
     # ------------------------------------------------------------------ lerobot-train flags
     def _config_class(self):
