@@ -67,9 +67,13 @@ def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
     trains = {u.id: u for u in study.train_units()}
     assert sorted(trains) == sorted(f"train-{p}-{d}-b16c16" for p, d in models)
     assert trains["train-SmolVLA-scratch-blind-sj-b16c16"].config["dataset"] == str(tmp_path / "s/data/sj-blind")
-    assert [u.id for u in study.select_units()] == [f"select-{p}-{d}-b16c16-h{h}" for p, d in models for h in (4, 8)]
-    # Blind models are not probed: they cannot follow an instruction.
+    assert study.select_units() == []  # one horizon, chosen while tuning: nothing to select
     chosen = study.best({})
+    assert {k: v["horizon"] for k, v in chosen.items()} == {m: 4 for m in models}
+    evals = {u.id: u.config for u in study.eval_units(chosen)}
+    assert evals["eval-SmolVLA-scratch-blind-sj"]["policy"].endswith("?n_action_steps=4&instruction=grasp the object")
+    assert evals["eval-SmolVLA-scratch-pid"]["grid"]["splits"] == ["pairings_id", "pairings_ood"]
+    # Blind models are not probed: they cannot follow an instruction.
     assert [u.id for u in study.probe_units(chosen)] == [f"probe-SmolVLA-scratch-{d}-instruction-swap"
                                                          for d in ("sj", "pid", "fr")]
 
