@@ -103,6 +103,8 @@ class EvalConfig:
             import torch
             if not torch.cuda.is_available():
                 raise ValueError("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")
+            from vla_ladder.task.physx_gpu import check_physx_gpu
+            check_physx_gpu()
         if self.object_set not in OBJECT_SETS:
             raise ValueError(f"unknown object_set {self.object_set!r}; allowed: {', '.join(OBJECT_SETS)}")
         if self.robot_mesh not in ROBOT_MESHES:

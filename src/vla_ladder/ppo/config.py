@@ -136,6 +136,8 @@ class Args:
                                  f"a CUDA GPU and none is visible; on this CPU machine pass --sim-backend physx_cpu "
                                  f"--num-envs N (N <= {cores()}, one process each) and a --total-timesteps it "
                                  "can run (about 40 env-steps/s)")
+            from vla_ladder.task.physx_gpu import check_physx_gpu
+            check_physx_gpu()
         elif self.num_envs > cores():
             raise ValueError(f"--sim-backend physx_cpu runs one process per env: --num-envs must be at most the "
                              f"{cores()} CPU cores here, got {self.num_envs}")

@@ -89,6 +89,8 @@ class ServeConfig:
             if not torch.cuda.is_available():
                 raise ValueError("num_envs > 1 needs a CUDA GPU (physx_cuda); on CPU use --num-envs 1 "
                                  "and run several servers instead")
+            from vla_ladder.task.physx_gpu import check_physx_gpu
+            check_physx_gpu()
         if not 0 <= self.port < 65536:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
         if not self.token and not is_loopback(self.host):
