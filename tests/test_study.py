@@ -78,6 +78,40 @@ def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
                                                          for d in ("sj", "pid", "fr")]
 
 
+def test_selection_plays_validation_seeds_and_picks_by_success_then_grasp_then_reach(tmp_path):
+    """A 2x2 grid with horizons {2, 4}: every (model, horizon) is played on the validation seeds of the training
+    condition, and the choice ranks success, then grasp-any, then reach (first in grid order on a full tie)."""
+    from vla_ladder.experiments.study import Study, StudyCommand
+
+    path = tmp_path / "study.json"
+    path.write_text(json.dumps(_micro(**{"grid.batch_sizes": [4, 8], "grid.chunk_sizes": [2, 4],
+                                         "grid.horizons": [2, 4], "grid.select_episodes": 3})))
+    study = Study(StudyCommand(str(path), out=tmp_path / "s"))
+    units = {u.id: u for u in study.select_units()}
+    # Horizon 4 does not fit chunk 2: three (chunk, horizon) pairs per batch size.
+    assert sorted(units) == sorted(f"select-SmolVLA-tiny-sj-b{b}c{c}-h{h}" for b in (4, 8) for c in (2, 4)
+                                   for h in (2, 4) if h <= c)
+    for u in units.values():
+        assert (u.config["first_seed"], u.config["episodes"]) == (500_000, 3)
+        assert u.config["grid"] == {"regimes": ["small_jitter"], "splits": ["canonical"], "num_objects": [2]}
+
+    def played(success, grasp, reach):
+        return {"conditions": {"small_jitter/canonical/2": {"success": success, "grasp_any": grasp, "reach": reach}}}
+    results = {"select-SmolVLA-tiny-sj-b4c2-h2": played(1 / 3, 1.0, 1.0),
+               "select-SmolVLA-tiny-sj-b4c4-h4": played(2 / 3, 2 / 3, 2 / 3),
+               "select-SmolVLA-tiny-sj-b8c4-h2": played(2 / 3, 1.0, 1 / 3),
+               "select-SmolVLA-tiny-sj-b8c4-h4": played(2 / 3, 1.0, 2 / 3)}
+    chosen = study.best(results)[("SmolVLA-tiny", "sj")]
+    assert (chosen["model"], chosen["horizon"]) == ("SmolVLA-tiny-sj-b8c4", 4)
+    assert len(chosen["candidates"]) == len(units)
+    # A full tie keeps grid order: the first model and horizon.
+    tie = study.best({k: played(0.5, 0.5, 0.5) for k in units})[("SmolVLA-tiny", "sj")]
+    assert (tie["model"], tie["horizon"]) == ("SmolVLA-tiny-sj-b4c2", 2)
+    evals = {u.id: u.config for u in study.eval_units(study.best(results))}
+    assert evals["eval-SmolVLA-tiny-sj"]["policy"].endswith("SmolVLA-tiny-sj-b8c4/checkpoints/last/pretrained_model"
+                                                            "?n_action_steps=4")
+
+
 def _done_markers(root: Path) -> dict[str, float]:
     return {p.stem: p.stat().st_mtime_ns for p in (root / "units").glob("*.json")}
 
