@@ -100,11 +100,8 @@ class EvalConfig:
             raise ValueError(f"physx_cpu runs one env at a time (num_envs=1); got num_envs={self.num_envs}; "
                              "use --workers for parallel CPU episodes, or sim_backend=physx_cuda")
         if self.sim_backend == "physx_cuda":
-            import torch
-            if not torch.cuda.is_available():
-                raise ValueError("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")
-            from vla_ladder.task.physx_gpu import check_physx_gpu
-            check_physx_gpu()
+            from vla_ladder.task.physx_gpu import check_physx_cuda
+            check_physx_cuda("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")
         if self.object_set not in OBJECT_SETS:
             raise ValueError(f"unknown object_set {self.object_set!r}; allowed: {', '.join(OBJECT_SETS)}")
         if self.robot_mesh not in ROBOT_MESHES:

@@ -130,14 +130,11 @@ class Args:
     def _check_machine(self) -> None:
         """The backend fits this machine: physx_cuda needs a CUDA GPU, physx_cpu runs a process per env."""
         if self.sim_backend == "physx_cuda":
-            import torch
-            if not torch.cuda.is_available():
-                raise ValueError(f"--sim-backend physx_cuda (the default: the paper's {self.num_envs} GPU envs) needs "
-                                 f"a CUDA GPU and none is visible; on this CPU machine pass --sim-backend physx_cpu "
-                                 f"--num-envs N (N <= {cores()}, one process each) and a --total-timesteps it "
-                                 "can run (about 40 env-steps/s)")
-            from vla_ladder.task.physx_gpu import check_physx_gpu
-            check_physx_gpu()
+            from vla_ladder.task.physx_gpu import check_physx_cuda
+            check_physx_cuda(f"--sim-backend physx_cuda (the default: the paper's {self.num_envs} GPU envs) needs a "
+                             f"CUDA GPU and none is visible; on this CPU machine pass --sim-backend physx_cpu "
+                             f"--num-envs N (N <= {cores()}, one process each) and a --total-timesteps it can run "
+                             "(about 40 env-steps/s)")
         elif self.num_envs > cores():
             raise ValueError(f"--sim-backend physx_cpu runs one process per env: --num-envs must be at most the "
                              f"{cores()} CPU cores here, got {self.num_envs}")

@@ -85,12 +85,9 @@ class ServeConfig:
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
         if self.num_envs > 1:
-            import torch
-            if not torch.cuda.is_available():
-                raise ValueError("num_envs > 1 needs a CUDA GPU (physx_cuda); on CPU use --num-envs 1 "
-                                 "and run several servers instead")
-            from vla_ladder.task.physx_gpu import check_physx_gpu
-            check_physx_gpu()
+            from vla_ladder.task.physx_gpu import check_physx_cuda
+            check_physx_cuda("num_envs > 1 needs a CUDA GPU (physx_cuda); on CPU use --num-envs 1 and run several "
+                             "servers instead")
         if not 0 <= self.port < 65536:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
         if not self.token and not is_loopback(self.host):

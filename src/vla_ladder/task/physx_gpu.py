@@ -43,3 +43,13 @@ def check_physx_gpu(timeout_s: float = 5.0, url: str | None = None) -> Path:
                          f"on first use, and it cannot be fetched from here ({reason}); download it on "
                          f"a machine with network and unzip it into {path.parent}, or use physx_cpu with "
                          "--workers N") from None
+
+
+def check_physx_cuda(no_gpu: str) -> Path:
+    """What physx_cuda needs before any simulator: a CUDA GPU (ValueError(no_gpu), the caller's advice, without
+    one), then the PhysX GPU library (`check_physx_gpu`)."""
+    import torch
+
+    if not torch.cuda.is_available():
+        raise ValueError(no_gpu)
+    return check_physx_gpu()
