@@ -1,6 +1,6 @@
 """Recording throughput on this machine: demos/s end to end against worker processes, and stage by stage.
 
-    .venv/bin/python benchmarks/record_speed.py [--episodes 8] [--workers 1 2] [--num-objects 2]
+    .venv/bin/python benchmarks/record_speed.py [--episodes 8] [--workers 1 2] [--writers 1 2] [--num-objects 2]
 
 End to end: `vla-ladder record --workers N` for each N (N local `vla-ladder serve` processes simulate and
 render, the recorder receives and writes): successful demos/s with start-up included, and as the recorder
@@ -12,8 +12,10 @@ do not rebuild, evaluation does), to say where the time goes:
   transfer - a real episode message: protocol.encode -> WebSocket over 127.0.0.1 -> decode;
   encode   - DatasetStore.add: LeRobot add_frame/save_episode, AV1 video (and PNG images for comparison);
   write    - DatasetStore commit (finalize, statistics, card, fsync, atomic swap), per episode it held.
-The servers run in parallel and the writer is one process, so the pipeline runs at its slowest stage, with
-simulation divided among N workers, and no faster than the cores allow: the result names that bottleneck.
+The servers run in parallel and each writer is one process (`--writers K`), so the pipeline runs at its slowest
+stage, with simulation divided among N workers and writing among K writers, and no faster than the cores
+allow: the result names that bottleneck. The writer stage is also measured alone with K processes at once,
+with the merge of their shards.
 
 Writes benchmarks/results/record_speed_cpu.json (record_speed_cuda.json where a CUDA GPU renders), or --out.
 """
@@ -54,6 +56,8 @@ class Args:
     """successful demos per end-to-end run, and episodes per stage measurement"""
     workers: tuple[int, ...] = (1, 2)
     """`record --workers` counts to measure end to end"""
+    writers: tuple[int, ...] = (1, 2)
+    """`record --writers` counts: end to end with the most workers, and the writer stage alone"""
     regime: str = "small_jitter"
     """placement regime"""
     num_objects: int = 2
@@ -66,12 +70,12 @@ class Args:
     """result JSON (default: benchmarks/results/record_speed_<cpu|cuda>.json)"""
 
 
-def end_to_end(args: Args, workers: int, work: Path) -> dict:
-    out = work / f"e2e-{workers}"
+def end_to_end(args: Args, workers: int, work: Path, writers: int = 1) -> dict:
+    out = work / f"e2e-{workers}-{writers}"
     cmd = [sys.executable, "-m", "vla_ladder.cli", "record", "--out", str(out), "--episodes", str(args.episodes),
-           "--workers", str(workers), "--regime", args.regime, "--num-objects", str(args.num_objects),
-           "--robot-mesh", args.robot_mesh]
-    log = work / f"record-{workers}.log"
+           "--workers", str(workers), "--writers", str(writers), "--regime", args.regime, "--num-objects",
+           str(args.num_objects), "--robot-mesh", args.robot_mesh]
+    log = work / f"record-{workers}-{writers}.log"
     started = time.time()
     with open(log, "w") as f:
         proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT)
@@ -84,12 +88,12 @@ def end_to_end(args: Args, workers: int, work: Path) -> dict:
     first = min(datetime.fromisoformat(t).timestamp() for t in read_provenance(out)["recorded_at"])
     # The recorder's last progress line: demos/s since its servers were ready (start-up excluded).
     done = re.findall(r"done: .* ([0-9.]+) demos/s saved", log.read_text())
-    row = {"workers": workers, "episodes_saved": c["saved"], "episodes_attempted": c["attempted"],
+    row = {"workers": workers, "writers": writers, "episodes_saved": c["saved"], "episodes_attempted": c["attempted"],
            "wall_s": round(wall, 1), "demos_per_s": round(c["saved"] / wall, 4),
            "frames_per_s": round(EPISODE_STEPS * c["saved"] / wall, 2), "first_demo_after_s": round(first - started, 1),
            "after_startup_demos_per_s": float(done[-1]) if done else None}
-    print(f"end to end, --workers {workers}: {c['saved']} demos ({c['attempted']} attempted) in {wall:.0f} s = "
-          f"{row['demos_per_s']} demos/s with start-up (first after {row['first_demo_after_s']} s), "
+    print(f"end to end, --workers {workers} --writers {writers}: {c['saved']} demos ({c['attempted']} attempted) in "
+          f"{wall:.0f} s = {row['demos_per_s']} demos/s with start-up (first after {row['first_demo_after_s']} s), "
           f"{row['after_startup_demos_per_s']} demos/s once the servers were up", flush=True)
     return row
 
@@ -185,28 +189,93 @@ def encode_and_write(args: Args, episodes: list, work: Path, video: bool) -> dic
     recording = Recording(policy="scripted", condition=Condition(args.regime, "canonical", args.num_objects),
                           video=video, robot_mesh=args.robot_mesh)
     store = DatasetStore(work / ("video" if video else "images"), recording, commit_every=10**6)
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), _cpu_s()
     for e in episodes:
         store.count(True)
         store.add(e)
-    added = time.perf_counter() - t0
+    added, added_cpu = time.perf_counter() - t0, _cpu_s() - cpu0
     t = time.perf_counter()
     store.close()
     commit = time.perf_counter() - t
     size = sum(f.stat().st_size for f in store.root.rglob("*") if f.is_file())
     n = len(episodes)
-    return {"encode_s_per_episode": added / n, "write_s_per_episode": commit / n, "commit_s": commit,
+    return {"encode_s_per_episode": added / n, "encode_cpu_s_per_episode": added_cpu / n,
+            "write_s_per_episode": commit / n, "commit_s": commit,
             "episodes_per_commit": n, "bytes_per_episode": size / n}
 
 
-def pipeline(stages: dict, success: float, workers: int, n_cores: int) -> dict:
+def _cpu_s() -> float:
+    """CPU seconds of this process, all threads (LeRobot encodes each camera in a thread of its own)."""
+    t = os.times()
+    return t.user + t.system
+
+
+def _write_shard(root: str, episodes: list, video: bool, ready, go, out) -> None:
+    """One parallel writer: a shard DatasetStore adding `episodes` once every writer is ready."""
+    import lerobot.datasets.lerobot_dataset  # noqa: F401  (imported before the clock starts)
+
+    from vla_ladder.recording.store import DatasetStore
+    from vla_ladder.recordings import Recording
+
+    h = episodes[0].header
+    store = DatasetStore(root, Recording("scripted", Condition.parse(h["condition"]), video=video,
+                                         robot_mesh=h["robot_mesh"]), commit_every=10**6)
+    ready.wait()
+    go.wait()
+    cpu0 = _cpu_s()
+    for e in episodes:
+        store.count(True)
+        store.add(e)
+    store.close()
+    out.put(_cpu_s() - cpu0)
+
+
+def writer_scaling(episodes: list, work: Path, writers: int) -> dict:
+    """`writers` processes each adding all `episodes` to a shard at once (as `record --writers` runs them):
+    demos/s written by all, CPU s per demo; then the merge of the shards into one dataset."""
+    import multiprocessing
+
+    from vla_ladder.recording.store import DatasetStore
+    from vla_ladder.recordings import Recording
+
+    ctx = multiprocessing.get_context("spawn")
+    ready, go, out = ctx.Barrier(writers + 1), ctx.Barrier(writers + 1), ctx.Queue()
+    root = work / f"writers-{writers}"
+    main = DatasetStore(root, Recording("scripted", Condition.parse(episodes[0].header["condition"]),
+                                        robot_mesh=episodes[0].header["robot_mesh"]))
+    procs = [ctx.Process(target=_write_shard, args=(str(main.shards_dir / f"w{i}"), episodes, True, ready, go, out))
+             for i in range(writers)]
+    for p in procs:
+        p.start()
+    ready.wait()
+    t0 = time.perf_counter()
+    go.wait()
+    cpu = [out.get(timeout=3600) for _ in procs]
+    for p in procs:
+        p.join()
+    wall = time.perf_counter() - t0
+    t = time.perf_counter()
+    main.merge(main.unmerged_shards())
+    merge = time.perf_counter() - t
+    main.close()
+    n = writers * len(episodes)
+    print(f"writer stage, {writers} writers: {n / wall:.3f} demos/s, {sum(cpu) / n:.2f} CPU s per demo, merge "
+          f"{merge:.1f} s", flush=True)
+    return {"writers": writers, "demos": n, "wall_s": wall, "demos_per_s": n / wall, "cpu_s_per_demo": sum(cpu) / n,
+            "merge_s": merge, "merge_s_per_demo": merge / n}
+
+
+def pipeline(stages: dict, success: float, workers: int, n_cores: int, writers: int = 1) -> dict:
     """Seconds per saved demo of each stage given its parallelism, the slowest one, and the bound it sets."""
     per_demo = {"physics": stages["physics"] / success / workers, "render": stages["render"] / success / workers,
-                "transfer": stages["transfer"], "encode": stages["encode"], "write": stages["write"]}
+                "transfer": stages["transfer"] / writers, "encode": stages["encode"] / writers,
+                "write": stages["write"] / writers}
     slowest = max(per_demo, key=per_demo.get)
-    cpu = {k: v * (workers if k in ("physics", "render") else 1) for k, v in per_demo.items()}  # CPU s per demo
+    cpu = {"physics": stages["physics"] / success, "render": stages["render"] / success,  # CPU s per demo
+           "transfer": stages["transfer"], "encode": stages["encode_cpu"], "write": stages["write"]}
     stage_bound, core_bound = 1 / per_demo[slowest], n_cores / sum(cpu.values())
-    return {"workers": workers, "s_per_demo": per_demo, "slowest_stage": slowest,
+    return {"workers": workers, "writers": writers, "s_per_demo": per_demo, "cpu_s_per_demo": cpu,
+            "slowest_stage": slowest,
             "stage_bound_demos_per_s": stage_bound, "cores_bound_demos_per_s": core_bound,
             "demos_per_s_bound": min(stage_bound, core_bound),
             "bottleneck": slowest if stage_bound <= core_bound else f"cores ({max(cpu, key=cpu.get)}: largest share)"}
@@ -221,7 +290,8 @@ def main(args: Args) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         if args.end_to_end:
-            result["end_to_end"] = [end_to_end(args, n, work) for n in args.workers]
+            result["end_to_end"] = [end_to_end(args, n, work) for n in args.workers] + [
+                end_to_end(args, max(args.workers), work, k) for k in args.writers if 1 < k <= max(args.workers)]
         stages = {}
         for rebuild in (False, True):
             print(f"stages, rebuild_scenes={rebuild} ...", flush=True)
@@ -234,6 +304,7 @@ def main(args: Args) -> None:
         trans = transfer(ok[0])
         video = encode_and_write(args, ok, work, video=True)
         images = encode_and_write(args, ok, work, video=False)
+        scaling = [writer_scaling(ok, work, k) for k in args.writers]
     success = stages[False]["simulator"]["success_rate"] or 1 / args.episodes
     n_cores = cores()
     per_episode, bounds = {}, {}
@@ -243,15 +314,19 @@ def main(args: Args) -> None:
         per_episode[key] = {"physics": phys, "render": s["simulator"]["episode_s"] - phys,
                             "transfer": trans["s_per_episode"], "encode": video["encode_s_per_episode"],
                             "write": video["write_s_per_episode"]}
-        bounds[key] = [pipeline(per_episode[key], success, n, n_cores) for n in args.workers]
+        stage = {**per_episode[key], "encode_cpu": video["encode_cpu_s_per_episode"]}
+        bounds[key] = [pipeline(stage, success, n, n_cores, k) for n in args.workers for k in args.writers
+                       if k <= n]
     result.update({
         "stages": {"no_rebuild": stages[False], "rebuild": stages[True]}, "transfer": trans,
-        "encode_and_write_video": video, "encode_and_write_images": images,
+        "encode_and_write_video": video, "encode_and_write_images": images, "writer_scaling": scaling,
         "stage_s_per_episode": per_episode, "expert_success_rate": success,
         "steady_state_bounds": bounds,
         "how": "s_per_demo: a stage's seconds per episode / expert success rate / workers for the simulation stages "
-               "(one server process each); the writer (encode, write) is one process. The pipeline runs at its "
-               "slowest stage, and no faster than cores / the CPU seconds one demo costs in all stages.",
+               "(one server process each), / writers for transfer, encode and write (one process each). The "
+               "pipeline runs at its slowest stage, and no faster than cores / the CPU seconds one demo costs in all "
+               "stages (the writer's CPU seconds measured, its encoder threads included). writer_scaling: the "
+               "writer stage alone, N processes at once, and the merge of their shards.",
         "machine": {"cores": n_cores, "gpu": gpu, "load_average_1min": [load_before, os.getloadavg()[0]]},
         "provenance": files.provenance(ok[0].header["object_set"]),
     })
@@ -260,8 +335,8 @@ def main(args: Args) -> None:
     for key, stage in per_episode.items():
         print(f"{key}: s per episode: " + ", ".join(f"{k} {v:.2f}" for k, v in stage.items()))
         for b in bounds[key]:
-            print(f"  --workers {b['workers']}: bound {b['demos_per_s_bound']:.3f} demos/s, bottleneck "
-                  f"{b['bottleneck']}")
+            print(f"  --workers {b['workers']} --writers {b['writers']}: bound {b['demos_per_s_bound']:.3f} demos/s, "
+                  f"bottleneck {b['bottleneck']}")
     print(f"wrote {out}")
 
 

@@ -374,3 +374,15 @@ def test_a_flag_given_twice_is_refused_not_silently_dropped(argv, flag, capsys, 
     err = capsys.readouterr().err
     assert f"{flag} is given twice" in err and "Traceback" not in err
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("extra, says", [
+    (["--writers", "0"], "--writers must be >= 1, got 0"),
+    (["--writers", "2", "--workers", "1"], "--writers 2 needs at least 2 local servers, got --workers 1"),
+    (["--writers", "3", "--server", "ws://127.0.0.1:1", "ws://127.0.0.1:2"],
+     "--writers 3 needs at least 3 --server URLs (each writer draws from its own), got 2"),
+])
+def test_record_writers_each_need_a_server(extra, says, tmp_path, capsys):
+    rc = main(["record", "--out", str(tmp_path / "rec"), "--episodes", "1", *extra])
+    _one_line_error(capsys, rc, says)
+    assert list(tmp_path.iterdir()) == []

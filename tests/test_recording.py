@@ -60,6 +60,19 @@ def _children(pid: int) -> list[int]:
     return [int(p) for p in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
 
 
+def _kill_when(cmd: list[str], ready, what: str) -> list[int]:
+    """Start `cmd`, SIGKILL it once `ready()` holds; returns the pids its children had then."""
+    proc = subprocess.Popen(cmd, env=ENV)
+    try:
+        _wait_for(ready, 900, what, proc)
+        children = _children(proc.pid)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    finally:
+        proc.kill()
+    return children
+
+
 def _saved(root: Path) -> int:
     state = read_recording_state(root) if root.exists() else None
     return state["counters"]["saved"] if state else 0
@@ -77,14 +90,7 @@ def recorded(tmp_path_factory):
     root = tmp_path_factory.mktemp("rec") / "grasp"
     cmd = _cli("record", *CONDITION, "--episodes", str(EPISODES), "--out", str(root), "--first-seed", str(SEED),
                "--commit-every", "1")
-    first = subprocess.Popen(cmd, env=ENV)
-    try:
-        _wait_for(lambda: _saved(root) >= 1, 900, "the first commit", first)
-        server_pids = _children(first.pid)
-        first.send_signal(signal.SIGKILL)
-        first.wait()
-    finally:
-        first.kill()
+    server_pids = _kill_when(cmd, lambda: _saved(root) >= 1, "the first commit")
     # The embedded server notices its parent is gone (stdin closes) and exits by itself.
     _wait_for(lambda: not any(_alive(p) for p in server_pids), 30, "the orphaned server to exit")
     after_kill = {"saved": _saved(root), "dataset": len(_load(root)), "seeds": set(read_provenance(root)["seed"])}

@@ -4,8 +4,10 @@ LeRobotDataset v3. Rerunning the same command resumes; see docs/recording.md."""
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import logging
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -63,6 +65,12 @@ class RecordConfig:
     """commit to the dataset every N saved episodes"""
     commit_seconds: float = 600.0
     """... or, at the next saved episode, when the open batch is older than this"""
+    writers: int = 1
+    """dataset writers, each a process of its own drawing from its share of the servers into a shard that is
+    merged into --out at the end (LeRobot's writer costs seconds of CPU a demo: on a many-core machine use
+    several; each needs at least one server)"""
+    seed_book: Path | None = None
+    """seed reservation shared with other writers (set by `record --writers` for its writers)"""
 
     def __post_init__(self):
         self.out = Path(self.out)
@@ -74,6 +82,14 @@ class RecordConfig:
             raise ValueError(f"--first-seed must be >= 0, got {self.first_seed}")
         if self.workers < 0:
             raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
+        if self.writers < 1:
+            raise ValueError(f"--writers must be >= 1, got {self.writers}")
+        if self.server and len(self.server) < self.writers:
+            raise ValueError(f"--writers {self.writers} needs at least {self.writers} --server URLs (each writer "
+                             f"draws from its own), got {len(self.server)}")
+        if self.workers and self.workers < self.writers:
+            raise ValueError(f"--writers {self.writers} needs at least {self.writers} local servers, got --workers "
+                             f"{self.workers}")
         if self.robot_mesh not in ("lite", "full"):
             raise ValueError(f"unknown robot_mesh {self.robot_mesh!r}; allowed: lite, full")
         from vla_ladder.task.instructions import check_instruction_set
@@ -113,13 +129,18 @@ async def _welcome(url: str, token: str | None) -> dict:
 
 
 def run(cfg: RecordConfig) -> int:
-    setup_logging("record")
+    setup_logging(f"writer {cfg.out.name}" if cfg.seed_book else "record")
     os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its whole configuration per video otherwise
     try:
         recording = recording_of(cfg)
     except ServerError as e:
         raise ValueError(f"cannot reach the server: {e}") from None
-    store = DatasetStore(cfg.out, recording, commit_every=cfg.commit_every, commit_seconds=cfg.commit_seconds)
+    store = DatasetStore(cfg.out, recording, commit_every=cfg.commit_every, commit_seconds=cfg.commit_seconds,
+                         seed_book=cfg.seed_book)
+    leftovers = store.unmerged_shards()
+    if leftovers:
+        log.info("merging the %d shards a stopped recording left", len(leftovers))
+        store.merge(leftovers)
     if store.saved >= cfg.episodes:
         log.info("%s already holds %d episodes (asked for %d); nothing to do", cfg.out, store.saved, cfg.episodes)
         store.close()
@@ -134,10 +155,12 @@ def run(cfg: RecordConfig) -> int:
             urls = list(cfg.server)
         else:
             from vla_ladder.machine import auto_workers
-            n = auto_workers(cfg.workers)
+            n = max(auto_workers(cfg.workers), cfg.writers)
             local = [LocalServer(recording, cfg.num_envs, threads=1 if n > 1 else 0, rebuild=cfg.rebuild_scenes)
                      for _ in range(n)]
             urls = [s.wait_ready() for s in local]  # they start side by side
+        if cfg.writers > 1:
+            return write_shards(cfg, store, urls)
         source = EpisodeSource(urls, store.reserve_seeds, cfg.episodes - store.saved,
                                check_server=lambda url, info: check_server(recording, url, info),
                                token=cfg.token).start()
@@ -169,6 +192,48 @@ def run(cfg: RecordConfig) -> int:
             source.stop()
         for server in local:
             server.stop()
+
+
+def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str]) -> int:
+    """`cfg.writers` writer processes (`record --seed-book`), each drawing from its share of `urls` into a shard
+    of its own, then one merge of every shard into the dataset. Interrupted, the writers commit what they
+    hold and it is merged all the same; killed, the shards wait for the next run to merge them."""
+    needed = cfg.episodes - store.saved
+    k = min(cfg.writers, needed)
+    stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
+    env = dict(os.environ, **({TOKEN_ENV: cfg.token} if cfg.token else {}))  # a token stays off command lines
+    started = time.monotonic()
+    writers = []
+    for i in range(k):
+        cmd = [sys.executable, "-m", "vla_ladder.cli", "record", "--out", str(store.shards_dir / f"{stamp}-{i:02d}"),
+               "--episodes", str(needed // k + (i < needed % k)), "--first-seed", str(cfg.first_seed),
+               "--commit-every", str(cfg.commit_every), "--commit-seconds", str(cfg.commit_seconds),
+               "--seed-book", str(store.seeds.path), *([] if cfg.video else ["--no-video"]),
+               "--server", *urls[i::k]]
+        writers.append(subprocess.Popen(cmd, env=env, preexec_fn=_interrupt_when_parent_dies))
+    log.info("%d writers record %d episodes into shards of %s", k, needed, store.shards_dir)
+    try:
+        codes = [w.wait() for w in writers]
+    except KeyboardInterrupt:  # the writers commit what they hold, and that is merged below
+        for w in writers:
+            if w.poll() is None:
+                w.send_signal(signal.SIGINT)
+        codes = [w.wait() for w in writers] + [130]
+    store.merge(store.unmerged_shards())
+    elapsed = time.monotonic() - started
+    log.info("done: %d/%d saved in %s | %.3f demos/s saved by %d writers", store.saved, cfg.episodes, cfg.out,
+             (store.saved - (cfg.episodes - needed)) / elapsed, k)
+    store.close()
+    if all(c == 0 for c in codes):
+        return 0
+    log.info("a writer stopped early (exit codes %s); rerun the same command to continue", codes)
+    return 130 if 130 in codes else 1
+
+
+def _interrupt_when_parent_dies() -> None:
+    """In a writer process: Linux sends SIGINT (commit and exit) when the recorder dies, even by kill -9."""
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGINT)
 
 
 def check_server(recording: Recording, url: str, info: dict) -> None:

@@ -15,8 +15,13 @@ A reader therefore always sees either the previous or the next commit. Staging l
 writer are deleted when the next writer starts. Seeds are reserved (and persisted) before any server sees
 them, so a seed is never played twice for one dataset, even across kill -9 and resumes.
 
-The work directory next to the dataset, `.<name>.recording/`, holds the lock, the staging copy and the seed
-reservation; it is small and may be deleted whenever no recorder runs.
+Parallel writers (`record --writers N`) each record a *shard*, a DatasetStore of its own under the work
+directory sharing this dataset's seed book; `merge` then joins the shards to DATASET_DIR with LeRobot's
+aggregate_datasets and the same atomic swap.
+
+The work directory next to the dataset, `.<name>.recording/`, holds the lock, the staging copy, the seed
+reservation and the shards of parallel writers; it may be deleted whenever no recorder runs and no shard
+waits to be merged (a rerun of the same `record` command merges them).
 """
 
 from __future__ import annotations
@@ -29,7 +34,6 @@ import json
 import logging
 import os
 import shutil
-import threading
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -39,7 +43,8 @@ import pandas as pd
 
 from vla_ladder import files
 from vla_ladder.conditions import Condition
-from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, Recording, read_recording_state)
+from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, Recording, read_provenance,
+                                   read_recording_state)
 from vla_ladder.contract import CAMERAS, CONTROL_HZ, EPISODE_STEPS, STATE_KEY, ACTION_KEY, dataset_features
 
 log = logging.getLogger(__name__)
@@ -52,7 +57,8 @@ class DatasetStore:
     """Owns DATASET_DIR while recording: reserve seeds, add successful episodes, commit atomically."""
 
     def __init__(self, root: str | os.PathLike, config: Recording, commit_every: int = 50,
-                 commit_seconds: float = 600.0, repo_id: str | None = None):
+                 commit_seconds: float = 600.0, repo_id: str | None = None,
+                 seed_book: str | os.PathLike | None = None):
         if commit_every < 1:
             raise ValueError(f"commit_every must be >= 1, got {commit_every}")
         self.root = Path(root).resolve()
@@ -72,7 +78,6 @@ class DatasetStore:
         # swap, the previous version there: neither is ever needed again.
         shutil.rmtree(self.staging, ignore_errors=True)
         shutil.rmtree(self.work / "hf-cache", ignore_errors=True)
-        self._seed_lock = threading.Lock()
         self._ds = None
         self._rows: list[dict] = []
         self._writing = False  # inside add(): staging holds a half-written episode
@@ -82,8 +87,12 @@ class DatasetStore:
         self.counters = dict(state["counters"]) if state else {"saved": 0, "attempted": 0, "failed": 0,
                                                                 "commits": 0}
         self.object_set: str | None = state.get("object_set") if state else None
-        self.next_seed = self._load_next_seed(state)
+        floor = max(config.first_seed, int(state["next_seed"]) if state else 0)
+        self.seeds = SeedBook(Path(seed_book) if seed_book else self.work / "seeds.json", config, floor)
         self.pending = 0
+        # Shards of a merge that was killed after its swap are in the dataset already.
+        for name in (state or {}).get("merged_shards", []):
+            _remove_shard(self.shards_dir / name)
 
     # ------------------------------------------------------------------ state on disk
     def _load_committed(self) -> dict | None:
@@ -105,26 +114,25 @@ class DatasetStore:
                              f"state says {state['counters']['saved']}; the dataset was modified outside vla-ladder")
         return state
 
-    def _load_next_seed(self, state: dict | None) -> int:
-        next_seed = self.config.first_seed
-        if state:
-            next_seed = max(next_seed, int(state["next_seed"]))
-        path = self.work / "seeds.json"
-        if path.exists():
-            reserved = json.loads(path.read_text())
-            if reserved.get("config") == self.config.to_dict():
-                next_seed = max(next_seed, int(reserved["next_seed"]))
-        return next_seed
+    @property
+    def next_seed(self) -> int:
+        return self.seeds.next_seed
 
     def reserve_seeds(self, n: int) -> list[int]:
         """n seeds never handed out before for this dataset; persisted before they are returned."""
-        if n < 1:
-            raise ValueError(f"reserve at least one seed, got {n}")
-        with self._seed_lock:
-            seeds = list(range(self.next_seed, self.next_seed + n))
-            files.write_json(self.work / "seeds.json", {"config": self.config.to_dict(), "next_seed": seeds[-1] + 1})
-            self.next_seed = seeds[-1] + 1
-            return seeds
+        return self.seeds.reserve(n)
+
+    @property
+    def shards_dir(self) -> Path:
+        """Where parallel writers (`record --writers`) keep their shards until `merge`."""
+        return self.work / "shards"
+
+    def unmerged_shards(self) -> list[Path]:
+        """Shards a killed sharded recording left behind, oldest first; `merge` makes them part of the dataset."""
+        if not self.shards_dir.is_dir():
+            return []
+        return sorted((p for p in self.shards_dir.iterdir() if p.is_dir() and not p.name.startswith(".")),
+                      key=lambda p: p.name)
 
     # ------------------------------------------------------------------ writing
     def count(self, success: bool) -> None:
@@ -191,9 +199,79 @@ class DatasetStore:
         self.counters["commits"] += 1
         self.counters["saved"] = self.saved + self.pending
         files.write_parquet(self.staging / PROVENANCE_DIR / f"commit-{self.counters['commits']:06d}.parquet",
-                         pd.DataFrame(self._rows))
-        with self._seed_lock:
-            files.write_json(self.staging / RECORDING_FILE, self._state())
+                            pd.DataFrame(self._rows))
+        self._publish(self._state())
+        self.saved += self.pending
+        self.pending = 0
+        self._rows = []
+        log.info("committed: %d episodes in %s (%.2f s)", self.saved, self.root, time.perf_counter() - t0)
+
+    def merge(self, shards: list[Path]) -> None:
+        """Make the episodes of `shards` (recordings of this same Recording by parallel writers, each a
+        DatasetStore sharing this store's seed book) part of DATASET_DIR, after its own, in one atomic step.
+
+        LeRobot's aggregate_datasets writes the union into staging (a copy of DATASET_DIR's files, which is
+        what a merge costs); each shard's provenance follows its episodes under their new indices. The shard
+        names are recorded in the new state, so shards that a kill leaves behind after the swap are deleted,
+        never merged twice; a kill before the swap leaves DATASET_DIR as it was and the shards to merge again.
+        """
+        if self.pending:
+            self.commit()
+        states = {s: read_recording_state(s) for s in map(Path, shards)}
+        full = [s for s, st in states.items() if st and st["counters"]["saved"] > 0]
+        for s in full:
+            diff = self.config.differences(Recording.from_dict(states[s]["config"], states[s]["format"]))
+            if diff:
+                raise ValueError(f"shard {s} was recorded with " + ", ".join(diff) + f"; it cannot join {self.root}")
+            if states[s]["object_set"] != (self.object_set or states[s]["object_set"]):
+                raise ValueError(f"shard {s} used object set {states[s]['object_set']!r} but {self.root} holds "
+                                 f"{self.object_set!r}")
+            self.object_set = states[s]["object_set"]
+        if not full:
+            for s in shards:
+                _remove_shard(Path(s))
+            return
+        from lerobot.datasets.aggregate import aggregate_datasets
+        from lerobot.utils.utils import SuppressProgressBars
+
+        t0 = time.perf_counter()
+        shutil.rmtree(self.staging, ignore_errors=True)
+        sources = ([self.root] if self.saved else []) + full
+        with _private_datasets_cache(self.work / "hf-cache"), SuppressProgressBars():
+            aggregate_datasets([f"{self.repo_id}-part{i}" for i in range(len(sources))], self.repo_id,
+                               roots=sources, aggr_root=self.staging)
+        provenance = self.staging / PROVENANCE_DIR
+        provenance.mkdir(parents=True, exist_ok=True)
+        if self.saved:
+            for path in (self.root / PROVENANCE_DIR).glob("*.parquet"):
+                os.link(path, provenance / path.name)
+        rows, offset = [], self.saved
+        for s in full:
+            shard_rows = read_provenance(s)
+            shard_rows["episode_index"] += offset
+            rows.append(shard_rows)
+            offset += int(states[s]["counters"]["saved"])
+        total = json.loads((self.staging / "meta/info.json").read_text())["total_episodes"]
+        if total != offset:
+            raise RuntimeError(f"merging {len(full)} shards into {self.root} gave {total} episodes, expected {offset}")
+        self.counters["commits"] += 1
+        files.write_parquet(provenance / f"commit-{self.counters['commits']:06d}.parquet",
+                            pd.concat(rows, ignore_index=True))
+        for s in full:
+            for key in ("attempted", "failed"):
+                self.counters[key] += int(states[s]["counters"][key])
+        self.counters["saved"] = offset
+        self._publish({**self._state(), "merged_shards": sorted(Path(s).name for s in shards)})
+        for s in shards:
+            _remove_shard(Path(s))
+        log.info("merged %d shards: %d episodes in %s (%.2f s)", len(full), offset, self.root,
+                 time.perf_counter() - t0)
+        self.saved = offset
+
+    def _publish(self, state: dict) -> None:
+        """Write the recording state, quantiles over all frames and the card into staging, flush it, and swap
+        it with DATASET_DIR in one atomic step."""
+        files.write_json(self.staging / RECORDING_FILE, state)
         from vla_ladder.recording import card, stats  # quantiles over all frames, and the dataset card
         stats.write_exact_quantiles(self.staging)
         card.write_card(self.staging)
@@ -208,10 +286,6 @@ class DatasetStore:
         _fsync_dir(self.root.parent)
         shutil.rmtree(self.staging, ignore_errors=True)  # the previous version, after an exchange
         shutil.rmtree(self.work / "hf-cache", ignore_errors=True)
-        self.saved += self.pending
-        self.pending = 0
-        self._rows = []
-        log.info("committed: %d episodes in %s (%.2f s)", self.saved, self.root, time.perf_counter() - t0)
 
     def _state(self) -> dict:
         return {"format": FORMAT_VERSION, "config": self.config.to_dict(), "next_seed": self.next_seed,
@@ -236,6 +310,41 @@ class DatasetStore:
             shutil.rmtree(self.staging, ignore_errors=True)
             fcntl.flock(self._lock_file, fcntl.LOCK_UN)
             self._lock_file.close()
+
+
+class SeedBook:
+    """The seeds handed out for one dataset, in a JSON file next to it: `reserve` persists a block before
+    returning it, under a file lock, so that servers, threads and writer processes sharing the book never
+    get a seed twice, across kills and resumes. `floor` is the first seed the dataset may still use."""
+
+    def __init__(self, path: Path, config: Recording, floor: int):
+        self.path, self.config, self.floor = Path(path), config, floor
+
+    @property
+    def next_seed(self) -> int:
+        if self.path.exists():
+            booked = json.loads(self.path.read_text())
+            if booked.get("config") == self.config.to_dict():
+                return max(self.floor, int(booked["next_seed"]))
+        return self.floor
+
+    def reserve(self, n: int) -> list[int]:
+        if n < 1:
+            raise ValueError(f"reserve at least one seed, got {n}")
+        with open(self.path.with_suffix(".lock"), "a+") as lock:  # one open file each: threads exclude too
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            first = self.next_seed
+            files.write_json(self.path, {"config": self.config.to_dict(), "next_seed": first + n})
+        return list(range(first, first + n))
+
+
+def _remove_shard(shard: Path) -> None:
+    """A shard and its writer's work directory, and the work directories of writers that never committed."""
+    shutil.rmtree(shard, ignore_errors=True)
+    shutil.rmtree(shard.parent / f".{shard.name}.recording", ignore_errors=True)
+    for work in shard.parent.glob(".*.recording"):
+        if not (shard.parent / work.name[1:-len(".recording")]).exists():
+            shutil.rmtree(work, ignore_errors=True)
 
 
 def _provenance_row(index: int, episode) -> dict[str, Any]:
