@@ -377,7 +377,7 @@ def test_a_flag_given_twice_is_refused_not_silently_dropped(argv, flag, capsys, 
 
 
 @pytest.mark.parametrize("extra, says", [
-    (["--writers", "0"], "--writers must be >= 1, got 0"),
+    (["--writers", "-1"], "--writers must be >= 0 (0: one per two servers), got -1"),
     (["--writers", "2", "--workers", "1"], "--writers 2 needs at least 2 local servers, got --workers 1"),
     (["--writers", "3", "--server", "ws://127.0.0.1:1", "ws://127.0.0.1:2"],
      "--writers 3 needs at least 3 --server URLs (each writer draws from its own), got 2"),

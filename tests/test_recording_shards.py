@@ -39,6 +39,13 @@ def test_seed_book_hands_each_seed_out_once_across_processes(tmp_path):
     assert other.next_seed == 5, "a book kept for another recording says nothing about this one"
 
 
+def test_one_writer_per_two_servers_unless_asked():
+    from vla_ladder.machine import auto_writers
+
+    assert [auto_writers(n) for n in (1, 2, 3, 4, 16)] == [1, 1, 1, 2, 8]
+    assert auto_writers(16, 3) == 3 and auto_writers(2, 2) == 2
+
+
 def _fill(store: DatasetStore, n: int) -> list[int]:
     seeds = store.reserve_seeds(n)
     for seed in seeds:

@@ -23,3 +23,22 @@ def auto_workers(requested: int = 0) -> int:
     except (ValueError, OSError):
         return cores()
     return max(1, min(cores(), available // WORKER_MEMORY_BYTES))
+
+
+def auto_writers(servers: int, requested: int = 0) -> int:
+    """`requested`, or (0) one dataset writer per two simulation servers: a writer takes ~1.6 s a demo and a
+    server rendering on the CPU ~2.2 s (benchmarks/results/record_speed_cpu.json), so one writer keeps up with
+    about 1.4 servers and the servers' cores are still left to them."""
+    return requested if requested > 0 else max(1, servers // 2)
+
+
+def signal_on_parent_death(sig: int) -> None:
+    """Linux: have the kernel send `sig` to this process when its parent dies (prctl PR_SET_PDEATHSIG), so that a
+    child does not outlive a parent killed with kill -9. Elsewhere a no-op: the child may outlive it."""
+    import ctypes
+
+    PR_SET_PDEATHSIG = 1
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, sig)
+    except (OSError, AttributeError):
+        pass

@@ -40,6 +40,8 @@ class StudyCommand:
     """study directory (a re-run with the same config resumes in it)"""
     workers: int = 0
     """simulation worker processes for recording and evaluation (0: one per core, capped by memory)"""
+    writers: int = 0
+    """dataset writer processes of each recording (0: one per two workers; see `vla-ladder record --writers`)"""
     ray: bool = False
     """run the units as Ray tasks (a local Ray, or the cluster at --ray-address)"""
     ray_address: str | None = None
@@ -50,6 +52,9 @@ class StudyCommand:
         self.study = StudyConfig.load(self.config)
         if self.workers < 0:
             raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
+        if self.writers < 0 or (self.workers and self.workers < self.writers):
+            raise ValueError(f"--writers must be >= 0 (0: one per two workers) and at most --workers, got "
+                             f"{self.writers}")
         if self.out.exists() and not self.out.is_dir():
             raise ValueError(f"--out {str(self.out)!r} is a file; give a directory")
         saved = self.out / "study.json"
@@ -96,7 +101,8 @@ class Study:
     def record_units(self) -> list[Unit]:
         return [Unit(f"record-{d.name}", "record", "vla_ladder.experiments.units:record_unit",
                      {"out": str(self.dataset_dir(d)), "episodes": d.episodes, "condition": d.condition,
-                      "policy": d.expert, "first_seed": d.first_seed, "workers": self.cmd.workers}, cpus=2)
+                      "policy": d.expert, "first_seed": d.first_seed, "workers": self.cmd.workers,
+                      "writers": self.cmd.writers}, cpus=2)
                 for d in self.cfg.datasets]
 
     def dataset_dir(self, d: DatasetSpec) -> Path:

@@ -10,7 +10,6 @@ Ray tasks, locally or on a cluster (`ray.init(address=...)`), gathering results 
 
 from __future__ import annotations
 
-import ctypes
 import importlib
 import json
 import multiprocessing
@@ -26,6 +25,7 @@ from typing import Any, Callable, Sequence
 from vla_ladder import files
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import METRICS
+from vla_ladder.machine import signal_on_parent_death
 
 
 @dataclass
@@ -58,14 +58,6 @@ def _plain(data: Any) -> Any:
     return json.loads(json.dumps(data, default=files._default))
 
 
-def _die_with_parent() -> None:
-    """Linux: SIGKILL this process when its parent dies (prctl PR_SET_PDEATHSIG)."""
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)
-    except (OSError, AttributeError):  # not Linux: the unit may outlive a killed parent
-        pass
-
-
 def call(function: str, config: dict) -> Any:
     """Import and call a unit's function with its config."""
     module, _, name = function.partition(":")
@@ -73,7 +65,7 @@ def call(function: str, config: dict) -> Any:
 
 
 def _child(function: str, config: dict, log: str, result_path: str) -> None:
-    _die_with_parent()
+    signal_on_parent_death(signal.SIGKILL)
     fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
@@ -198,7 +190,8 @@ def run_units_on_ray(units: Sequence[Unit], root: Path, address: str | None = No
 def record_unit(config: dict) -> dict:
     from vla_ladder.recording.record import RecordConfig, run
     cfg = RecordConfig(out=config["out"], episodes=config["episodes"], condition=Condition.parse(config["condition"]),
-                       policy=config["policy"], first_seed=config["first_seed"], workers=config["workers"])
+                       policy=config["policy"], first_seed=config["first_seed"], workers=config["workers"],
+                       writers=config["writers"])
     if run(cfg) != 0:
         raise RuntimeError(f"recording {cfg.out} stopped before {cfg.episodes} episodes")
     from vla_ladder.recordings import read_recording_state

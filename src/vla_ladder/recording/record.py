@@ -4,7 +4,6 @@ LeRobotDataset v3. Rerunning the same command resumes; see docs/recording.md."""
 from __future__ import annotations
 
 import asyncio
-import ctypes
 import logging
 import os
 import signal
@@ -13,12 +12,14 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Annotated
 
 import tyro
 
 from vla_ladder.conditions import Condition
+from vla_ladder.machine import auto_workers, auto_writers, signal_on_parent_death
 from vla_ladder.recording.client import Episode, EpisodeClient, EpisodeSource, ServerError
 from vla_ladder.recording.serve import setup_logging
 from vla_ladder.recording.server import TOKEN_ENV
@@ -65,10 +66,9 @@ class RecordConfig:
     """commit to the dataset every N saved episodes"""
     commit_seconds: float = 600.0
     """... or, at the next saved episode, when the open batch is older than this"""
-    writers: int = 1
+    writers: int = 0
     """dataset writers, each a process of its own drawing from its share of the servers into a shard that is
-    merged into --out at the end (LeRobot's writer costs seconds of CPU a demo: on a many-core machine use
-    several; each needs at least one server)"""
+    merged into --out at the end (LeRobot's writer costs ~2.4 CPU s a demo); 0: one per two servers"""
     seed_book: Path | None = None
     """seed reservation shared with other writers (set by `record --writers` for its writers)"""
 
@@ -82,8 +82,8 @@ class RecordConfig:
             raise ValueError(f"--first-seed must be >= 0, got {self.first_seed}")
         if self.workers < 0:
             raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
-        if self.writers < 1:
-            raise ValueError(f"--writers must be >= 1, got {self.writers}")
+        if self.writers < 0:
+            raise ValueError(f"--writers must be >= 0 (0: one per two servers), got {self.writers}")
         if self.server and len(self.server) < self.writers:
             raise ValueError(f"--writers {self.writers} needs at least {self.writers} --server URLs (each writer "
                              f"draws from its own), got {len(self.server)}")
@@ -154,13 +154,13 @@ def run(cfg: RecordConfig) -> int:
         if cfg.server:
             urls = list(cfg.server)
         else:
-            from vla_ladder.machine import auto_workers
             n = max(auto_workers(cfg.workers), cfg.writers)
             local = [LocalServer(recording, cfg.num_envs, threads=1 if n > 1 else 0, rebuild=cfg.rebuild_scenes)
                      for _ in range(n)]
             urls = [s.wait_ready() for s in local]  # they start side by side
-        if cfg.writers > 1:
-            return write_shards(cfg, store, urls)
+        writers = auto_writers(len(urls), cfg.writers)
+        if writers > 1:
+            return write_shards(cfg, store, urls, writers)
         source = EpisodeSource(urls, store.reserve_seeds, cfg.episodes - store.saved,
                                check_server=lambda url, info: check_server(recording, url, info),
                                token=cfg.token).start()
@@ -194,31 +194,32 @@ def run(cfg: RecordConfig) -> int:
             server.stop()
 
 
-def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str]) -> int:
-    """`cfg.writers` writer processes (`record --seed-book`), each drawing from its share of `urls` into a shard
+def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writers: int) -> int:
+    """`writers` writer processes (`record --seed-book`), each drawing from its share of `urls` into a shard
     of its own, then one merge of every shard into the dataset. Interrupted, the writers commit what they
     hold and it is merged all the same; killed, the shards wait for the next run to merge them."""
     needed = cfg.episodes - store.saved
-    k = min(cfg.writers, needed)
+    k = min(writers, needed)
     stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
     env = dict(os.environ, **({TOKEN_ENV: cfg.token} if cfg.token else {}))  # a token stays off command lines
     started = time.monotonic()
-    writers = []
+    procs = []
     for i in range(k):
         cmd = [sys.executable, "-m", "vla_ladder.cli", "record", "--out", str(store.shards_dir / f"{stamp}-{i:02d}"),
                "--episodes", str(needed // k + (i < needed % k)), "--first-seed", str(cfg.first_seed),
                "--commit-every", str(cfg.commit_every), "--commit-seconds", str(cfg.commit_seconds),
-               "--seed-book", str(store.seeds.path), *([] if cfg.video else ["--no-video"]),
+               "--seed-book", str(store.seeds.path), "--writers", "1", *([] if cfg.video else ["--no-video"]),
                "--server", *urls[i::k]]
-        writers.append(subprocess.Popen(cmd, env=env, preexec_fn=_interrupt_when_parent_dies))
+        # A writer gets SIGINT (commit, exit) when the recorder dies, even by kill -9.
+        procs.append(subprocess.Popen(cmd, env=env, preexec_fn=partial(signal_on_parent_death, signal.SIGINT)))
     log.info("%d writers record %d episodes into shards of %s", k, needed, store.shards_dir)
     try:
-        codes = [w.wait() for w in writers]
+        codes = [p.wait() for p in procs]
     except KeyboardInterrupt:  # the writers commit what they hold, and that is merged below
-        for w in writers:
-            if w.poll() is None:
-                w.send_signal(signal.SIGINT)
-        codes = [w.wait() for w in writers] + [130]
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        codes = [p.wait() for p in procs] + [130]
     store.merge(store.unmerged_shards())
     elapsed = time.monotonic() - started
     log.info("done: %d/%d saved in %s | %.3f demos/s saved by %d writers", store.saved, cfg.episodes, cfg.out,
@@ -228,12 +229,6 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str]) -> int
         return 0
     log.info("a writer stopped early (exit codes %s); rerun the same command to continue", codes)
     return 130 if 130 in codes else 1
-
-
-def _interrupt_when_parent_dies() -> None:
-    """In a writer process: Linux sends SIGINT (commit and exit) when the recorder dies, even by kill -9."""
-    PR_SET_PDEATHSIG = 1
-    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGINT)
 
 
 def check_server(recording: Recording, url: str, info: dict) -> None:
