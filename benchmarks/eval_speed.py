@@ -1,15 +1,17 @@
 """Evaluation throughput against worker processes: episodes/s of `vla-ladder eval`, state only and filmed.
 
-    .venv/bin/python benchmarks/eval_speed.py [--episodes 20] [--filmed 4] [--workers 1 2]
+    .venv/bin/python benchmarks/eval_speed.py [--episodes 20] [--filmed 4] [--workers 1 2] [--num-envs 1 2]
+                                              [--policy scripted]
 
-For each --workers N it times `run_evaluation` (what `vla-ladder eval --workers N` runs) on one condition with
-the scripted expert:
+For each --workers N, and each --num-envs N > 1 (one policy acting on N env processes in lockstep, as a batch),
+it times `run_evaluation` (what `vla-ladder eval` runs) on one condition with the policy (default: the scripted
+expert; `lerobot:CKPT?device=cuda` measures a learned policy's batched GPU inference):
   state  - state-only episodes (no renderer);
   filmed - every episode filmed: both 256x256 cameras rendered every step (on the GPU when there is one,
            else lavapipe) and encoded to MP4.
-Wall time includes starting the N workers (imports, building the env); the start-up is also timed alone
-(one episode per worker) so that the steady rate, (episodes - N) / (wall - start-up), can be given. The
-runs for different N must give the same episodes: the result says whether they did.
+Wall time includes starting the N processes (imports, building the env); the start-up is also timed alone
+(one episode per process) so that the steady rate, (episodes - N) / (wall - start-up), can be given. The
+runs for different N must give the same episodes (for a deterministic policy): the result says whether they did.
 
 Writes benchmarks/results/eval_speed.json (eval_speed_cuda.json where a CUDA GPU renders), or --out.
 """
@@ -44,7 +46,11 @@ class Args:
     filmed: int = 4
     """filmed episodes per measurement (0 skips the filmed runs)"""
     workers: tuple[int, ...] = (1, 2)
-    """worker counts to measure"""
+    """worker counts to measure (each worker process with its own copy of the policy)"""
+    num_envs: tuple[int, ...] = (1, 2)
+    """batch sizes to measure: one policy acting on N CPU env processes in lockstep (1: nothing extra)"""
+    policy: str = "scripted"
+    """the policy spec evaluated"""
     regime: str = "full_random"
     """placement regime of the episodes"""
     num_objects: int = 5
@@ -57,30 +63,34 @@ class Args:
     """result JSON (default: benchmarks/results/eval_speed.json, eval_speed_cuda.json with a GPU)"""
 
 
-def timed(args: Args, episodes: int, workers: int, filmed: bool) -> tuple[float, pd.DataFrame]:
+def timed(args: Args, episodes: int, workers: int, filmed: bool, num_envs: int = 1) -> tuple[float, pd.DataFrame]:
     """Wall seconds of one evaluation, and its episodes (without the video column)."""
     grid = ConditionGrid(regimes=(args.regime,), num_objects=(args.num_objects,))
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = EvalConfig(policy="scripted", out=Path(tmp), grid=grid, episodes=episodes, first_seed=args.first_seed,
-                         workers=workers, videos=episodes if filmed else 0, robot_mesh=args.robot_mesh)
+        cfg = EvalConfig(policy=args.policy, out=Path(tmp), grid=grid, episodes=episodes, first_seed=args.first_seed,
+                         workers=workers, num_envs=num_envs, videos=episodes if filmed else 0,
+                         robot_mesh=args.robot_mesh)
         t0 = time.perf_counter()
         run_evaluation(cfg, progress=False)
         wall = time.perf_counter() - t0
         return wall, pd.read_parquet(Path(tmp) / "episodes.parquet").drop(columns="video")
 
 
-def measure(args: Args, workers: int, filmed: bool) -> tuple[dict, pd.DataFrame]:
+def measure(args: Args, workers: int, filmed: bool, num_envs: int = 1) -> tuple[dict, pd.DataFrame]:
     n = args.filmed if filmed else args.episodes
-    startup, _ = timed(args, workers, workers, filmed)  # one episode per worker: start-up plus one episode
-    wall, episodes = timed(args, n, workers, filmed)
-    steady = (n - workers) / (wall - startup) if n > workers and wall > startup else None
-    row = {"kind": "filmed" if filmed else "state", "workers": workers, "episodes": n, "wall_s": round(wall, 2),
+    procs = max(workers, num_envs)
+    startup, _ = timed(args, procs, workers, filmed, num_envs)  # one episode per process: start-up + 1 episode
+    wall, episodes = timed(args, n, workers, filmed, num_envs)
+    steady = (n - procs) / (wall - startup) if n > procs and wall > startup else None
+    row = {"kind": "filmed" if filmed else "state", "workers": workers, "num_envs": num_envs, "episodes": n,
+           "wall_s": round(wall, 2),
            "episodes_per_s": round(n / wall, 3), "env_steps_per_s": round(EPISODE_STEPS * n / wall, 1),
            "startup_and_first_episode_s": round(startup, 2),
            "steady_episodes_per_s": None if steady is None else round(steady, 3),
            "success": float(episodes["success"].mean())}
-    print(f"{row['kind']:6s} workers {workers}: {n} episodes in {wall:.1f} s = {row['episodes_per_s']} episodes/s "
-          f"(start-up + 1 episode {startup:.1f} s; steady {row['steady_episodes_per_s']} episodes/s)", flush=True)
+    print(f"{row['kind']:6s} workers {workers} num_envs {num_envs}: {n} episodes in {wall:.1f} s = "
+          f"{row['episodes_per_s']} episodes/s (start-up + 1 episode {startup:.1f} s; steady "
+          f"{row['steady_episodes_per_s']} episodes/s)", flush=True)
     return row, episodes
 
 
@@ -93,22 +103,22 @@ def main(args: Args) -> None:
         if filmed and args.filmed < 1:
             continue
         played = []
-        for n in args.workers:
-            row, episodes = measure(args, n, filmed)
+        for workers, num_envs in [(n, 1) for n in args.workers] + [(1, n) for n in args.num_envs if n > 1]:
+            row, episodes = measure(args, workers, filmed, num_envs)
             rows.append(row)
             played.append(episodes)
         same[kind] = all(p.equals(played[0]) for p in played[1:])
     result = {
-        "benchmark": "eval_speed", "policy": "scripted", "sim_backend": "physx_cpu",
+        "benchmark": "eval_speed", "policy": args.policy, "sim_backend": "physx_cpu",
         "condition": f"{args.regime}/canonical/{args.num_objects}", "robot_mesh": args.robot_mesh,
         "renderer": "cuda" if gpu else "lavapipe (CPU)", "rows": rows,
-        "same_episodes_for_every_worker_count": same,
+        "same_episodes_for_every_worker_count_and_num_envs": same,
         "machine": {"cores": cores(), "gpu": gpu, "load_average_1min": [load_before, os.getloadavg()[0]]},
         "provenance": files.provenance(),
     }
     out = args.out or RESULTS / ("eval_speed_cuda.json" if gpu else "eval_speed.json")
     files.write_json(out, result)
-    print(f"same episodes for every worker count: {same}; load {os.getloadavg()[0]:.1f}; wrote {out}")
+    print(f"same episodes for every worker count and num_envs: {same}; load {os.getloadavg()[0]:.1f}; wrote {out}")
 
 
 if __name__ == "__main__":

@@ -80,7 +80,7 @@ def test_same_seeds_give_same_layouts_for_every_policy(tmp_path):
     (["--regimes", "full_random", "--splits", "pairings_ood"], "need a jitter regime"),
     (["--num-objects", "6"], "from 1 to 5"),
     (["--episodes", "0"], "positive integer"),
-    (["--num-envs", "4"], "physx_cuda"),
+    (["--num-envs", "4096"], "runs one process per env: --num-envs must be at most the"),
     (["--sim-backend", "bullet"], "allowed: physx_cpu, physx_cuda"),
     (["--videos", "-1"], ">= 0"),
 ])
@@ -115,6 +115,26 @@ def test_any_number_of_workers_plays_the_same_episodes(tmp_path):
         runs[workers] = pd.read_parquet(cfg.out / "episodes.parquet")
     pd.testing.assert_frame_equal(runs[1], runs[2])
     assert len(runs[1]) == 6 and runs[1]["success"].any() and not runs[1]["success"].all()
+
+
+@pytest.mark.slow
+def test_batched_cpu_envs_play_the_same_episodes(tmp_path):
+    """--num-envs 2 on physx_cpu: two env processes in lockstep, one policy acting on both as a batch (the
+    first episode filmed, from cameras rendered in the env processes), the same rows as one env at a time."""
+    grid = ConditionGrid(("small_jitter", "full_random"), num_objects=(3,))
+    runs = {}
+    for n in (1, 2):
+        cfg = EvalConfig("layout-prior", out=tmp_path / f"n{n}", grid=grid, episodes=3, workers=1, num_envs=n,
+                         videos=1)
+        run_evaluation(cfg, progress=False)
+        runs[n] = pd.read_parquet(cfg.out / "episodes.parquet")
+    pd.testing.assert_frame_equal(runs[1].drop(columns="video"), runs[2].drop(columns="video"))
+    assert runs[1]["success"].any() and not runs[1]["success"].all()
+    for video in runs[2]["video"][runs[2]["video"] != ""]:
+        frames = iio.imread(tmp_path / "n2" / video)
+        assert frames.shape == (51, 256, 512, 3) and frames.std() > 10
+    with pytest.raises(ValueError, match="choose one"):
+        EvalConfig("layout-prior", grid=grid, workers=2, num_envs=2)
 
 
 @pytest.mark.slow

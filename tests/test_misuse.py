@@ -386,3 +386,13 @@ def test_record_writers_each_need_a_server(extra, says, tmp_path, capsys):
     rc = main(["record", "--out", str(tmp_path / "rec"), "--episodes", "1", *extra])
     _one_line_error(capsys, rc, says)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_eval_batches_cpu_envs_one_per_core_and_not_with_workers(tmp_path, capsys):
+    from vla_ladder.machine import cores
+
+    base = ["eval", "--policy", "scripted", "--episodes", "1", "--out", str(tmp_path / "run")]
+    _one_line_error(capsys, main([*base, "--num-envs", str(cores() + 1)]),
+                    f"--num-envs must be at most the {cores()} CPU cores here, got {cores() + 1}")
+    _one_line_error(capsys, main([*base, "--num-envs", "2", "--workers", "2"]), "choose one, --workers N")
+    assert list(tmp_path.iterdir()) == []

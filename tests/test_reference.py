@@ -69,6 +69,6 @@ def test_bad_specs_and_experiment_arguments(tmp_path, capsys):
         load_policy("nearest:foo")
     assert main(["experiment", "ladder", "--policy", "teleport", "--out", str(tmp_path)]) == 2
     assert "unknown policy" in capsys.readouterr().err
-    assert main(["experiment", "ladder", "--policy", "nearest", "--num-envs", "4", "--out", str(tmp_path)]) == 2
-    assert "num_envs" in capsys.readouterr().err
+    assert main(["experiment", "ladder", "--policy", "nearest", "--num-envs", "4096", "--out", str(tmp_path)]) == 2
+    assert "--num-envs must be at most the" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing ran, nothing written

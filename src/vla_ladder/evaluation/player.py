@@ -75,7 +75,8 @@ def write_video(path: str | Path, frames: np.ndarray, fps: int = CONTROL_HZ) -> 
 
 
 class Player:
-    """One env and one policy; plays jobs, `num_envs` at a time (1 on the CPU backend)."""
+    """One env and one policy; plays jobs, `num_envs` at a time (on the CPU backend: num_envs processes in
+    lockstep, task/vector.py)."""
 
     def __init__(self, policy, settings: EnvSettings):
         import gymnasium as gym
@@ -87,9 +88,13 @@ class Player:
         if settings.render:  # a state policy's env renders only when asked; filmed episodes need pictures
             import torch
             kwargs["render_backend"] = "gpu" if torch.cuda.is_available() else "cpu"
-        self.env = gym.make(ENV_ID, obs_mode=policy.obs_mode, num_envs=settings.num_envs,
-                            sim_backend=settings.sim_backend, object_set=settings.object_set,
-                            robot_mesh=settings.robot_mesh, **kwargs)
+        make = dict(obs_mode=policy.obs_mode, object_set=settings.object_set, robot_mesh=settings.robot_mesh, **kwargs)
+        if settings.sim_backend == "physx_cpu" and settings.num_envs > 1:
+            # One CPU env per process, in lockstep: the policy here acts on all of them as one batch.
+            from vla_ladder.task.vector import CPUEnvs
+            self.env = CPUEnvs(settings.num_envs, **make)
+        else:
+            self.env = gym.make(ENV_ID, num_envs=settings.num_envs, sim_backend=settings.sim_backend, **make)
 
     def close(self) -> None:
         self.env.close()
@@ -158,7 +163,8 @@ def _play_in_worker(jobs: tuple[Job, ...]) -> list[dict]:
 def play(jobs: Sequence[Job], spec: str, settings: EnvSettings, workers: int = 1, policy=None,
          ) -> Iterator[tuple[Job, dict]]:
     """Play every job and yield (job, result row) as they finish (not in order). `policy` (an instance)
-    plays in this process; a spec with workers > 1 loads one copy of the policy per worker process."""
+    plays in this process; a spec with workers > 1 loads one copy of the policy per worker process. With
+    num_envs > 1 the policy plays here on batches of num_envs (on physx_cpu: one env process each)."""
     n = settings.num_envs
     groups: dict[tuple, list[Job]] = {}
     for job in jobs:
@@ -166,7 +172,7 @@ def play(jobs: Sequence[Job], spec: str, settings: EnvSettings, workers: int = 1
     batches = [tuple(g[i:i + n]) for g in groups.values() for i in range(0, len(g), n)]
     if not batches:
         return
-    if workers <= 1 or policy is not None or settings.sim_backend == "physx_cuda":
+    if workers <= 1 or policy is not None or n > 1:
         if policy is None:
             from vla_ladder.policies import load_policy
             policy = load_policy(spec)

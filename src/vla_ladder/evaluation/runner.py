@@ -24,7 +24,7 @@ import tyro
 from vla_ladder import files
 from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.evaluation.player import EnvSettings, Job, play
-from vla_ladder.machine import auto_workers
+from vla_ladder.machine import auto_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
 from vla_ladder.policies import POLICY_KINDS, Policy, check_spec
 
@@ -56,10 +56,12 @@ class EvalConfig:
     first_seed: int = 0
     """episode j of every condition plays seed first_seed + j, so every policy meets the same layouts"""
     workers: int = 0
-    """worker processes playing episodes on the CPU backend (0: one per core, capped by memory); any number gives
-    the same episodes"""
+    """worker processes playing episodes on the CPU backend, each with its own copy of the policy (0: one per
+    core, capped by memory); any number gives the same episodes"""
     num_envs: int = 1
-    """episodes simulated at once in one process (more than one needs physx_cuda)"""
+    """episodes played at once by one copy of the policy, acting on them as a batch (a GPU policy's batched
+    inference): physx_cuda simulates them in one process, physx_cpu in num_envs processes in lockstep; any
+    number gives the same episodes"""
     sim_backend: str = "physx_cpu"
     """physx_cpu or physx_cuda"""
     videos: int = 0
@@ -96,9 +98,12 @@ class EvalConfig:
                              f"{self.first_seed} + {self.episodes}")
         if self.sim_backend not in SIM_BACKENDS:
             raise ValueError(f"unknown sim_backend {self.sim_backend!r}; allowed: {', '.join(SIM_BACKENDS)}")
-        if self.sim_backend == "physx_cpu" and self.num_envs != 1:
-            raise ValueError(f"physx_cpu runs one env at a time (num_envs=1); got num_envs={self.num_envs}; "
-                             "use --workers for parallel CPU episodes, or sim_backend=physx_cuda")
+        if self.sim_backend == "physx_cpu" and self.num_envs > cores():
+            raise ValueError(f"--sim-backend physx_cpu runs one process per env: --num-envs must be at most the "
+                             f"{cores()} CPU cores here, got {self.num_envs}")
+        if self.num_envs > 1 and self.workers > 1:
+            raise ValueError(f"--workers {self.workers} and --num-envs {self.num_envs}: choose one, --workers N (N "
+                             "copies of the policy, one per process) or --num-envs N (one policy acting on N envs)")
         if self.sim_backend == "physx_cuda":
             from vla_ladder.task.physx_gpu import check_physx_cuda
             check_physx_cuda("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")

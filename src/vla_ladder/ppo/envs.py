@@ -8,8 +8,6 @@ seeds it chooses (>= TRAIN_SEED_MIN, disjoint from evaluation seeds).
 
 from __future__ import annotations
 
-import functools
-
 import gymnasium as gym
 import numpy as np
 import torch
@@ -17,30 +15,7 @@ import torch
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import CONTROL_MODE, ENV_ID, METRICS
 from vla_ladder.ppo.config import TRAIN_SEED_MIN, Args
-
-
-class SlotEnv(gym.Wrapper):
-    """One CPU env of an AsyncVectorEnv: AsyncVectorEnv sends every sub-env the same reset options,
-    so each picks its own row of the batched "conditions"."""
-
-    def __init__(self, env: gym.Env, index: int):
-        super().__init__(env)
-        self.index = index
-
-    def reset(self, *, seed=None, options=None):
-        options = dict(options or {})
-        if "conditions" in options:
-            options["conditions"] = [options["conditions"][self.index]]
-        return self.env.reset(seed=seed, options=options)
-
-
-def make_cpu_env(index: int, **make_kwargs) -> gym.Env:
-    """Build sub-env `index` in a spawned process (module-level, so it pickles)."""
-    from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
-
-    import vla_ladder.task.env  # noqa: F401  (registers GraspObject-v1 in this process)
-
-    return SlotEnv(CPUGymWrapper(gym.make(ENV_ID, **make_kwargs), ignore_terminations=True), index)
+from vla_ladder.task.vector import cpu_vector_env
 
 
 class TrainEnvs:
@@ -52,15 +27,13 @@ class TrainEnvs:
 
         self.num_envs, self.device = args.num_envs, device
         kw = dict(obs_mode="state", control_mode=CONTROL_MODE, reward_mode="normalized_dense",
-                  sim_backend=args.sim_backend, max_episode_steps=args.max_episode_steps)
+                  max_episode_steps=args.max_episode_steps)
         self._async = args.sim_backend == "physx_cpu" and args.num_envs > 1
         if self._async:
-            self.env = gym.vector.AsyncVectorEnv(
-                [functools.partial(make_cpu_env, i, **kw) for i in range(args.num_envs)], context="spawn",
-                autoreset_mode=gym.vector.AutoresetMode.DISABLED)
+            self.env = cpu_vector_env(args.num_envs, **kw)
         else:
             from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
-            self.env = ManiSkillVectorEnv(gym.make(ENV_ID, num_envs=args.num_envs, **kw),
+            self.env = ManiSkillVectorEnv(gym.make(ENV_ID, num_envs=args.num_envs, sim_backend=args.sim_backend, **kw),
                                           auto_reset=False, ignore_terminations=True)
         self.obs_dim = int(np.prod(self.env.single_observation_space.shape))
         self.act_dim = int(np.prod(self.env.single_action_space.shape))
