@@ -105,6 +105,7 @@ def main(args: Args) -> None:
         played = []
         for workers, num_envs in [(n, 1) for n in args.workers] + [(1, n) for n in args.num_envs if n > 1]:
             row, episodes = measure(args, workers, filmed, num_envs)
+            row["same_episodes_as_first_row"] = bool(not played or episodes.equals(played[0]))
             rows.append(row)
             played.append(episodes)
         same[kind] = all(p.equals(played[0]) for p in played[1:])
