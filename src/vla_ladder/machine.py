@@ -25,6 +25,15 @@ def auto_workers(requested: int = 0) -> int:
     return max(1, min(cores(), available // WORKER_MEMORY_BYTES))
 
 
+def limit_threads(threads: int) -> None:
+    """In a worker process, before its renderer starts: `threads` threads for lavapipe and for torch, so that N
+    worker processes use N cores instead of all fighting over all of them."""
+    os.environ.setdefault("LP_NUM_THREADS", str(threads))  # lavapipe: read when Vulkan starts
+    import torch
+
+    torch.set_num_threads(threads)
+
+
 def auto_writers(servers: int, requested: int = 0) -> int:
     """`requested`, or (0) one dataset writer per two simulation servers: a writer takes ~1.6 s a demo and a
     server rendering on the CPU ~2.2 s (benchmarks/results/record_speed_cpu.json), so one writer keeps up with

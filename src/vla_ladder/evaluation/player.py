@@ -10,7 +10,6 @@ On physx_cuda, one process steps `num_envs` episodes at once instead.
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +19,7 @@ import numpy as np
 
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import CAMERA_NAMES, CONTROL_HZ, ENV_ID, EPISODE_STEPS
+from vla_ladder.machine import limit_threads
 
 @dataclass(frozen=True)
 class Job:
@@ -127,15 +127,16 @@ class Player:
         from vla_ladder.task.objects import OBJECT_NAMES
 
         rows = []
+        layouts, object_set = u.layouts, u.object_set  # one query each (CPUEnvs asks every env process)
         for k, job in enumerate(jobs):
             held = int(info["held"][k])
-            lay = u.layouts[k]
+            lay = layouts[k]
             rows.append(dict(
                 seed=job.seed, target=lay.target, instruction=instructions[k],
                 held=OBJECT_NAMES[held] if held >= 0 else "none",
                 success=bool(info["success"][k]), grasp_any=bool(info["grasp_any"][k]),
                 reach=bool(info["reach"][k]), reach_dist=float(info["reach_dist"][k]),
-                object_set=u.object_set, layout=lay.to_dict(), policy_info=self.policy.describe()))
+                object_set=object_set, layout=lay.to_dict(), policy_info=self.policy.describe()))
         return rows
 
 
@@ -144,14 +145,11 @@ _PLAYER: Player | None = None
 
 
 def _start_worker(spec: str, settings: EnvSettings, threads: int) -> None:
-    """Runs once in each spawned worker, before any job: one thread each for the renderer and torch, so N
+    """Runs once in each spawned worker, before any job: `threads` each for the renderer and torch, so N
     workers use N cores instead of fighting over them."""
-    os.environ.setdefault("LP_NUM_THREADS", str(threads))  # lavapipe: read when Vulkan starts
-    import torch
-
     from vla_ladder.policies import load_policy
 
-    torch.set_num_threads(threads)
+    limit_threads(threads)
     global _PLAYER
     _PLAYER = Player(load_policy(spec), settings)
 

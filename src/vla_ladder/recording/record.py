@@ -198,7 +198,8 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writer
     """`writers` writer processes (`record --seed-book`), each drawing from its share of `urls` into a shard
     of its own, then one merge of every shard into the dataset. Interrupted, the writers commit what they
     hold and it is merged all the same; killed, the shards wait for the next run to merge them."""
-    needed = cfg.episodes - store.saved
+    before = store.saved
+    needed = cfg.episodes - before
     k = min(writers, needed)
     stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
     env = dict(os.environ, **({TOKEN_ENV: cfg.token} if cfg.token else {}))  # a token stays off command lines
@@ -223,7 +224,7 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writer
     store.merge(store.unmerged_shards())
     elapsed = time.monotonic() - started
     log.info("done: %d/%d saved in %s | %.3f demos/s saved by %d writers", store.saved, cfg.episodes, cfg.out,
-             (store.saved - (cfg.episodes - needed)) / elapsed, k)
+             (store.saved - before) / elapsed, k)
     store.close()
     if all(c == 0 for c in codes):
         return 0

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from vla_ladder.contract import CAMERA_NAMES, ENV_ID
+from vla_ladder.machine import limit_threads
 
 
 class SlotEnv(gym.Wrapper):
@@ -36,12 +37,9 @@ class SlotEnv(gym.Wrapper):
 
 
 def make_cpu_env(index: int, **make_kwargs) -> gym.Env:
-    """Build sub-env `index` in a spawned process (module-level, so it pickles). One renderer thread and one
-    torch thread: N env processes then use N cores instead of all fighting over all of them."""
-    import os
-
-    os.environ.setdefault("LP_NUM_THREADS", "1")  # lavapipe: read when Vulkan starts, below
-    torch.set_num_threads(1)
+    """Build sub-env `index` in a spawned process (module-level, so it pickles), with one renderer thread and
+    one torch thread."""
+    limit_threads(1)
     from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
 
     import vla_ladder.task.env  # noqa: F401  (registers GraspObject-v1 in this process)
