@@ -105,11 +105,13 @@ def picture_difference(args: Args, steps: int = 5) -> dict:
         o, _ = env.reset(seed=3)
         for _ in range(steps):
             o, *_ = env.step(torch.tensor([[0.3, 0.2, -0.3, 0, 0, 0, 1.0]], device=env.unwrapped.device))
-        obs[mesh] = o
+        # Copied off the env before it closes: a GPU renderer's pictures live in the renderer's CUDA memory,
+        # which closing frees (reading them afterwards was an illegal memory access on an H100).
+        obs[mesh] = {"rgb": {cam: o["sensor_data"][cam]["rgb"].float().cpu() for cam in CAMERA_NAMES},
+                     "qpos": o["agent"]["qpos"].cpu().numpy()}
         env.close()
-    diff = {cam: float((obs["full"]["sensor_data"][cam]["rgb"].float() - obs["lite"]["sensor_data"][cam]["rgb"].float())
-                       .abs().mean()) for cam in CAMERA_NAMES}
-    qpos = float(np.abs(obs["full"]["agent"]["qpos"].cpu().numpy() - obs["lite"]["agent"]["qpos"].cpu().numpy()).max())
+    diff = {cam: float((obs["full"]["rgb"][cam] - obs["lite"]["rgb"][cam]).abs().mean()) for cam in CAMERA_NAMES}
+    qpos = float(np.abs(obs["full"]["qpos"] - obs["lite"]["qpos"]).max())
     return {"seed": 3, "steps": steps, "mean_abs_difference_grey_levels": diff, "max_qpos_difference": qpos}
 
 

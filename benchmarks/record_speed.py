@@ -53,7 +53,9 @@ class Args:
     """Recording demos/s end to end against workers, and seconds per episode of each stage."""
 
     episodes: int = 8
-    """successful demos per end-to-end run, and episodes per stage measurement"""
+    """successful demos per end-to-end run"""
+    stage_episodes: int | None = None
+    """episodes per stage measurement (default: --episodes)"""
     workers: tuple[int, ...] = (1, 2)
     """`record --workers` counts to measure end to end"""
     writers: tuple[int, ...] = (1, 2)
@@ -68,6 +70,10 @@ class Args:
     """run `vla-ladder record` (--no-end-to-end: the stages only)"""
     out: Path | None = None
     """result JSON (default: benchmarks/results/record_speed_<cpu|cuda>.json)"""
+
+    def __post_init__(self):
+        if self.stage_episodes is None:
+            self.stage_episodes = self.episodes
 
 
 def end_to_end(args: Args, workers: int, work: Path, writers: int = 1) -> dict:
@@ -111,7 +117,7 @@ def physics(args: Args, rebuild: bool) -> dict:
     expert = load_policy("scripted")
     env.reset(seed=10**6)  # warm-up
     resets, steps = [], []
-    for seed in range(args.episodes):
+    for seed in range(args.stage_episodes):
         t = time.perf_counter()
         obs, _ = env.reset(seed=seed)
         expert.reset([seed])
@@ -136,7 +142,7 @@ def simulate(args: Args, rebuild: bool) -> tuple[dict, list]:
     build = time.perf_counter() - t0
     sim.run([10**6])  # warm-up: the first render
     totals, steps, episodes = [], [], []
-    for seed in range(args.episodes):
+    for seed in range(args.stage_episodes):
         t = time.perf_counter()
         (r,) = sim.run([seed])
         totals.append(time.perf_counter() - t)
@@ -290,8 +296,11 @@ def main(args: Args) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         if args.end_to_end:
-            result["end_to_end"] = [end_to_end(args, n, work) for n in args.workers] + [
-                end_to_end(args, max(args.workers), work, k) for k in args.writers if 1 < k <= max(args.workers)]
+            # each worker count with the fewest writers, then the most workers with every other writer count
+            fewest = min(args.writers)
+            result["end_to_end"] = [end_to_end(args, n, work, min(fewest, n)) for n in args.workers] + [
+                end_to_end(args, max(args.workers), work, k) for k in args.writers
+                if fewest < k <= max(args.workers)]
         stages = {}
         for rebuild in (False, True):
             print(f"stages, rebuild_scenes={rebuild} ...", flush=True)
@@ -305,7 +314,7 @@ def main(args: Args) -> None:
         video = encode_and_write(args, ok, work, video=True)
         images = encode_and_write(args, ok, work, video=False)
         scaling = [writer_scaling(ok, work, k) for k in args.writers]
-    success = stages[False]["simulator"]["success_rate"] or 1 / args.episodes
+    success = stages[False]["simulator"]["success_rate"] or 1 / args.stage_episodes
     n_cores = cores()
     per_episode, bounds = {}, {}
     for rebuild, s in stages.items():

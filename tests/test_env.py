@@ -133,6 +133,18 @@ def test_rendering_both_cameras(make_env):
     assert env.unwrapped.metadata["object_set"] == env.unwrapped.object_set == "standin"
 
 
+def test_an_env_picks_the_gpu_renderer_wherever_cuda_is(make_env):
+    from vla_ladder.task.env import auto_render_backend
+
+    # A state-only env too: without a renderer, every scene rebuild creates a Vulkan instance, and NVIDIA's driver
+    # refused one after about 25 rebuilds (PPO's CPU envs on an H100).
+    assert auto_render_backend(needs_render=False, cuda=True) == auto_render_backend(True, True) == "gpu"
+    assert (auto_render_backend(True, cuda=False), auto_render_backend(False, cuda=False)) == ("cpu", "none")
+    env = make_env(obs_mode="state", num_objects=1)
+    env.reset(seed=0)
+    assert env.unwrapped.backend.render_backend == ("sapien_cuda" if torch.cuda.is_available() else "none")
+
+
 @pytest.mark.parametrize("kwargs, allowed", [
     (dict(regime="random"), "small_jitter, medium_jitter, large_jitter, full_random"),
     (dict(split="heldout"), "canonical, pairings_id, pairings_ood"),

@@ -26,8 +26,11 @@ class TrainEnvs:
         import vla_ladder.task.env  # noqa: F401
 
         self.num_envs, self.device = args.num_envs, device
+        # Training rollouts promise no bit-exact replay, so the CPU envs keep their scene across resets instead of
+        # rebuilding it (a rebuild costs about as much as the 50 steps of an episode); the curve's evaluation
+        # episodes are then not replayable either: `vla-ladder eval` of a checkpoint is the exact measure.
         kw = dict(obs_mode="state", control_mode=CONTROL_MODE, reward_mode="normalized_dense",
-                  max_episode_steps=args.max_episode_steps)
+                  max_episode_steps=args.max_episode_steps, reconfiguration_freq=0)
         self._async = args.sim_backend == "physx_cpu" and args.num_envs > 1
         if self._async:
             self.env = cpu_vector_env(args.num_envs, **kw)
