@@ -156,3 +156,20 @@ def test_images_mode_and_commit_batches(tmp_path):
     item = ds[2 * FRAMES]
     assert item["observation.images.fixed_camera"].shape == (3, 256, 256)
     assert item["observation.state"][0].item() == 2 and item["task"] == read_provenance(root)["instruction"][2]
+
+
+def test_attempts_after_the_last_commit_are_counted(tmp_path):
+    """A recorder whose last episodes failed still records them as attempted when it closes."""
+    root = tmp_path / "counted"
+    store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=1)
+    (seed,) = store.reserve_seeds(1)
+    store.count(True)
+    store.add(synthetic_episode(seed))  # committed at once
+    store.count(False)
+    store.count(False)
+    store.close()
+    counters = read_recording_state(root)["counters"]
+    assert (counters["saved"], counters["attempted"], counters["failed"]) == (1, 3, 2)
+    again = DatasetStore(root, Recording(**CONFIG, video=False))
+    assert again.counters["attempted"] == 3 and again.saved == 1
+    again.close()

@@ -86,6 +86,7 @@ class DatasetStore:
         self.saved = int(state["counters"]["saved"]) if state else 0
         self.counters = dict(state["counters"]) if state else {"saved": 0, "attempted": 0, "failed": 0,
                                                                 "commits": 0}
+        self._published = dict(self.counters)  # the counters DATASET_DIR's recording state holds
         self.object_set: str | None = state.get("object_set") if state else None
         floor = max(config.first_seed, int(state["next_seed"]) if state else 0)
         self.seeds = SeedBook(Path(seed_book) if seed_book else self.work / "seeds.json", config, floor)
@@ -192,6 +193,12 @@ class DatasetStore:
     def commit(self) -> None:
         """Make every episode added so far part of DATASET_DIR, atomically."""
         if self.pending == 0:
+            if self.counters != self._published and (self.root / RECORDING_FILE).is_file():
+                # Failed attempts since the last commit: only the counters change, in our own file, replaced
+                # atomically (a recorder that ends on failures would otherwise report too few attempts).
+                files.write_json(self.root / RECORDING_FILE, {**read_recording_state(self.root),
+                                                              "counters": self.counters})
+                self._published = dict(self.counters)
             return
         t0 = time.perf_counter()
         self._ds.finalize()
@@ -272,6 +279,7 @@ class DatasetStore:
         """Write the recording state, quantiles over all frames and the card into staging, flush it, and swap
         it with DATASET_DIR in one atomic step."""
         files.write_json(self.staging / RECORDING_FILE, state)
+        self._published = dict(state["counters"])
         from vla_ladder.recording import card, stats  # quantiles over all frames, and the dataset card
         stats.write_exact_quantiles(self.staging)
         card.write_card(self.staging)
