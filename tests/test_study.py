@@ -31,7 +31,7 @@ def _micro(**changes) -> dict:
 
 
 def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
-    assert {"micro", "cpu-mini", "gpu-scratch", "paper"} <= set(presets())
+    assert {"micro", "cpu-mini", "gpu-session", "gpu-scratch", "paper"} <= set(presets())
     for name in presets():
         StudyConfig.load(name)
     bad = {

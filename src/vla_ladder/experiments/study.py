@@ -35,7 +35,7 @@ class StudyCommand:
     """Record, train, evaluate and report a learned policy along the ladder (resumable)."""
 
     config: tyro.conf.Positional[str]
-    """a preset (micro, cpu-mini, gpu-scratch, paper) or a study JSON file"""
+    """a preset (micro, cpu-mini, gpu-session, gpu-scratch, paper) or a study JSON file"""
     out: Path
     """study directory (a re-run with the same config resumes in it)"""
     workers: int = 0

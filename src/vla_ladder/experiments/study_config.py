@@ -1,7 +1,7 @@
 """What a study runs: the datasets to record, the policies to train on them, the grid, and how to evaluate.
 
-A study config is a JSON file (the presets ship in vla_ladder/configs/study/: micro, cpu-mini, gpu-scratch,
-paper). Every section is a dataclass validated when loaded: an unknown field, regime, policy type or a grid
+A study config is a JSON file (the presets ship in vla_ladder/configs/study/: micro, cpu-mini, gpu-session,
+gpu-scratch, paper). Every section is a dataclass validated when loaded: an unknown field, regime, policy type or a grid
 that cannot run is refused before any work, with the field's path named ("policies[1].type: ...").
 """
 
@@ -196,7 +196,7 @@ class StudyConfig:
 
     @classmethod
     def load(cls, name_or_path: str) -> "StudyConfig":
-        """A preset name (micro, cpu-mini, gpu-scratch, paper) or a path to a JSON file."""
+        """A preset name (micro, cpu-mini, gpu-session, gpu-scratch, paper) or a path to a JSON file."""
         path = Path(name_or_path)
         if path.suffix == ".json" and path.is_file():
             data = json.loads(path.read_text())
