@@ -10,7 +10,8 @@ do not rebuild, evaluation does), to say where the time goes:
   physics  - physics + the scripted expert on a state-only env, per episode (reset included);
   render   - the server's Simulator.run (physics + expert + both 256x256 cameras) minus physics;
   transfer - a real episode message: protocol.encode -> WebSocket over 127.0.0.1 -> decode;
-  encode   - DatasetStore.add: LeRobot add_frame/save_episode, AV1 video (and PNG images for comparison);
+  encode   - DatasetStore.add: LeRobot add_frame/save_episode, AV1 video (and PNG images for comparison), and
+             the video encoder alone on the same frames (what LeRobot's per-frame work around it costs);
   write    - DatasetStore commit (finalize, statistics, card, fsync, atomic swap), per episode it held.
 The servers run in parallel and each writer is one process (`--writers K`), so the pipeline runs at its slowest
 stage, with simulation divided among N workers and writing among K writers, and no faster than the cores
@@ -210,6 +211,40 @@ def encode_and_write(args: Args, episodes: list, work: Path, video: bool) -> dic
             "episodes_per_commit": n, "bytes_per_episode": size / n}
 
 
+def encoder_alone(episodes: list) -> dict:
+    """The video encoder by itself on the same frames: LeRobot's RGB codec settings (SVT-AV1 by default) through
+    PyAV, one MP4 per camera, without LeRobot's per-frame work around it (image statistics, conversions). The
+    difference to `encode` is what that work costs."""
+    import io
+    from fractions import Fraction
+
+    import av
+    from lerobot.configs.video import rgb_encoder_defaults
+
+    from vla_ladder.contract import CONTROL_HZ
+
+    config = rgb_encoder_defaults()
+    t0, cpu0 = time.perf_counter(), _cpu_s()
+    size = 0
+    for e in episodes:
+        for frames in e.images.values():
+            buf = io.BytesIO()
+            with av.open(buf, "w", format="mp4") as out:
+                stream = out.add_stream(config.vcodec, CONTROL_HZ, options=config.get_codec_options(as_strings=True))
+                stream.pix_fmt, stream.width, stream.height = config.pix_fmt, frames.shape[2], frames.shape[1]
+                stream.time_base = Fraction(1, CONTROL_HZ)
+                for i, frame in enumerate(frames):
+                    vf = av.VideoFrame.from_ndarray(frame, format="rgb24")
+                    vf.pts = i
+                    out.mux(stream.encode(vf))
+                out.mux(stream.encode())
+            size += buf.tell()
+    n = len(episodes)
+    return {"codec": config.vcodec, "options": config.get_codec_options(as_strings=True),
+            "s_per_episode": (time.perf_counter() - t0) / n, "cpu_s_per_episode": (_cpu_s() - cpu0) / n,
+            "bytes_per_episode": size / n}
+
+
 def _cpu_s() -> float:
     """CPU seconds of this process, all threads (LeRobot encodes each camera in a thread of its own)."""
     t = os.times()
@@ -311,6 +346,7 @@ def main(args: Args) -> None:
             e.header["metrics"]["success"] = True
         print("transfer, encode, write ...", flush=True)
         trans = transfer(ok[0])
+        encoder = encoder_alone(ok)
         video = encode_and_write(args, ok, work, video=True)
         images = encode_and_write(args, ok, work, video=False)
         scaling = [writer_scaling(ok, work, k) for k in args.writers]
@@ -328,7 +364,8 @@ def main(args: Args) -> None:
                        if k <= n]
     result.update({
         "stages": {"no_rebuild": stages[False], "rebuild": stages[True]}, "transfer": trans,
-        "encode_and_write_video": video, "encode_and_write_images": images, "writer_scaling": scaling,
+        "encode_and_write_video": video, "encode_and_write_images": images, "video_encoder_alone": encoder,
+        "writer_scaling": scaling,
         "stage_s_per_episode": per_episode, "expert_success_rate": success,
         "steady_state_bounds": bounds,
         "how": "s_per_demo: a stage's seconds per episode / expert success rate / workers for the simulation stages "
@@ -341,6 +378,8 @@ def main(args: Args) -> None:
     })
     out = args.out or RESULTS / f"record_speed_{'cuda' if gpu else 'cpu'}.json"
     files.write_json(out, result)
+    print(f"encode: {video['encode_cpu_s_per_episode']:.2f} CPU s per episode in LeRobot's writer, of which the "
+          f"{encoder['codec']} encoder alone {encoder['cpu_s_per_episode']:.2f}")
     for key, stage in per_episode.items():
         print(f"{key}: s per episode: " + ", ".join(f"{k} {v:.2f}" for k, v in stage.items()))
         for b in bounds[key]:
