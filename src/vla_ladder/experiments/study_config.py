@@ -1,8 +1,8 @@
 """What a study runs: the datasets to record, the policies to train on them, the grid, and how to evaluate.
 
 A study config is a JSON file (the presets ship in vla_ladder/configs/study/: micro, cpu-mini, gpu-session,
-gpu-scratch, paper). Every section is a dataclass validated when loaded: an unknown field, regime, policy type or a grid
-that cannot run is refused before any work, with the field's path named ("policies[1].type: ...").
+gpu-scratch, paper). Every section is a dataclass validated when loaded: an unknown field, regime, policy type
+or a grid that cannot run is refused before any work, with the field's path named ("policies[1].type: ...").
 """
 
 from __future__ import annotations
