@@ -38,7 +38,7 @@ STEP_LINE = re.compile(r"step:(\d+)\S* .*updt_s:([\d.]+) data_s:([\d.]+)")
 
 def model_args(model: str, vlm_root: Path) -> tuple[str, list[str]]:
     """(policy type, lerobot flags) of a benchmark model."""
-    from vla_ladder.training.tiny import SIZES, build_vlm_dir
+    from vla_ladder.training.tiny import SIZES, build_vlm_dir, scratch_smolvla_args
 
     if model == "act":
         return "act", []
@@ -46,11 +46,7 @@ def model_args(model: str, vlm_root: Path) -> tuple[str, list[str]]:
         vlm = build_vlm_dir(vlm_root / "smolvlm2-500m", "smolvlm2-500m")
         return "smolvla", [f"--policy.vlm_model_name={vlm}", "--policy.load_vlm_weights=false"]
     if model == "smolvla-scratch":  # as the gpu-scratch study trains it (experiments/study.py)
-        vlm = build_vlm_dir(vlm_root / "small", "small")
-        side = SIZES["small"].image_size
-        return "smolvla", [f"--policy.vlm_model_name={vlm}", "--policy.load_vlm_weights=false",
-                           "--policy.train_expert_only=false", "--policy.freeze_vision_encoder=false",
-                           f"--policy.resize_imgs_with_padding=[{side},{side}]"]
+        return "smolvla", scratch_smolvla_args(build_vlm_dir(vlm_root / "small", "small"), SIZES["small"].image_size)
     raise ValueError(f"unknown model {model!r}; allowed: {', '.join(MODELS)}")
 
 

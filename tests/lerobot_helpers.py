@@ -49,9 +49,8 @@ def tiny_policy_flags(kind: str, vlm: Path | None = None) -> list[str]:
     """lerobot-train flags (after `--`) that shrink a policy: SmolVLA to 0.2M parameters on the local tiny
     VLM, ACT to a one-layer transformer (its ResNet-18 backbone stays, randomly initialised)."""
     if kind == "smolvla":
-        return [f"--policy.vlm_model_name={vlm}", "--policy.load_vlm_weights=false",
-                "--policy.train_expert_only=false", "--policy.freeze_vision_encoder=false",
-                "--policy.resize_imgs_with_padding=[64,64]", "--policy.num_steps=2"]
+        from vla_ladder.training.tiny import scratch_smolvla_args
+        return [*scratch_smolvla_args(vlm, 64), "--policy.num_steps=2"]
     if kind == "act":
         return ["--policy.dim_model=32", "--policy.n_heads=2", "--policy.dim_feedforward=64",
                 "--policy.n_encoder_layers=1", "--policy.n_decoder_layers=1", "--policy.use_vae=false"]

@@ -112,12 +112,9 @@ class Study:
     def lerobot_args(self, p: PolicySpec) -> list[str]:
         args = list(p.lerobot_args)
         if p.vlm is not None:
-            from vla_ladder.training.tiny import SIZES, build_vlm_dir
+            from vla_ladder.training.tiny import SIZES, build_vlm_dir, scratch_smolvla_args
             vlm = build_vlm_dir(self.root / "assets" / f"vlm-{p.vlm}", p.vlm)
-            side = p.image_size or SIZES[p.vlm].image_size
-            args = [f"--policy.vlm_model_name={vlm}", "--policy.load_vlm_weights=false",
-                    "--policy.train_expert_only=false", "--policy.freeze_vision_encoder=false",
-                    f"--policy.resize_imgs_with_padding=[{side},{side}]", *args]
+            args = [*scratch_smolvla_args(vlm, p.image_size or SIZES[p.vlm].image_size), *args]
         return args
 
     def train_units(self) -> list[Unit]:

@@ -126,3 +126,14 @@ def build_vlm_dir(out: str | Path, size: str | VLMSize = "tiny") -> Path:
     config.save_pretrained(out)
     processor.save_pretrained(out)
     return out
+
+
+def scratch_smolvla_args(vlm_dir: str | Path, image_size: int) -> list[str]:
+    """LeRobot flags that train SmolVLA from scratch on the VLM directory `vlm_dir` (see `build_vlm_dir`).
+
+    With random VLM weights nothing may stay frozen: SmolVLA's defaults train only the action expert on top
+    of a pretrained backbone. Images are resized to the VLM's own side instead of SmolVLA's 512.
+    """
+    return [f"--policy.vlm_model_name={vlm_dir}", "--policy.load_vlm_weights=false",
+            "--policy.train_expert_only=false", "--policy.freeze_vision_encoder=false",
+            f"--policy.resize_imgs_with_padding=[{image_size},{image_size}]"]
