@@ -151,8 +151,10 @@ def test_a_killed_run_resumes_and_another_request_is_refused(tmp_path, capsys):
     assert "1 episodes done, 2 to play" in capsys.readouterr().out
     pd.testing.assert_frame_equal(pd.read_parquet(out / "episodes.parquet"), full)
     assert json.loads((out / "summary.json").read_text())["complete"]
-    # The same request with another worker count is the same run; another policy is refused, or replaces it.
+    # The same request with another worker count, or played as a batch, is the same run; another policy is
+    # refused, or replaces it.
     assert main([*argv[:-1], "2"]) == 0
+    assert main([*argv, "--num-envs", "2"]) == 0
     assert main([*argv[:2], "random", *argv[3:]]) == 2
     assert "another evaluation request" in capsys.readouterr().err
     assert main([*argv[:2], "random", *argv[3:], "--overwrite"]) == 0

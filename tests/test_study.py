@@ -13,6 +13,7 @@ import pytest
 
 from vla_ladder.cli import main
 from vla_ladder.experiments.study_config import StudyConfig, presets
+from vla_ladder.machine import cores
 
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1", "MS_SKIP_ASSET_DOWNLOAD_PROMPT": "1",
        "WANDB_MODE": "disabled"}
@@ -54,6 +55,9 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         assert not (tmp_path / "out").exists()
     assert main(["study", "nano", "--out", str(tmp_path / "out")]) == 2
     assert "allowed: " in capsys.readouterr().err
+    assert main(["study", "micro", "--out", str(tmp_path / "out"), "--num-envs", str(cores() + 1)]) == 2
+    assert "--num-envs must be from 1 to the" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
@@ -76,6 +80,11 @@ def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
     # Blind models are not probed: they cannot follow an instruction.
     assert [u.id for u in study.probe_units(chosen)] == [f"probe-SmolVLA-scratch-{d}-instruction-swap"
                                                          for d in ("sj", "pid", "fr")]
+    assert {(u.config["workers"], u.config.get("num_envs", 1)) for u in study.probe_units(chosen)} == {(0, 1)}
+    # --num-envs N: every evaluation and probe plays with one copy of the policy on N envs.
+    batched = Study(StudyCommand("cpu-mini", out=tmp_path / "b", workers=2, num_envs=2))
+    units = [*batched.eval_units(chosen), *batched.probe_units(chosen)]
+    assert units and {(u.config["workers"], u.config["num_envs"]) for u in units} == {(1, 2)}
 
 
 def test_selection_plays_validation_seeds_and_picks_by_success_then_grasp_then_reach(tmp_path):

@@ -42,7 +42,7 @@ PROBES = ("instruction-swap", "paraphrase", "appearance-swap")
 PROBE_FILE = "probe.json"
 CONFIG_FILE = "probe_config.json"
 FORMAT_VERSION = 1
-NOT_THE_REQUEST = ("out", "workers", "overwrite", "report", "resamples")
+NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite", "report", "resamples")
 
 
 @dataclass

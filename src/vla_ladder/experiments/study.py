@@ -26,6 +26,7 @@ from vla_ladder import files
 from vla_ladder.conditions import parse_regimes
 from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
+from vla_ladder.machine import cores
 
 RANK_BY = ("success", "grasp_any", "reach")
 
@@ -42,6 +43,9 @@ class StudyCommand:
     """simulation worker processes for recording and evaluation (0: one per core, capped by memory)"""
     writers: int = 0
     """dataset writer processes of each recording (0: one per two workers; see `vla-ladder record --writers`)"""
+    num_envs: int = 1
+    """evaluate and probe with one copy of each policy acting on this many envs at once (batched inference, what
+    a GPU policy wants; see `vla-ladder eval --num-envs`) instead of --workers copies; the same episodes"""
     ray: bool = False
     """run the units as Ray tasks (a local Ray, or the cluster at --ray-address)"""
     ray_address: str | None = None
@@ -55,6 +59,8 @@ class StudyCommand:
         if self.writers < 0 or (self.workers and self.workers < self.writers):
             raise ValueError(f"--writers must be >= 0 (0: one per two workers) and at most --workers, got "
                              f"{self.writers}")
+        if not 1 <= self.num_envs <= cores():  # one env process each: refused here, not after the recording
+            raise ValueError(f"--num-envs must be from 1 to the {cores()} CPU cores here, got {self.num_envs}")
         if self.out.exists() and not self.out.is_dir():
             raise ValueError(f"--out {str(self.out)!r} is a file; give a directory")
         saved = self.out / "study.json"
@@ -165,7 +171,13 @@ class Study:
 
     def eval_config(self, spec: str, out: Path, grid: dict, episodes: int, first_seed: int, videos: int) -> dict:
         return {"policy": spec, "out": str(out), "grid": grid, "episodes": episodes, "first_seed": first_seed,
-                "workers": self.cmd.workers, "videos": videos}
+                "videos": videos, **self.players()}
+
+    def players(self) -> dict:
+        """How evaluations and probes play their episodes: --workers policy copies or one on --num-envs envs."""
+        if self.cmd.num_envs > 1:
+            return {"workers": 1, "num_envs": self.cmd.num_envs}
+        return {"workers": self.cmd.workers}
 
     def select_units(self) -> list[Unit]:
         g = self.cfg.grid
@@ -253,7 +265,7 @@ class Study:
             for name in ev.probes:
                 cfg = {"name": name, "policy": self.spec(p, best["model"], best["horizon"]),
                        "out": str(self.root / "probes" / f"{p.name}-{d.name}-{name}"), "grid": own,
-                       "episodes": ev.probe_episodes, "first_seed": ev.first_seed, "workers": self.cmd.workers}
+                       "episodes": ev.probe_episodes, "first_seed": ev.first_seed, **self.players()}
                 units.append(Unit(f"probe-{p.name}-{d.name}-{name}", "probe",
                                   "vla_ladder.experiments.units:probe_unit", cfg, cpus=2))
         return units
