@@ -138,7 +138,8 @@ def pairings_html(cells: list[dict]) -> str:
     return f"<table><tr><th>policy</th><th>trained on</th><th>split</th><th>n</th>{head}</tr>{body}</table>"
 
 
-def plot_curves(curves: dict[str, list[dict]], path: str | Path) -> Path:
+def plot_curves(curves: dict[str, list[dict]], path: str | Path, xlabel: str = "training step",
+                ylabel: str = "% of validation episodes") -> Path:
     """curves: model -> [{step, success, grasp_any, reach, ci95}] on validation episodes; one panel per model."""
     import matplotlib
     matplotlib.use("Agg")
@@ -153,9 +154,9 @@ def plot_curves(curves: dict[str, list[dict]], path: str | Path) -> Path:
             ax.fill_between(steps, [100 * p["ci95"][m][0] for p in points], [100 * p["ci95"][m][1] for p in points],
                             alpha=0.15)
         ax.set_title(model, fontsize=9)
-        ax.set_xlabel("training step")
+        ax.set_xlabel(xlabel)
         ax.set_ylim(-2, 102)
-    axes[0][0].set_ylabel("% of validation episodes")
+    axes[0][0].set_ylabel(ylabel)
     axes[0][0].legend(fontsize=7)
     fig.tight_layout()
     with atomic_path(path) as tmp:
