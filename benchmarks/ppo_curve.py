@@ -88,8 +88,8 @@ def main(args: Args) -> None:
               f"first success {r['first_success']}; best {r['best']}")
     out = RESULTS / f"ppo_curve_{args.name}.json"
     files.write_json(out, {"benchmark": "ppo_curve", "device": args.device or machine(), "runs": runs})
-    png = plot_curves({f"{label} ({r['settings'].get('num_envs', 1024)} envs)": r["curve"] for label, r in runs.items()},
-                      out.with_suffix(".png"), xlabel="env steps", ylabel="% of evaluation episodes")
+    panels = {f"{label} ({r['settings'].get('num_envs', 1024)} envs)": r["curve"] for label, r in runs.items()}
+    png = plot_curves(panels, out.with_suffix(".png"), xlabel="env steps", ylabel="% of evaluation episodes")
     print(f"wrote {out} and {png}")
 
 
