@@ -85,6 +85,9 @@ def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
     batched = Study(StudyCommand("cpu-mini", out=tmp_path / "b", workers=2, num_envs=2))
     units = [*batched.eval_units(chosen), *batched.probe_units(chosen)]
     assert units and {(u.config["workers"], u.config["num_envs"]) for u in units} == {(1, 2)}
+    batched.cfg.evaluation.probes = ["appearance-swap"]  # paints each scene: one env per copy of the policy
+    assert {u.config["workers"] for u in batched.probe_units(chosen)} == {2}
+    assert all("num_envs" not in u.config for u in batched.probe_units(chosen))
 
 
 def test_selection_plays_validation_seeds_and_picks_by_success_then_grasp_then_reach(tmp_path):

@@ -173,9 +173,10 @@ class Study:
         return {"policy": spec, "out": str(out), "grid": grid, "episodes": episodes, "first_seed": first_seed,
                 "videos": videos, **self.players()}
 
-    def players(self) -> dict:
-        """How evaluations and probes play their episodes: --workers policy copies or one on --num-envs envs."""
-        if self.cmd.num_envs > 1:
+    def players(self, probe: str = "") -> dict:
+        """How evaluations and probes play their episodes: --workers policy copies or one on --num-envs envs
+        (not appearance-swap, which paints each scene and so plays one env per policy copy)."""
+        if self.cmd.num_envs > 1 and probe != "appearance-swap":
             return {"workers": 1, "num_envs": self.cmd.num_envs}
         return {"workers": self.cmd.workers}
 
@@ -265,7 +266,7 @@ class Study:
             for name in ev.probes:
                 cfg = {"name": name, "policy": self.spec(p, best["model"], best["horizon"]),
                        "out": str(self.root / "probes" / f"{p.name}-{d.name}-{name}"), "grid": own,
-                       "episodes": ev.probe_episodes, "first_seed": ev.first_seed, **self.players()}
+                       "episodes": ev.probe_episodes, "first_seed": ev.first_seed, **self.players(name)}
                 units.append(Unit(f"probe-{p.name}-{d.name}-{name}", "probe",
                                   "vla_ladder.experiments.units:probe_unit", cfg, cpus=2))
         return units
