@@ -66,6 +66,10 @@ def test_plots_write_pngs(runs, tmp_path):
              plots.plot_confusion(res["nearest"], tmp_path / "cm.png"),
              plots.plot_data_scaling([{"model": "m", "regime": "full_random", "sizes": ("10k", "100k"),
                                        "before": res["nearest"], "after": res["layout-prior"]}], tmp_path / "ds.png")]
+    from vla_ladder.report.study import plot_curves
+    ci = {m: [0.1, 0.6] for m in ("success", "grasp_any", "reach")}
+    points = [{"step": s, "success": 0.2, "grasp_any": 0.3, "reach": 0.4, "ci95": ci} for s in (200_000, 400_000)]
+    paths.append(plot_curves({"a": points, "b": points}, tmp_path / "curves.png", xlabel="env steps"))
     for p in paths:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
 

@@ -144,6 +144,7 @@ def plot_curves(curves: dict[str, list[dict]], path: str | Path, xlabel: str = "
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import EngFormatter
 
     n = max(len(curves), 1)
     fig, axes = plt.subplots(1, n, figsize=(4 * n, 3.2), squeeze=False)
@@ -155,6 +156,7 @@ def plot_curves(curves: dict[str, list[dict]], path: str | Path, xlabel: str = "
                             alpha=0.15)
         ax.set_title(model, fontsize=9)
         ax.set_xlabel(xlabel)
+        ax.xaxis.set_major_formatter(EngFormatter(sep=""))  # 200k, not 200000 running into its neighbours
         ax.set_ylim(-2, 102)
     axes[0][0].set_ylabel(ylabel)
     axes[0][0].legend(fontsize=7)
