@@ -18,11 +18,11 @@ from pathlib import Path
 import tyro
 
 from vla_ladder import files
+from vla_ladder.contract import METRICS
 from vla_ladder.machine import cores
 from vla_ladder.ppo.config import Args as PPOArgs
 
 RESULTS = Path(__file__).parent / "results"
-METRICS = ("success", "grasp_any", "reach")
 
 
 @dataclass
@@ -51,7 +51,7 @@ def changed_settings(config: dict) -> dict:
     defaults = {f.name: f.default for f in fields(PPOArgs) if f.default is not MISSING}
     changed = {k: config[k] for k, d in defaults.items()
                if k in config and k not in ("out", "progress", "resume")
-               and json.loads(json.dumps(config[k])) != json.loads(json.dumps(d, default=str))}
+               and config[k] != json.loads(json.dumps(d, default=str))}  # as config.json stores it
     changed["conditions"] = config["conditions"]
     return changed
 
@@ -62,7 +62,7 @@ def curve(run: Path) -> dict:
     points = [{"step": e["global_step"], "wall_s": e["wall_s"], "n": e["all"]["n"],
                **{m: e["all"][m] for m in METRICS}, "ci95": e["all"]["ci95"]} for e in evals]
     first = next((p for p in points if p["success"] > 0), None)
-    best = max(points, key=lambda p: (p["success"], p["grasp_any"], p["reach"]))
+    best = max(points, key=lambda p: tuple(p[m] for m in METRICS))  # success, then grasp-any, then reach
     last = points[-1]
     return {"run": str(run), "settings": changed_settings(config), "env_steps": last["step"],
             "train_loop_s": last["wall_s"], "env_steps_per_s": round(last["step"] / last["wall_s"], 1),

@@ -34,7 +34,6 @@ ROBOT_MESHES = ("lite", "full")
 FLUSH_SECONDS = 10.0
 # Fields of EvalConfig that do not change which episodes are played or what they give: a run directory
 # written with other values of these is the same request and is resumed.
-# Fields that change how episodes are played, not which: a run resumes with other values of them.
 NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite")
 # Fields added after run directories existed, with the value a config.json without them meant; they become env
 # reset options of every episode when not at that value (the probes, experiments/probes.py, set them).

@@ -39,6 +39,8 @@ from vla_ladder.task.appearance import SWAPS, SWAPS_VERSION
 from vla_ladder.task.instructions import INSTRUCTION_SETS, paraphrase_version
 
 PROBES = ("instruction-swap", "paraphrase", "appearance-swap")
+# Probes that paint each scene's objects, so play one env per copy of the policy (never --num-envs > 1).
+ONE_ENV_PROBES = ("appearance-swap",)
 PROBE_FILE = "probe.json"
 CONFIG_FILE = "probe_config.json"
 FORMAT_VERSION = 1
@@ -95,7 +97,7 @@ class ProbeConfig:
         if self.name in ("instruction-swap", "appearance-swap") and min(counts) < 2:
             raise ValueError(f"{self.name} needs at least two objects on the table; got --num-objects "
                              f"{' '.join(map(str, counts))} (allowed: 2-5)")
-        if self.name == "appearance-swap" and self.num_envs != 1:
+        if self.name in ONE_ENV_PROBES and self.num_envs != 1:
             raise ValueError(f"appearance-swap paints each scene's objects and needs --num-envs 1, got {self.num_envs}")
         self.variants()  # every evaluation is configured, and so checked, before a simulator starts
 

@@ -175,8 +175,9 @@ class Study:
 
     def players(self, probe: str = "") -> dict:
         """How evaluations and probes play their episodes: --workers policy copies or one on --num-envs envs
-        (not appearance-swap, which paints each scene and so plays one env per policy copy)."""
-        if self.cmd.num_envs > 1 and probe != "appearance-swap":
+        (not the probes that paint each scene: they play one env per policy copy)."""
+        from vla_ladder.experiments.probes import ONE_ENV_PROBES
+        if self.cmd.num_envs > 1 and probe not in ONE_ENV_PROBES:
             return {"workers": 1, "num_envs": self.cmd.num_envs}
         return {"workers": self.cmd.workers}
 
