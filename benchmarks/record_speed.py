@@ -69,10 +69,16 @@ class Args:
     """lite or full robot visual meshes"""
     end_to_end: bool = True
     """run `vla-ladder record` (--no-end-to-end: the stages only)"""
+    encoder_threads: tuple[int, ...] = (0,)
+    """`record --encoder-threads` values (threads of each camera's encoder; 0: the encoder's choice): the first
+    for end to end and the stages, each for the writer stage"""
     out: Path | None = None
     """result JSON (default: benchmarks/results/record_speed_<cpu|cuda>.json)"""
 
     def __post_init__(self):
+        if not self.encoder_threads or min(self.encoder_threads) < 0:
+            raise SystemExit(f"--encoder-threads: one or more values >= 0 (0: the encoder's choice), got "
+                             f"{self.encoder_threads}")
         if self.stage_episodes is None:
             self.stage_episodes = self.episodes
 
@@ -81,7 +87,8 @@ def end_to_end(args: Args, workers: int, work: Path, writers: int = 1) -> dict:
     out = work / f"e2e-{workers}-{writers}"
     cmd = [sys.executable, "-m", "vla_ladder.cli", "record", "--out", str(out), "--episodes", str(args.episodes),
            "--workers", str(workers), "--writers", str(writers), "--regime", args.regime, "--num-objects",
-           str(args.num_objects), "--robot-mesh", args.robot_mesh]
+           str(args.num_objects), "--robot-mesh", args.robot_mesh, "--encoder-threads",
+           str(args.encoder_threads[0])]
     log = work / f"record-{workers}-{writers}.log"
     started = time.time()
     with open(log, "w") as f:
@@ -195,7 +202,8 @@ def encode_and_write(args: Args, episodes: list, work: Path, video: bool) -> dic
 
     recording = Recording(policy="scripted", condition=Condition(args.regime, "canonical", args.num_objects),
                           video=video, robot_mesh=args.robot_mesh)
-    store = DatasetStore(work / ("video" if video else "images"), recording, commit_every=10**6)
+    store = DatasetStore(work / ("video" if video else "images"), recording, commit_every=10**6,
+                         encoder_threads=args.encoder_threads[0] or None)
     t0, cpu0 = time.perf_counter(), _cpu_s()
     for e in episodes:
         store.count(True)
@@ -211,7 +219,7 @@ def encode_and_write(args: Args, episodes: list, work: Path, video: bool) -> dic
             "episodes_per_commit": n, "bytes_per_episode": size / n}
 
 
-def encoder_alone(episodes: list) -> dict:
+def encoder_alone(episodes: list, threads: int) -> dict:
     """The video encoder by itself on the same frames: LeRobot's RGB codec settings (SVT-AV1 by default) through
     PyAV, one MP4 per camera, without LeRobot's per-frame work around it (image statistics, conversions). The
     difference to `encode` is what that work costs."""
@@ -230,7 +238,8 @@ def encoder_alone(episodes: list) -> dict:
         for frames in e.images.values():
             buf = io.BytesIO()
             with av.open(buf, "w", format="mp4") as out:
-                stream = out.add_stream(config.vcodec, CONTROL_HZ, options=config.get_codec_options(as_strings=True))
+                stream = out.add_stream(config.vcodec, CONTROL_HZ,
+                                        options=config.get_codec_options(threads or None, as_strings=True))
                 stream.pix_fmt, stream.width, stream.height = config.pix_fmt, frames.shape[2], frames.shape[1]
                 stream.time_base = Fraction(1, CONTROL_HZ)
                 for i, frame in enumerate(frames):
@@ -240,7 +249,7 @@ def encoder_alone(episodes: list) -> dict:
                 out.mux(stream.encode())
             size += buf.tell()
     n = len(episodes)
-    return {"codec": config.vcodec, "options": config.get_codec_options(as_strings=True),
+    return {"codec": config.vcodec, "options": config.get_codec_options(threads or None, as_strings=True),
             "s_per_episode": (time.perf_counter() - t0) / n, "cpu_s_per_episode": (_cpu_s() - cpu0) / n,
             "bytes_per_episode": size / n}
 
@@ -251,7 +260,7 @@ def _cpu_s() -> float:
     return t.user + t.system
 
 
-def _write_shard(root: str, episodes: list, video: bool, ready, go, out) -> None:
+def _write_shard(root: str, episodes: list, video: bool, threads: int, ready, go, out) -> None:
     """One parallel writer: a shard DatasetStore adding `episodes` once every writer is ready."""
     import lerobot.datasets.lerobot_dataset  # noqa: F401  (imported before the clock starts)
 
@@ -260,7 +269,8 @@ def _write_shard(root: str, episodes: list, video: bool, ready, go, out) -> None
 
     h = episodes[0].header
     store = DatasetStore(root, Recording("scripted", Condition.parse(h["condition"]), video=video,
-                                         robot_mesh=h["robot_mesh"]), commit_every=10**6)
+                                         robot_mesh=h["robot_mesh"]),
+                         commit_every=10**6, encoder_threads=threads or None)
     ready.wait()
     go.wait()
     cpu0 = _cpu_s()
@@ -271,7 +281,7 @@ def _write_shard(root: str, episodes: list, video: bool, ready, go, out) -> None
     out.put(_cpu_s() - cpu0)
 
 
-def writer_scaling(episodes: list, work: Path, writers: int) -> dict:
+def writer_scaling(episodes: list, work: Path, writers: int, threads: int) -> dict:
     """`writers` processes each adding all `episodes` to a shard at once (as `record --writers` runs them):
     demos/s written by all, CPU s per demo; then the merge of the shards into one dataset."""
     import multiprocessing
@@ -281,10 +291,11 @@ def writer_scaling(episodes: list, work: Path, writers: int) -> dict:
 
     ctx = multiprocessing.get_context("spawn")
     ready, go, out = ctx.Barrier(writers + 1), ctx.Barrier(writers + 1), ctx.Queue()
-    root = work / f"writers-{writers}"
+    root = work / f"writers-{writers}-threads-{threads}"
     main = DatasetStore(root, Recording("scripted", Condition.parse(episodes[0].header["condition"]),
                                         robot_mesh=episodes[0].header["robot_mesh"]))
-    procs = [ctx.Process(target=_write_shard, args=(str(main.shards_dir / f"w{i}"), episodes, True, ready, go, out))
+    procs = [ctx.Process(target=_write_shard,
+                         args=(str(main.shards_dir / f"w{i}"), episodes, True, threads, ready, go, out))
              for i in range(writers)]
     for p in procs:
         p.start()
@@ -300,9 +311,10 @@ def writer_scaling(episodes: list, work: Path, writers: int) -> dict:
     merge = time.perf_counter() - t
     main.close()
     n = writers * len(episodes)
-    print(f"writer stage, {writers} writers: {n / wall:.3f} demos/s, {sum(cpu) / n:.2f} CPU s per demo, merge "
-          f"{merge:.1f} s", flush=True)
-    return {"writers": writers, "demos": n, "wall_s": wall, "demos_per_s": n / wall, "cpu_s_per_demo": sum(cpu) / n,
+    print(f"writer stage, {writers} writers, --encoder-threads {threads}: {n / wall:.3f} demos/s, "
+          f"{sum(cpu) / n:.2f} CPU s per demo, merge {merge:.1f} s", flush=True)
+    return {"writers": writers, "encoder_threads": threads, "demos": n, "wall_s": wall, "demos_per_s": n / wall,
+            "cpu_s_per_demo": sum(cpu) / n,
             "merge_s": merge, "merge_s_per_demo": merge / n}
 
 
@@ -327,7 +339,7 @@ def main(args: Args) -> None:
     load_before = os.getloadavg()[0]
     result: dict = {"benchmark": "record_speed", "policy": "scripted", "robot_mesh": args.robot_mesh,
                     "condition": Condition(args.regime, "canonical", args.num_objects).key,
-                    "renderer": "cuda" if gpu else "lavapipe (CPU)"}
+                    "renderer": "cuda" if gpu else "lavapipe (CPU)", "encoder_threads": args.encoder_threads[0]}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         if args.end_to_end:
@@ -346,10 +358,10 @@ def main(args: Args) -> None:
             e.header["metrics"]["success"] = True
         print("transfer, encode, write ...", flush=True)
         trans = transfer(ok[0])
-        encoder = encoder_alone(ok)
+        encoder = encoder_alone(ok, args.encoder_threads[0])
         video = encode_and_write(args, ok, work, video=True)
         images = encode_and_write(args, ok, work, video=False)
-        scaling = [writer_scaling(ok, work, k) for k in args.writers]
+        scaling = [writer_scaling(ok, work, k, t) for k in args.writers for t in args.encoder_threads]
     success = stages[False]["simulator"]["success_rate"] or 1 / args.stage_episodes
     n_cores = cores()
     per_episode, bounds = {}, {}

@@ -8,13 +8,15 @@ from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.task.layouts import sample_layout
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
 
-CASES = [(r, s) for r, e in REGIMES.items() for s in (["canonical", "pairings_id", "pairings_ood"] if e else ["canonical"])]
+CASES = [(r, s) for r, e in REGIMES.items()
+         for s in (["canonical", "pairings_id", "pairings_ood"] if e else ["canonical"])]
 
 
 def _seed_with(objects, regime="small_jitter", num_objects=2, target=None):
     """First seed whose layout holds exactly `objects` (pure numpy search)."""
     for s in range(10_000):
-        if set(sample_layout(Condition(regime, num_objects=num_objects), seed=s, target=target).objects) == set(objects):
+        layout = sample_layout(Condition(regime, num_objects=num_objects), seed=s, target=target)
+        if set(layout.objects) == set(objects):
             return s
     raise AssertionError(objects)
 

@@ -141,8 +141,8 @@ def _killed(run: Path, drop: int) -> None:
 CORRUPTIONS = {
     "an episode twice": (lambda r: _edit_episodes(r, lambda df: pd.concat([df, df.iloc[[2]]], ignore_index=True)),
                          ["small_jitter/canonical/5 episode 2 (2 rows)", "evaluate again into a new --out"]),
-    "an episode missing (a killed run)": (lambda r: _killed(r, drop=1),
-                                          ["incomplete", "lacks episodes 1 of 0..3", "rerun the same `vla-ladder eval`"]),
+    "an episode missing (a killed run)": (
+        lambda r: _killed(r, drop=1), ["incomplete", "lacks episodes 1 of 0..3", "rerun the same `vla-ladder eval`"]),
     "an episode missing from episodes.parquet": (
         lambda r: _edit_episodes(r, lambda df: df.drop(index=1)),
         ["lacks episodes 1 of 0..3", "summary.json counts 4 episodes of small_jitter/canonical/5, episodes.parquet "
@@ -378,6 +378,7 @@ def test_a_flag_given_twice_is_refused_not_silently_dropped(argv, flag, capsys, 
 
 @pytest.mark.parametrize("extra, says", [
     (["--writers", "-1"], "--writers must be >= 0 (0: one per two servers), got -1"),
+    (["--encoder-threads", "-2"], "--encoder-threads must be >= 0 (0: the encoder's choice), got -2"),
     (["--writers", "2", "--workers", "1"], "--writers 2 needs at least 2 local servers, got --workers 1"),
     (["--writers", "3", "--server", "ws://127.0.0.1:1", "ws://127.0.0.1:2"],
      "--writers 3 needs at least 3 --server URLs (each writer draws from its own), got 2"),

@@ -181,7 +181,8 @@ def test_several_cpu_envs_run_in_spawned_processes():
         obs = envs.reset([TRAIN_SEED_MIN, TRAIN_SEED_MIN + 1], conds)
         assert obs.shape == (2, 96) and envs.object_set == "standin"
         layouts = [lay[0] for lay in envs.env.get_attr("layouts")]
-        assert [(lay.condition.regime, len(lay.objects)) for lay in layouts] == [("small_jitter", 5), ("full_random", 1)]
+        assert ([(lay.condition.regime, len(lay.objects)) for lay in layouts]
+                == [("small_jitter", 5), ("full_random", 1)])
         obs, reward, truncated, metrics = envs.step(torch.zeros(2, 7))
         assert obs.shape == (2, 96) and reward.shape == (2,) and not truncated.any()
         assert set(metrics) == {"success", "grasp_any", "reach"} and metrics["success"].shape == (2,)

@@ -4,6 +4,7 @@ provenance in step; atomic; never merged twice), and `record --writers 2` does i
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import shutil
 from pathlib import Path
@@ -142,7 +143,7 @@ def test_record_with_two_writers_killed_then_rerun(tmp_path):
 
     root = tmp_path / "grasp"
     cmd = _cli("record", *CONDITION, "--episodes", "5", "--out", str(root), "--first-seed", "300",
-               "--workers", "2", "--writers", "2", "--commit-every", "1")
+               "--workers", "2", "--writers", "2", "--commit-every", "1", "--encoder-threads", "1")
     shards = tmp_path / ".grasp.recording" / "shards"
 
     def left() -> list[Path]:  # shards with a commit (a writer's own work directory is hidden)
@@ -151,7 +152,20 @@ def test_record_with_two_writers_killed_then_rerun(tmp_path):
     def committed() -> int:
         return sum(read_recording_state(s)["counters"]["saved"] for s in left())
 
-    children = _kill_when(cmd, lambda: committed() >= 1, "a writer's first commit")
+    writers: list[list[str]] = []  # the writer processes' command lines, read while they run
+
+    def ready() -> bool:
+        if committed() < 1:
+            return False
+        for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+            with contextlib.suppress(OSError):
+                argv = cmdline.read_bytes().decode().split("\0")
+                if "--seed-book" in argv and any(a.startswith(str(shards)) for a in argv):
+                    writers.append(argv)
+        return True
+
+    children = _kill_when(cmd, ready, "a writer's first commit")
+    assert len(writers) == 2 and all(w[w.index("--encoder-threads") + 1] == "1" for w in writers)
     # Servers see their stdin close, writers get SIGINT from the kernel (PR_SET_PDEATHSIG): all exit.
     _wait_for(lambda: not any(_alive(p) for p in children), 120, "the recorder's children to exit")
     assert len(children) == 4

@@ -69,6 +69,9 @@ class RecordConfig:
     writers: int = 0
     """dataset writers, each a process of its own drawing from its share of the servers into a shard that is
     merged into --out at the end (LeRobot's writer costs ~2.4 CPU s a demo); 0: one per two servers"""
+    encoder_threads: int = 0
+    """threads of each camera's video encoder (SVT-AV1's lp); 0: the encoder's choice (on 2 cores as fast as 1
+    thread or faster; see docs/recording.md)"""
     seed_book: Path | None = None
     """seed reservation shared with other writers (set by `record --writers` for its writers)"""
 
@@ -84,6 +87,8 @@ class RecordConfig:
             raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
         if self.writers < 0:
             raise ValueError(f"--writers must be >= 0 (0: one per two servers), got {self.writers}")
+        if self.encoder_threads < 0:
+            raise ValueError(f"--encoder-threads must be >= 0 (0: the encoder's choice), got {self.encoder_threads}")
         if self.server and len(self.server) < self.writers:
             raise ValueError(f"--writers {self.writers} needs at least {self.writers} --server URLs (each writer "
                              f"draws from its own), got {len(self.server)}")
@@ -136,7 +141,7 @@ def run(cfg: RecordConfig) -> int:
     except ServerError as e:
         raise ValueError(f"cannot reach the server: {e}") from None
     store = DatasetStore(cfg.out, recording, commit_every=cfg.commit_every, commit_seconds=cfg.commit_seconds,
-                         seed_book=cfg.seed_book)
+                         seed_book=cfg.seed_book, encoder_threads=cfg.encoder_threads or None)
     leftovers = store.unmerged_shards()
     if leftovers:
         log.info("merging the %d shards a stopped recording left", len(leftovers))
@@ -209,7 +214,8 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writer
         cmd = [sys.executable, "-m", "vla_ladder.cli", "record", "--out", str(store.shards_dir / f"{stamp}-{i:02d}"),
                "--episodes", str(needed // k + (i < needed % k)), "--first-seed", str(cfg.first_seed),
                "--commit-every", str(cfg.commit_every), "--commit-seconds", str(cfg.commit_seconds),
-               "--seed-book", str(store.seeds.path), "--writers", "1", *([] if cfg.video else ["--no-video"]),
+               "--seed-book", str(store.seeds.path), "--writers", "1", "--encoder-threads", str(cfg.encoder_threads),
+               *([] if cfg.video else ["--no-video"]),
                "--server", *urls[i::k]]
         # A writer gets SIGINT (commit, exit) when the recorder dies, even by kill -9.
         procs.append(subprocess.Popen(cmd, env=env, preexec_fn=partial(signal_on_parent_death, signal.SIGINT)))

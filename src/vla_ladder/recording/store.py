@@ -58,12 +58,13 @@ class DatasetStore:
 
     def __init__(self, root: str | os.PathLike, config: Recording, commit_every: int = 50,
                  commit_seconds: float = 600.0, repo_id: str | None = None,
-                 seed_book: str | os.PathLike | None = None):
+                 seed_book: str | os.PathLike | None = None, encoder_threads: int | None = None):
         if commit_every < 1:
             raise ValueError(f"commit_every must be >= 1, got {commit_every}")
         self.root = Path(root).resolve()
         self.config = config
         self.commit_every, self.commit_seconds = commit_every, commit_seconds
+        self.encoder_threads = encoder_threads  # per camera encoder (SVT-AV1's lp); None: the codec's choice
         self.repo_id = repo_id or f"vla-ladder/{self.root.name}"
         self.work = self.root.parent / f".{self.root.name}.recording"
         self.staging = self.work / "staging"
@@ -179,7 +180,7 @@ class DatasetStore:
         # Episodes are whole when they reach the writer, so the encoder queue may take a full episode at
         # once; LeRobot's streaming encoder drops frames when its queue stays full for 0.1 s.
         opts = dict(streaming_encoding=self.config.video, encoder_queue_maxsize=4 * EPISODE_STEPS,
-                    image_writer_threads=0 if self.config.video else 2)
+                    image_writer_threads=0 if self.config.video else 2, encoder_threads=self.encoder_threads)
         if self.saved == 0:
             self._ds = LeRobotDataset.create(self.repo_id, fps=CONTROL_HZ, features=dataset_features(self.config.video),
                                              root=self.staging, robot_type="panda", use_videos=self.config.video,

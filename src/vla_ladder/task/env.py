@@ -260,6 +260,7 @@ class GraspObjectEnv(BaseEnv):
         instruct = options.get("instruct")
         if not isinstance(instruct, (list, tuple)):
             instruct = [instruct] * b
+        centers = self._center.cpu().numpy()  # once, not per object and env: on CUDA each .cpu() waits on the GPU
         for row, i in enumerate(ids):
             seed = int(self._layout_seeds[i])
             lay = sample_layout(conditions[row], seed, target, instructions, look)
@@ -276,7 +277,7 @@ class GraspObjectEnv(BaseEnv):
                 present[row, k] = True
                 # The layout gives the bounding-box centre; the actor origin may sit elsewhere (YCB).
                 c, s = np.cos(yaw), np.sin(yaw)
-                off = self._center[k].cpu().numpy()
+                off = centers[k]
                 pos[row, k, :2] = xy - np.array([c * off[0] - s * off[1], s * off[0] + c * off[1]])
                 quat[row, k] = [np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]
             noise = np.random.default_rng([seed, 7]).normal(0, self.robot_init_qpos_noise, 7)

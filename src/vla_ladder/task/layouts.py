@@ -12,6 +12,7 @@ location shortcut the ladder removes step by step); the pairing splits permute o
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
@@ -122,15 +123,48 @@ def region_assignments(objects: tuple[int, ...], split: str) -> tuple[tuple[int,
     return tuple(out)
 
 
-def _footprints(objects: tuple[str, ...]) -> np.ndarray:
-    return np.array([OBJECTS[object_index(n)].footprint_radius for n in objects])
+def _collides(xy: list[tuple[float, float]], radii: tuple[float, ...], i: int) -> bool:
+    # Scalar floats, not NumPy: this runs ~10 times a layout and a batched reset samples thousands of layouts.
+    # sqrt(dx*dx + dy*dy) and (r_j + r_i) + gap are the operations np.linalg.norm and the array sums did, in the
+    # same order, so every comparison (and so every layout of every seed) is what it always was.
+    x, y = xy[i]
+    for j in range(i):
+        dx, dy = xy[j][0] - x, xy[j][1] - y
+        if math.sqrt(dx * dx + dy * dy) < radii[j] + radii[i] + MIN_GAP:
+            return True
+    return False
 
 
-def _collides(xy: np.ndarray, radii: np.ndarray, i: int) -> bool:
-    if i == 0:
-        return False
-    d = np.linalg.norm(xy[:i] - xy[i], axis=1)
-    return bool(np.any(d < radii[:i] + radii[i] + MIN_GAP))
+@lru_cache(maxsize=None)
+def _boxes(names: tuple[str, ...], regime: str, regions: tuple[int, ...] | None) -> tuple:
+    """Per object, where its position is drawn, as Python floats: (low, range, offset) for offset + (low + range * u)
+    with u uniform in [0, 1)^2 (offset None: 0), or (None, None, xy) for a fixed place (small jitter's centre)."""
+    out = []
+    for name, region in zip(names, regions or (None,) * len(names)):
+        if region is None:  # full_random: the whole footprint stays on the workspace
+            r = OBJECTS[object_index(name)].footprint_radius
+            lo, hi, offset = WORKSPACE_CENTER - WORKSPACE_SIZE / 2 + r, WORKSPACE_CENTER + WORKSPACE_SIZE / 2 - r, None
+        elif regime == "small_jitter" and region == CENTER_REGION:
+            lo = hi = None
+            offset = REGION_CENTERS[CENTER_REGION]
+        else:
+            half = np.asarray(REGIMES[regime]) / 2
+            lo, hi, offset = -half, half, REGION_CENTERS[region]
+        out.append((None if lo is None else tuple(lo.tolist()), None if hi is None else tuple((hi - lo).tolist()),
+                    None if offset is None else tuple(offset.tolist())))
+    return tuple(out)
+
+
+def _draw(rng: np.random.Generator, box: tuple) -> tuple[float, float]:
+    # rng.uniform(low, high) on arrays is low + (high - low) * next_double per element (NumPy's random_uniform),
+    # drawn in element order: rng.random(2) gives the same doubles at a tenth of the cost (no argument checks),
+    # and the float operations below are NumPy's, in its order, so every layout stays bit for bit what it was.
+    low, span, offset = box
+    if low is None:
+        return offset
+    u0, u1 = rng.random(2).tolist()
+    x, y = low[0] + span[0] * u0, low[1] + span[1] * u1
+    return (x, y) if offset is None else (offset[0] + x, offset[1] + y)
 
 
 def sample_layout(condition: Condition, seed: int = 0, target: str | None = None, instructions: str = CANONICAL,
@@ -151,37 +185,28 @@ def sample_layout(condition: Condition, seed: int = 0, target: str | None = None
     distractors = rng.permutation(others)[: num_objects - 1]
     idx = (t, *map(int, distractors))
     names = tuple(OBJECT_NAMES[i] for i in idx)
-    radii = _footprints(names)
-    extent = REGIMES[regime]
+    radii = tuple(OBJECTS[i].footprint_radius for i in idx)
     regions: tuple[int, ...] | None = None
-    if extent is not None:
+    if REGIMES[regime] is not None:
         choices = region_assignments(idx, split)
         regions = choices[int(rng.integers(len(choices)))]
-    half_ws = WORKSPACE_SIZE / 2
+    boxes = _boxes(names, regime, regions)
     for _ in range(MAX_TRIES):
-        xy = np.zeros((num_objects, 2))
-        ok = True
-        for i in range(num_objects):
+        xy: list[tuple[float, float]] = []
+        for i, box in enumerate(boxes):
             for _ in range(MAX_TRIES):
-                if regions is None:
-                    # The whole footprint stays on the workspace.
-                    lo, hi = WORKSPACE_CENTER - half_ws + radii[i], WORKSPACE_CENTER + half_ws - radii[i]
-                    xy[i] = rng.uniform(lo, hi)
-                elif regime == "small_jitter" and regions[i] == CENTER_REGION:
-                    xy[i] = REGION_CENTERS[CENTER_REGION]
-                else:
-                    half = np.asarray(extent) / 2
-                    xy[i] = REGION_CENTERS[regions[i]] + rng.uniform(-half, half)
+                xy[i:] = [_draw(rng, box)]
                 if not _collides(xy, radii, i):
                     break
-            else:
-                ok = False
+            else:  # object i found no free place: start the layout again
                 break
-        if ok:
+        else:  # every object placed
             break
     else:  # pragma: no cover - the regions are sized so this cannot happen with the shipped objects
         raise RuntimeError(f"no collision-free layout after {MAX_TRIES} tries ({regime}, seed {seed})")
-    yaw = rng.uniform(-YAW_RANGE[regime], YAW_RANGE[regime], size=num_objects)
+    xy = np.array(xy)
+    low = -YAW_RANGE[regime]
+    yaw = low + (YAW_RANGE[regime] - low) * rng.random(num_objects)  # rng.uniform(low, high, k), as in _draw
     partner = swap_partner(names, seed) if appearance == "swap" else None
     return Layout(condition, int(seed), names, xy, yaw, regions, instructions,
                   None if partner is None else (names[0], partner))
