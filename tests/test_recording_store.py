@@ -173,3 +173,36 @@ def test_attempts_after_the_last_commit_are_counted(tmp_path):
     again = DatasetStore(root, Recording(**CONFIG, video=False))
     assert again.counters["attempted"] == 3 and again.saved == 1
     again.close()
+
+
+def test_an_object_the_expert_never_grasps_is_named(tmp_path, caplog):
+    """Only successes are recorded, so an expert that never grasps the apple leaves no "grasp the apple" episode:
+    the card counts episodes per target (zeros too) and the recorder warns, naming the object, once the dataset
+    is large enough for a missing target not to be chance (30 episodes: 0.8^30 < 0.002)."""
+    import logging
+
+    from vla_ladder.recording.card import missing_targets
+    from vla_ladder.recording.record import report_targets
+
+    root = tmp_path / "no-apple"
+    store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=100)
+    for seed in store.reserve_seeds(40):
+        store.count(True)
+        episode = synthetic_episode(seed)
+        if episode.header["target"] != "apple":  # the apple episodes fail
+            store.add(episode)
+    store.close()
+    targets = read_provenance(root)["target"].value_counts()
+    assert "apple" not in targets and len(targets) == 4 and targets.sum() >= 30
+    from vla_ladder.task.objects import OBJECT_NAMES
+
+    (line,) = [line for line in (root / "README.md").read_text().splitlines() if line.startswith("- **Targets**")]
+    assert line.endswith(": " + ", ".join(f"{name} {targets.get(name, 0)}" for name in OBJECT_NAMES) + ".")
+    assert "apple 0" in line
+    with caplog.at_level(logging.INFO, logger="vla_ladder.recording.record"):
+        report_targets(root)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and warnings[0].startswith(f"no episode instructs apple among {targets.sum()}")
+    # Below 30 episodes a missing object may be chance: counted, not warned about.
+    assert missing_targets({"cube": 10, "apple": 0, "mug": 19}) == []
+    assert missing_targets({"cube": 10, "apple": 0, "mug": 20}) == ["apple"]

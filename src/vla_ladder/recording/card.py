@@ -77,6 +77,8 @@ def description(root: str | Path) -> str:
         f"- **Action**: 7-d ({', '.join(ACTION_NAMES)}), end-effector deltas normalised to [-1, 1]; the gripper "
         "is -1 closed, +1 open.",
         f"- **Tasks**: {len(tasks)} instruction(s): " + ", ".join(f'"{t}"' for t in tasks) + ".",
+        "- **Targets** (episodes instructing each object; the expert's successes only, so an object it fails to "
+        "grasp is rarer or missing): " + ", ".join(f"{name} {n}" for name, n in target_counts(prov).items()) + ".",
         f"- **Seeds**: {_seeds(config, state, prov)}",
         "- **Versions**: " + ", ".join(f"{k} {v}" for k, v in versions.items() if k != "object_set") + ".",
         "",
@@ -100,6 +102,18 @@ def description(root: str | Path) -> str:
     if object_set == "standin":
         lines.append("- Stand-in objects, not the YCB meshes: a policy trained here sees simple shapes.")
     return "\n".join(lines) + "\n"
+
+
+def target_counts(prov: pd.DataFrame) -> dict[str, int]:
+    """Episodes per instructed object, every object named (0 where none)."""
+    counts = prov["target"].value_counts() if len(prov) else {}
+    return {o.name: int(counts.get(o.name, 0)) for o in OBJECTS}
+
+
+def missing_targets(counts: dict[str, int], at_least: int = 30) -> list[str]:
+    """Objects no episode instructs, once there are `at_least` episodes: targets are drawn uniformly from the five
+    objects, so a missing one by chance has probability 0.8^30 < 0.002 there; it means the expert fails it."""
+    return [name for name, n in counts.items() if n == 0] if sum(counts.values()) >= at_least else []
 
 
 def render(root: str | Path) -> str:

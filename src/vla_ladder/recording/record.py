@@ -20,10 +20,12 @@ import tyro
 
 from vla_ladder.conditions import Condition
 from vla_ladder.machine import auto_workers, auto_writers, signal_on_parent_death
+from vla_ladder.recording.card import missing_targets, target_counts
 from vla_ladder.recording.client import Episode, EpisodeClient, EpisodeSource, ServerError
 from vla_ladder.recording.serve import setup_logging
 from vla_ladder.recording.server import TOKEN_ENV
 from vla_ladder.recording.store import DatasetStore, Recording
+from vla_ladder.recordings import read_provenance
 
 log = logging.getLogger(__name__)
 SERVER_START_TIMEOUT_S = 900
@@ -178,6 +180,7 @@ def run(cfg: RecordConfig) -> int:
             progress.update(episode, store)
         store.close()
         progress.report(store, final=True)
+        report_targets(cfg.out)
         return 0
     except KeyboardInterrupt:
         log.info("interrupted: committing the %d pending episodes", store.pending)
@@ -232,10 +235,25 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writer
     log.info("done: %d/%d saved in %s | %.3f demos/s saved by %d writers", store.saved, cfg.episodes, cfg.out,
              (store.saved - before) / elapsed, k)
     store.close()
+    report_targets(cfg.out)
     if all(c == 0 for c in codes):
         return 0
     log.info("a writer stopped early (exit codes %s); rerun the same command to continue", codes)
     return 130 if 130 in codes else 1
+
+
+def report_targets(root: Path) -> None:
+    """Log the episodes per instructed object; warn when an object is never instructed: only the expert's
+    successes are kept, so an object it cannot grasp drops out of the dataset, and so does its instruction."""
+    counts = target_counts(read_provenance(root))
+    log.info("episodes by target: %s", ", ".join(f"{name} {n}" for name, n in counts.items()))
+    missing = missing_targets(counts)
+    if missing:
+        log.warning("no episode instructs %s among %d: the expert never succeeded with %s (only successes are "
+                    "kept), so a policy trained on %s never hears those instructions; check the expert's success "
+                    "by object (`vla-ladder eval --policy EXPERT`: per_object in its summary.json) or record with an "
+                    "expert that grasps them",
+                    ", ".join(missing), sum(counts.values()), "it" if len(missing) == 1 else "them", root)
 
 
 def check_server(recording: Recording, url: str, info: dict) -> None:
