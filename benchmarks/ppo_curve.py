@@ -69,6 +69,9 @@ def curve(run: Path) -> dict:
             "first_success": {k: first[k] for k in ("step", "wall_s", "success")} if first else None,
             "best": {k: best[k] for k in ("step", "wall_s", *METRICS)},
             "last": {k: last[k] for k in ("step", "wall_s", *METRICS)}, "curve": points,
+            # success by instructed object at the last evaluation (runs from before it was recorded: None)
+            "last_by_target": {name: {"n": r["n"], "success": r["success"]} for name, r in evals[-1]["targets"].items()}
+            if "targets" in evals[-1] else None,
             "provenance": config.get("provenance")}
 
 
@@ -85,7 +88,7 @@ def main(args: Args) -> None:
     runs = {label: curve(Path(r)) for label, r in zip(labels, args.runs)}
     for label, r in runs.items():
         print(f"{label}: {r['env_steps']} env steps in {r['train_loop_s']:.0f} s ({r['env_steps_per_s']}/s); "
-              f"first success {r['first_success']}; best {r['best']}")
+              f"first success {r['first_success']}; best {r['best']}; last by target {r['last_by_target']}")
     out = RESULTS / f"ppo_curve_{args.name}.json"
     files.write_json(out, {"benchmark": "ppo_curve", "device": args.device or machine(), "runs": runs})
     panels = {f"{label} ({r['settings'].get('num_envs', 1024)} envs)": r["curve"] for label, r in runs.items()}

@@ -16,6 +16,7 @@ from vla_ladder.ppo.config import TRAIN_SEED_MIN, Args
 from vla_ladder.ppo.envs import TrainEnvs, slot_conditions, train_seeds
 from vla_ladder.ppo.loss import compute_gae, ppo_loss
 from vla_ladder.ppo.train import cli_config, train
+from vla_ladder.task.layouts import sample_layout
 
 TINY = dict(sim_backend="physx_cpu", num_envs=1, total_timesteps=100, eval_freq=1, eval_episodes=1,
             grid=ConditionGrid(("small_jitter",), num_objects=(5,)), target_kl=0.0, progress=False)
@@ -93,6 +94,13 @@ def test_tiny_cpu_run_writes_checkpoint_that_acts(run_dir, make_env):
     evals = json.loads((run_dir / "evals.json").read_text())
     assert [e["global_step"] for e in evals] == [50, 100]
     assert set(evals[-1]["all"]) >= {"n", "success", "grasp_any", "reach"}
+    # By instructed object too: the targets the evaluation seeds give, their episodes and successes adding up.
+    targets, total = evals[-1]["targets"], evals[-1]["all"]
+    args = Args(out="x", **TINY)
+    assert set(targets) == {sample_layout(c, args.eval_first_seed + j).target
+                            for c in args.conditions for j in range(args.eval_episodes)}
+    assert sum(t["n"] for t in targets.values()) == total["n"]
+    assert sum(round(t["success"] * t["n"]) for t in targets.values()) == round(total["success"] * total["n"])
     assert list((run_dir / "tb").glob("events.out.tfevents.*"))
 
     policy = load_policy(f"ppo:{run_dir}", device="cpu")

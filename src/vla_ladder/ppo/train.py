@@ -29,10 +29,13 @@ from vla_ladder.ppo.config import Args
 from vla_ladder.ppo.envs import TrainEnvs, slot_conditions, train_seeds
 from vla_ladder.ppo.loss import compute_gae, ppo_loss
 from vla_ladder.stats import rates
+from vla_ladder.task.layouts import sample_layout
+from vla_ladder.task.objects import OBJECT_NAMES
 
 
 def evaluate(agent: Agent, envs: TrainEnvs, args: Args) -> dict:
-    """Deterministic episodes on held-out seeds: eval_episodes per condition, rates per condition."""
+    """Deterministic episodes on held-out seeds: eval_episodes per condition; rates in all, per condition and per
+    instructed object (an expert that never grasps an object records no episode instructing it)."""
     import pandas as pd
 
     jobs = [(c, j) for c in args.conditions for j in range(args.eval_episodes)]
@@ -48,10 +51,14 @@ def evaluate(agent: Agent, envs: TrainEnvs, args: Args) -> dict:
         if not truncated.all():
             raise RuntimeError("evaluation episodes fell out of lockstep")
         for i, (cond, j) in enumerate(chunk):
-            rows.append({"condition": cond.key, "episode": j, **{m: bool(v[i]) for m, v in metrics.items()}})
+            target = sample_layout(cond, args.eval_first_seed + j).target  # the seed's, as the env drew it
+            rows.append({"condition": cond.key, "episode": j, "target": target,
+                         **{m: bool(v[i]) for m, v in metrics.items()}})
     df = pd.DataFrame(rows)
     per_cond = {key: rates(g) for key, g in df.groupby("condition", sort=False)}
-    return {"all": rates(df), "conditions": per_cond}
+    per_target = {name: rates(g) for name, g in df.groupby("target")}
+    return {"all": rates(df), "conditions": per_cond,
+            "targets": {name: per_target[name] for name in OBJECT_NAMES if name in per_target}}
 
 
 # ------------------------------------------------------------------------------------------ training
@@ -111,12 +118,17 @@ def train(args: Args) -> dict:
             writer.add_scalar(f"eval/{m}", result["all"][m], state["global_step"])
             for cond, r in result["conditions"].items():
                 writer.add_scalar(f"eval_{m}/{cond}", r[m], state["global_step"])
+            for name, r in result["targets"].items():
+                writer.add_scalar(f"eval_{m}_by_target/{name}", r[m], state["global_step"])
         best = result["all"]["success"] > state["best_success"]
         if best:
             state["best_success"] = result["all"]["success"]
         save_checkpoint(out, agent, optimizer, state, args.keep_checkpoints, best)
+        by_target = ", ".join(f"{name} {round(r['success'] * r['n'])}/{r['n']}"
+                              for name, r in result["targets"].items())
         bar.write(f"step {state['global_step']}: eval success {result['all']['success']:.3f} "
-                  f"grasp_any {result['all']['grasp_any']:.3f} reach {result['all']['reach']:.3f}")
+                  f"grasp_any {result['all']['grasp_any']:.3f} reach {result['all']['reach']:.3f} | success by target: "
+                  f"{by_target}")
 
     bar = tqdm(total=args.num_iterations * args.batch_size, initial=state["global_step"], unit="step",
                disable=not args.progress, dynamic_ncols=True)
