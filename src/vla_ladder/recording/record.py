@@ -72,8 +72,8 @@ class RecordConfig:
     """dataset writers, each a process of its own drawing from its share of the servers into a shard that is
     merged into --out at the end (LeRobot's writer costs ~2.4 CPU s a demo); 0: one per two servers"""
     encoder_threads: int = 0
-    """threads of each camera's video encoder (SVT-AV1's lp); 0: the encoder's choice (on 2 cores as fast as 1
-    thread or faster; see docs/recording.md)"""
+    """threads of each camera's video encoder (SVT-AV1's lp); 0: the encoder's choice (on 2 cores neither it nor 1
+    thread was consistently faster; see docs/recording.md)"""
     seed_book: Path | None = None
     """seed reservation shared with other writers (set by `record --writers` for its writers)"""
 
