@@ -183,6 +183,7 @@ def test_an_object_the_expert_never_grasps_is_named(tmp_path, caplog):
 
     from vla_ladder.recording.card import missing_targets
     from vla_ladder.recording.record import report_targets
+    from vla_ladder.task.objects import OBJECT_NAMES
 
     root = tmp_path / "no-apple"
     store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=100)
@@ -194,8 +195,6 @@ def test_an_object_the_expert_never_grasps_is_named(tmp_path, caplog):
     store.close()
     targets = read_provenance(root)["target"].value_counts()
     assert "apple" not in targets and len(targets) == 4 and targets.sum() >= 30
-    from vla_ladder.task.objects import OBJECT_NAMES
-
     (line,) = [line for line in (root / "README.md").read_text().splitlines() if line.startswith("- **Targets**")]
     assert line.endswith(": " + ", ".join(f"{name} {targets.get(name, 0)}" for name in OBJECT_NAMES) + ".")
     assert "apple 0" in line

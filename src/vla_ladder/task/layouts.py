@@ -139,19 +139,20 @@ def _collides(xy: list[tuple[float, float]], radii: tuple[float, ...], i: int) -
 def _boxes(names: tuple[str, ...], regime: str, regions: tuple[int, ...] | None) -> tuple:
     """Per object, where its position is drawn, as Python floats: (low, range, offset) for offset + (low + range * u)
     with u uniform in [0, 1)^2 (offset None: 0), or (None, None, xy) for a fixed place (small jitter's centre)."""
+    def floats(a: np.ndarray) -> tuple[float, ...]:
+        return tuple(a.tolist())
+
     out = []
     for name, region in zip(names, regions or (None,) * len(names)):
         if region is None:  # full_random: the whole footprint stays on the workspace
             r = OBJECTS[object_index(name)].footprint_radius
-            lo, hi, offset = WORKSPACE_CENTER - WORKSPACE_SIZE / 2 + r, WORKSPACE_CENTER + WORKSPACE_SIZE / 2 - r, None
+            lo, hi = WORKSPACE_CENTER - WORKSPACE_SIZE / 2 + r, WORKSPACE_CENTER + WORKSPACE_SIZE / 2 - r
+            out.append((floats(lo), floats(hi - lo), None))
         elif regime == "small_jitter" and region == CENTER_REGION:
-            lo = hi = None
-            offset = REGION_CENTERS[CENTER_REGION]
+            out.append((None, None, floats(REGION_CENTERS[CENTER_REGION])))
         else:
             half = np.asarray(REGIMES[regime]) / 2
-            lo, hi, offset = -half, half, REGION_CENTERS[region]
-        out.append((None if lo is None else tuple(lo.tolist()), None if hi is None else tuple((hi - lo).tolist()),
-                    None if offset is None else tuple(offset.tolist())))
+            out.append((floats(-half), floats(half - -half), floats(REGION_CENTERS[region])))
     return tuple(out)
 
 
@@ -195,7 +196,7 @@ def sample_layout(condition: Condition, seed: int = 0, target: str | None = None
         xy: list[tuple[float, float]] = []
         for i, box in enumerate(boxes):
             for _ in range(MAX_TRIES):
-                xy[i:] = [_draw(rng, box)]
+                xy[i:] = [_draw(rng, box)]  # object i's draw, replacing its rejected one
                 if not _collides(xy, radii, i):
                     break
             else:  # object i found no free place: start the layout again
