@@ -189,3 +189,9 @@ def test_micro_study_survives_kills_mid_record_and_mid_train_and_reports_learned
     other.write_text(json.dumps(_micro(**{"evaluation.episodes": 3})))
     r = subprocess.run([*cmd[:4], str(other), "--out", str(out)], env=ENV, capture_output=True, text=True)
     assert r.returncode == 2 and "holds another study" in r.stderr
+    # Reworded, the same study resumes: every unit is done, nothing runs again.
+    reworded = tmp_path / "reworded.json"
+    reworded.write_text(json.dumps(_micro(description="the micro study, described anew")))
+    subprocess.run([*cmd[:4], str(reworded), "--out", str(out)], env=ENV, check=True, stdout=subprocess.DEVNULL,
+                   timeout=600)
+    assert _done_markers(out) == after

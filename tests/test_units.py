@@ -24,6 +24,11 @@ def test_units_run_in_children_are_marked_done_and_skipped(tmp_path):
     stamp = (tmp_path / "units" / "a.json").stat().st_mtime_ns
     assert run_units(units, tmp_path) == results  # nothing runs again
     assert (tmp_path / "units" / "a.json").stat().st_mtime_ns == stamp
+    elsewhere = [Unit(u.id, u.stage, u.function, {**u.config, "workers": 2, "num_envs": 2}) for u in units]
+    assert run_units(elsewhere, tmp_path) == results  # other process counts play the same episodes: skipped
+    assert (tmp_path / "units" / "a.json").stat().st_mtime_ns == stamp
+    more = Unit("a", "eval", units[0].function, {**units[0].config, "episodes": 2})
+    assert not is_done(tmp_path, more)  # a change to what it computes runs it again
     broken = _eval_unit(tmp_path, "teleport", "c")
     with pytest.raises(RuntimeError, match="unit c failed.*c.log"):
         run_units([broken], tmp_path)

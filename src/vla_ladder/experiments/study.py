@@ -64,7 +64,7 @@ class StudyCommand:
         if self.out.exists() and not self.out.is_dir():
             raise ValueError(f"--out {str(self.out)!r} is a file; give a directory")
         saved = self.out / "study.json"
-        if saved.is_file() and json.loads(saved.read_text()) != _plain(asdict(self.study)):
+        if saved.is_file() and _what_it_runs(json.loads(saved.read_text())) != _what_it_runs(asdict(self.study)):
             raise ValueError(f"{self.out} holds another study ({saved}); use a new --out")
         if self.out.is_dir() and any(self.out.iterdir()) and not saved.is_file():
             raise ValueError(f"{self.out} is not empty and holds no study; use a new --out")
@@ -72,6 +72,11 @@ class StudyCommand:
 
 def _plain(data):
     return json.loads(json.dumps(data, default=files._default))
+
+
+def _what_it_runs(study: dict) -> dict:
+    """A study config as a request: a preset whose description is reworded still resumes its finished studies."""
+    return {k: v for k, v in _plain(study).items() if k != "description"}
 
 
 # ---------------------------------------------------------------------- planning

@@ -48,10 +48,21 @@ def marker(root: Path, unit: Unit) -> Path:
     return root / "units" / f"{unit.id}.json"
 
 
+# How many processes play a unit's episodes: any number gives the same episodes (tested for eval and record), so
+# a study resumed with other --workers/--writers/--num-envs (another machine, after a GPU lease ended) keeps its
+# done units and their markers, which hold the wall time of the machine that ran them.
+PROCESS_COUNTS = ("workers", "writers", "num_envs")
+
+
 def is_done(root: Path, unit: Unit) -> bool:
-    """Done means marked done for this very config: a changed config runs again."""
+    """Done means marked done for this very config, process counts aside: any other change runs it again."""
     path = marker(root, unit)
-    return path.is_file() and json.loads(path.read_text()).get("config") == _plain(unit.config)
+    return path.is_file() and _what_it_computes(json.loads(path.read_text()).get("config")) == \
+        _what_it_computes(_plain(unit.config))
+
+
+def _what_it_computes(config: dict | None) -> dict | None:
+    return None if config is None else {k: v for k, v in config.items() if k not in PROCESS_COUNTS}
 
 
 def _plain(data: Any) -> Any:
