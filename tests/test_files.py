@@ -1,7 +1,9 @@
 import os
+from pathlib import Path
 
 import pytest
 
+from vla_ladder import files
 from vla_ladder.files import atomic_path, write_json
 
 
@@ -23,3 +25,16 @@ def test_atomic_write_replaces_whole_and_respects_umask(tmp_path):
     os.umask(umask)
     assert target.stat().st_mode & 0o777 == 0o666 & ~umask
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
+
+
+def test_provenance_names_the_checkouts_version_when_run_uninstalled(monkeypatch):
+    import importlib.metadata
+    import tomllib
+
+    def not_installed(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", not_installed)  # as on the GPU kit: src/ on the path
+    pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert files.provenance()["vla-ladder"] == pyproject["project"]["version"]
+    assert files.provenance()["torch"] is None

@@ -61,6 +61,16 @@ def _default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+def _checkout_version() -> str | None:
+    """The version in the checkout's pyproject.toml, for a run from src/ on the path without installing (the GPU
+    kit does that), so its results still say which vla-ladder made them."""
+    import tomllib
+    pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
+    if not pyproject.is_file():
+        return None
+    return tomllib.loads(pyproject.read_text()).get("project", {}).get("version")
+
+
 def provenance(object_set: str | None = None) -> dict:
     """Versions and asset set to stamp into every result file."""
     from importlib.metadata import PackageNotFoundError, version
@@ -69,7 +79,7 @@ def provenance(object_set: str | None = None) -> dict:
         try:
             out[pkg] = version(pkg)
         except PackageNotFoundError:
-            out[pkg] = None
+            out[pkg] = _checkout_version() if pkg == "vla-ladder" else None
     if object_set is not None:
         out["object_set"] = object_set
     return out
