@@ -15,7 +15,7 @@ from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.evaluation import grounding
 from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.evaluation.runner import EvalConfig, open_run_dir
-from vla_ladder.experiments.probes import ProbeConfig, open_probe_dir, run_probe
+from vla_ladder.experiments.probes import ProbeConfig, open_probe_dir, rescore_probe, run_probe
 from vla_ladder.files import write_json
 from vla_ladder.report import probes as probe_report
 from vla_ladder.report.html import build_report
@@ -47,7 +47,11 @@ def test_instruction_swap_metrics_tell_grounded_from_blind_policies():
     assert grounded["scenes"] == 12 and grounded["plays"] == 60
     for m in ("instruction_sensitivity", "scene_accuracy", "grounded_accuracy", "nmi", "success"):
         assert grounded[m]["value"] == pytest.approx(1.0), m
-    assert grounded["grounded_accuracy"]["ci95"] == [1.0, 1.0]
+    # Every grasp right: no bootstrap resample leaves 100%, so each scene counts as one trial (Wilson, 12 of 12)
+    # rather than claiming [1.0, 1.0]; the same for success.
+    for m in ("grounded_accuracy", "success"):
+        assert grounded[m]["ci95"][0] == pytest.approx(0.757, abs=1e-3) and grounded[m]["ci95"][1] == 1.0, m
+        assert grounded[m]["method"] == "wilson over scenes (every play alike)" and grounded[m]["n"] == 60
     assert grounded["instruction_sensitivity"]["ci95"][0] == pytest.approx(0.757, abs=1e-3)  # Wilson, 12 of 12
     counts = np.array(grounded["matrix"]["counts"])
     assert grounded["matrix"]["columns"][-1] == "none" and counts[:, :5].trace() == 60 and counts.sum() == 60
@@ -67,6 +71,7 @@ def test_instruction_swap_metrics_tell_grounded_from_blind_policies():
 
     nothing = metrics(plays(lambda lay, r, j: "none"))
     assert np.isnan(nothing["grounded_accuracy"]["value"]) and nothing["nmi"]["value"] == 0.0
+    assert nothing["success"]["value"] == 0.0 and nothing["success"]["ci95"][1] == pytest.approx(0.243, abs=1e-3)
 
     half = metrics(plays(lambda lay, r, j: lay.target if j % 2 else lay.objects[-1] if r == 0 else lay.target))
     assert half["instruction_sensitivity"]["value"] == 1.0 and half["scene_accuracy"]["value"] == 0.5
@@ -209,6 +214,12 @@ def test_instruction_swap_calibration_scripted_nearest_layout_prior(tmp_path):
     assert json.loads((root / "probe.json").read_text())["variants"]["instruct-4"] == "instruct-4"
     assert main(["compare", str(root / "instruct-0"), str(root / "instruct-1")]) == 0
     assert (root / "instruction-swap.png").stat().st_size > 5000
+    # Rescoring recomputes the metrics from the plays alone (what a re-run study's report does): stale metrics in
+    # probe.json are replaced by the same ones run_probe wrote.
+    stale = json.loads((root / "probe.json").read_text())
+    write_json(root / "probe.json", {**stale, "conditions": {}})
+    assert rescore_probe(root)["conditions"] == nearest["conditions"]
+    assert json.loads((root / "probe.json").read_text())["conditions"] == nearest["conditions"]
 
 
 @pytest.mark.slow

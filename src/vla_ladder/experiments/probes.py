@@ -140,15 +140,29 @@ def open_probe_dir(cfg: ProbeConfig) -> None:
     files.write_json(saved, asdict(cfg))
 
 
-def probe_results(cfg: ProbeConfig, runs: dict[str, Run]) -> dict:
+def probe_results(probe: str, runs: dict[str, Run], resamples: int) -> dict:
     """The probe's metrics per condition from its finished variant runs."""
-    if cfg.name == "instruction-swap":
+    if probe == "instruction-swap":
         plays = pd.concat([r.episodes.assign(instruct=int(name.rsplit("-", 1)[1])) for name, r in runs.items()],
                           ignore_index=True)
-        return grounding.instruction_swap(plays, cfg.resamples)
-    if cfg.name == "appearance-swap":
-        return grounding.appearance_swap(runs["original"].episodes, runs["swap"].episodes, cfg.resamples)
-    return grounding.paraphrase({name: r.episodes for name, r in runs.items()}, cfg.resamples)
+        return grounding.instruction_swap(plays, resamples)
+    if probe == "appearance-swap":
+        return grounding.appearance_swap(runs["original"].episodes, runs["swap"].episodes, resamples)
+    return grounding.paraphrase({name: r.episodes for name, r in runs.items()}, resamples)
+
+
+def rescore_probe(out: Path) -> dict:
+    """Recompute a finished probe's metrics from its variants' episodes (no policy loaded, nothing played) and
+    rewrite probe.json and its figure. A study's report does this for each probe, so a re-run of a finished
+    study brings the current metrics and intervals to plays made with an older vla-ladder."""
+    from vla_ladder.report import probes as probe_report
+
+    data = json.loads((out / PROBE_FILE).read_text())
+    runs = {name: load_run(out / rel) for name, rel in data["variants"].items()}
+    data["conditions"] = probe_results(data["probe"], runs, data["config"]["resamples"])
+    files.write_json(out / PROBE_FILE, data)
+    probe_report.plot_probe(data, out / f"{data['probe']}.png")
+    return data
 
 
 def run_probe(cfg: ProbeConfig, policy: Policy | None = None, progress: bool = True) -> dict:
@@ -174,7 +188,7 @@ def run_probe(cfg: ProbeConfig, policy: Policy | None = None, progress: bool = T
         "config": asdict(cfg), "provenance": {**first.summary.get("provenance", {}),
                                               "paraphrases_version": paraphrase_version(),
                                               "swaps_version": SWAPS_VERSION, "swaps": [list(p) for p in SWAPS]},
-        "conditions": probe_results(cfg, runs),
+        "conditions": probe_results(cfg.name, runs, cfg.resamples),
     }
     files.write_json(cfg.out / PROBE_FILE, data)
     probe_report.plot_probe(data, cfg.out / f"{cfg.name}.png")

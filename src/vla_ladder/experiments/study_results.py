@@ -8,6 +8,7 @@ from pathlib import Path
 from vla_ladder import files
 from vla_ladder.contract import METRICS
 from vla_ladder.evaluation.rundir import load_run
+from vla_ladder.experiments.probes import rescore_probe
 
 REPORT_MAX_BYTES = 5_000_000
 
@@ -57,7 +58,11 @@ def write_results(study, chosen: dict, results: dict, curves_results: dict) -> P
             runs.append(load_run(run_dir))
             labels.append(f"{ref} #{run_dir.name.rsplit('-', 1)[1]}")
     curves = curve_points(study, chosen)
-    probes = {uid.removeprefix("probe-"): r for uid, r in results.items() if uid.startswith("probe-")}
+    # Probe metrics are recomputed from the plays (cheap), so a re-run with newer metrics refreshes them.
+    probes = {}
+    for uid in [u for u in results if u.startswith("probe-")]:
+        data = rescore_probe(root / "probes" / uid.removeprefix("probe-"))
+        probes[uid.removeprefix("probe-")] = results[uid] = {"probe": data["probe"], "conditions": data["conditions"]}
     summary = {"study": cfg.name, "description": cfg.description, "cells": cells,
                "selection": {f"{p}/{d}": v for (p, d), v in chosen.items()}, "curves": curves, "probes": probes,
                "units": {k: v for k, v in results.items()}, "provenance": files.provenance()}
