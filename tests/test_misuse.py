@@ -71,6 +71,14 @@ def test_a_bad_seed_is_named_by_its_flag_before_anything_runs(case, value, tmp_p
     assert list(tmp_path.iterdir()) == []  # nothing was created
 
 
+def test_the_last_episodes_seed_is_checked_before_anything_runs(tmp_path, capsys):
+    rc = main(["eval", "--policy", "scripted", "--out", str(tmp_path / "run"), "--first-seed", "4294967294",
+               "--episodes", "3"])
+    _one_line_error(capsys, rc, "error: --first-seed must be >= 0 and --first-seed + --episodes <= 2**32",
+                    "got 4294967294 + 3")
+    assert list(tmp_path.iterdir()) == []
+
+
 def _seed_like(cls) -> list[str]:
     """Fields of a config (nested configs included) whose name says they hold a seed."""
     hints = typing.get_type_hints(cls, include_extras=True)

@@ -3,15 +3,19 @@ and configs refused before any work."""
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import pytest
 
+from vla_ladder import files
 from vla_ladder.cli import main
+from vla_ladder.experiments.units import mark_done
 from vla_ladder.experiments.study_config import StudyConfig, presets
 from vla_ladder.machine import cores
 
@@ -58,6 +62,22 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
     assert main(["study", "micro", "--out", str(tmp_path / "out"), "--num-envs", str(cores() + 1)]) == 2
     assert "--num-envs must be from 1 to the" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_moved_study_is_refused_before_any_unit_runs_again(tmp_path, capsys):
+    """Unit configs hold absolute paths: a study directory moved elsewhere would redo every unit."""
+    from vla_ladder.experiments.study import Study, StudyCommand
+
+    old, new = tmp_path / "old", tmp_path / "new"
+    study = Study(StudyCommand("micro", out=old))
+    unit = study.record_units()[0]
+    mark_done(old, unit, {"saved": 3}, 1.0)
+    files.write_json(old / "study.json", asdict(study.cfg))
+    StudyCommand("micro", out=old)  # in place: resumes
+    shutil.copytree(old, new)
+    assert main(["study", "micro", "--out", str(new)]) == 2
+    err = capsys.readouterr().err
+    assert f"{new} was moved: its units ran in {old}" in err and "Traceback" not in err
 
 
 def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):

@@ -94,8 +94,8 @@ class EvalConfig:
         if self.workers < 0:
             raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
         if self.first_seed < 0 or self.first_seed + self.episodes > 2**32:
-            raise ValueError(f"first_seed must be >= 0 and first_seed + episodes <= 2**32 (numpy seeds), got "
-                             f"{self.first_seed} + {self.episodes}")
+            raise ValueError(f"--first-seed must be >= 0 and --first-seed + --episodes <= 2**32 (episode j plays "
+                             f"numpy seed first_seed + j), got {self.first_seed} + {self.episodes}")
         if self.sim_backend not in SIM_BACKENDS:
             raise ValueError(f"unknown sim_backend {self.sim_backend!r}; allowed: {', '.join(SIM_BACKENDS)}")
         if self.sim_backend == "physx_cpu" and self.num_envs > cores():

@@ -68,10 +68,23 @@ class StudyCommand:
             raise ValueError(f"{self.out} holds another study ({saved}); use a new --out")
         if self.out.is_dir() and any(self.out.iterdir()) and not saved.is_file():
             raise ValueError(f"{self.out} is not empty and holds no study; use a new --out")
+        ran_at = _where_it_ran(self.out)
+        if ran_at is not None:  # else every unit would run again, hours of recording and training
+            raise ValueError(f"{self.out} was moved: its units ran in {ran_at}, and their configs and the LeRobot "
+                             f"checkpoints hold that path; restore it there (docs/study.md) or use a new --out")
 
 
 def _plain(data):
     return json.loads(json.dumps(data, default=files._default))
+
+
+def _where_it_ran(root: Path) -> Path | None:
+    """The directory a study's done units ran in, if not `root` (every unit writes to root/<stage dir>/<name>)."""
+    for path in sorted((root / "units").glob("*.json")):
+        out = json.loads(path.read_text()).get("config", {}).get("out")
+        if out and Path(out).resolve().parent.parent != root.resolve():
+            return Path(out).parent.parent
+    return None
 
 
 def _what_it_runs(study: dict) -> dict:
