@@ -15,8 +15,8 @@ import pytest
 
 from vla_ladder import files
 from vla_ladder.cli import main
-from vla_ladder.experiments.units import mark_done
 from vla_ladder.experiments.study_config import StudyConfig, presets
+from vla_ladder.experiments.units import mark_done
 from vla_ladder.machine import cores
 
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1", "MS_SKIP_ASSET_DOWNLOAD_PROMPT": "1",

@@ -155,20 +155,23 @@ def rescore_probe(out: Path) -> dict:
     """Recompute a finished probe's metrics from its variants' episodes (no policy loaded, nothing played) and
     rewrite probe.json and its figure. A study's report does this for each probe, so a re-run of a finished
     study brings the current metrics and intervals to plays made with an older vla-ladder."""
-    from vla_ladder.report import probes as probe_report
-
     data = json.loads((out / PROBE_FILE).read_text())
     runs = {name: load_run(out / rel) for name, rel in data["variants"].items()}
     data["conditions"] = probe_results(data["probe"], runs, data["config"]["resamples"])
+    save_probe(out, data)
+    return data
+
+
+def save_probe(out: Path, data: dict) -> None:
+    """probe.json and the probe's figure."""
+    from vla_ladder.report import probes as probe_report
+
     files.write_json(out / PROBE_FILE, data)
     probe_report.plot_probe(data, out / f"{data['probe']}.png")
-    return data
 
 
 def run_probe(cfg: ProbeConfig, policy: Policy | None = None, progress: bool = True) -> dict:
     """Play every variant (resuming), then write probe.json, the figure and (cfg.report) report.html."""
-    from vla_ladder.report import probes as probe_report
-
     if cfg.out is None:
         raise ValueError("--out DIR is required: the probe directory to write")
     if policy is None and not cfg.policy:
@@ -190,8 +193,7 @@ def run_probe(cfg: ProbeConfig, policy: Policy | None = None, progress: bool = T
                                               "swaps_version": SWAPS_VERSION, "swaps": [list(p) for p in SWAPS]},
         "conditions": probe_results(cfg.name, runs, cfg.resamples),
     }
-    files.write_json(cfg.out / PROBE_FILE, data)
-    probe_report.plot_probe(data, cfg.out / f"{cfg.name}.png")
+    save_probe(cfg.out, data)
     if cfg.report:
         from vla_ladder.report.html import build_report
         spec = data["policy"]["spec"]

@@ -80,9 +80,10 @@ def _plain(data):
 
 def _where_it_ran(root: Path) -> Path | None:
     """The directory a study's done units ran in, if not `root` (every unit writes to root/<stage dir>/<name>)."""
+    here = root.resolve()
     for path in sorted((root / "units").glob("*.json")):
         out = json.loads(path.read_text()).get("config", {}).get("out")
-        if out and Path(out).resolve().parent.parent != root.resolve():
+        if out and Path(out).resolve().parent.parent != here:
             return Path(out).parent.parent
     return None
 

@@ -60,12 +60,14 @@ def write_results(study, chosen: dict, results: dict, curves_results: dict) -> P
     curves = curve_points(study, chosen)
     # Probe metrics are recomputed from the plays (cheap), so a re-run with newer metrics refreshes them.
     probes = {}
-    for uid in [u for u in results if u.startswith("probe-")]:
-        data = rescore_probe(root / "probes" / uid.removeprefix("probe-"))
-        probes[uid.removeprefix("probe-")] = results[uid] = {"probe": data["probe"], "conditions": data["conditions"]}
+    for uid in results:
+        if uid.startswith("probe-"):
+            data = rescore_probe(root / "probes" / uid.removeprefix("probe-"))
+            probes[uid.removeprefix("probe-")] = {"probe": data["probe"], "conditions": data["conditions"]}
     summary = {"study": cfg.name, "description": cfg.description, "cells": cells,
                "selection": {f"{p}/{d}": v for (p, d), v in chosen.items()}, "curves": curves, "probes": probes,
-               "units": {k: v for k, v in results.items()}, "provenance": files.provenance()}
+               "units": {**results, **{f"probe-{name}": r for name, r in probes.items()}},
+               "provenance": files.provenance()}
     files.write_json(root / "summary.json", summary)
     paper = reference_data("paper.json")
     tables = root / "tables"

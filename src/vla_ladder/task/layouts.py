@@ -152,7 +152,8 @@ def _boxes(names: tuple[str, ...], regime: str, regions: tuple[int, ...] | None)
             out.append((None, None, floats(REGION_CENTERS[CENTER_REGION])))
         else:
             half = np.asarray(REGIMES[regime]) / 2
-            out.append((floats(-half), floats(half - -half), floats(REGION_CENTERS[region])))
+            lo, hi = -half, half
+            out.append((floats(lo), floats(hi - lo), floats(REGION_CENTERS[region])))
     return tuple(out)
 
 
