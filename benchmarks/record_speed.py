@@ -10,7 +10,7 @@ do not rebuild, evaluation does), to say where the time goes:
   physics  - physics + the scripted expert on a state-only env, per episode (reset included);
   render   - the server's Simulator.run (physics + expert + both 256x256 cameras) minus physics;
   transfer - a real episode message: protocol.encode -> WebSocket over 127.0.0.1 -> decode;
-  encode   - DatasetStore.add: LeRobot add_frame/save_episode, AV1 video (and PNG images for comparison), and
+  encode   - DatasetStore.add: LeRobot add_frame/save_episode, --vcodec video (and PNG images for comparison), and
              the video encoder alone on the same frames (what LeRobot's per-frame work around it costs);
   write    - DatasetStore commit (finalize, statistics, card, fsync, atomic swap), per episode it held.
 The servers run in parallel and each writer is one process (`--writers K`), so the pipeline runs at its slowest
@@ -18,7 +18,8 @@ stage, with simulation divided among N workers and writing among K writers, and 
 allow: the result names that bottleneck. The writer stage is also measured alone with K processes at once,
 with the merge of their shards.
 
-Writes benchmarks/results/record_speed_cpu.json (record_speed_cuda.json where a CUDA GPU renders), or --out.
+Writes benchmarks/results/record_speed_cpu.json (record_speed_cuda.json where a CUDA GPU renders; _h264 before
+.json with --vcodec h264), or --out.
 """
 
 from __future__ import annotations
@@ -72,13 +73,18 @@ class Args:
     encoder_threads: tuple[int, ...] = (0,)
     """`record --encoder-threads` values (threads of each camera's encoder; 0: the encoder's choice): the first
     for end to end and the stages, each for the writer stage"""
+    vcodec: str = "libsvtav1"
+    """`record --vcodec`: the cameras' video codec everywhere it is written (benchmarks/video_codec.py compares)"""
     out: Path | None = None
-    """result JSON (default: benchmarks/results/record_speed_<cpu|cuda>.json)"""
+    """result JSON (default: benchmarks/results/record_speed_<cpu|cuda>[_h264].json)"""
 
     def __post_init__(self):
         if not self.encoder_threads or min(self.encoder_threads) < 0:
             raise SystemExit(f"--encoder-threads: one or more values >= 0 (0: the encoder's choice), got "
                              f"{self.encoder_threads}")
+        from vla_ladder.recordings import VCODECS
+        if self.vcodec not in VCODECS:
+            raise SystemExit(f"--vcodec {self.vcodec!r}: allowed: {', '.join(VCODECS)}")
         if self.stage_episodes is None:
             self.stage_episodes = self.episodes
 
@@ -88,7 +94,7 @@ def end_to_end(args: Args, workers: int, work: Path, writers: int = 1) -> dict:
     cmd = [sys.executable, "-m", "vla_ladder.cli", "record", "--out", str(out), "--episodes", str(args.episodes),
            "--workers", str(workers), "--writers", str(writers), "--regime", args.regime, "--num-objects",
            str(args.num_objects), "--robot-mesh", args.robot_mesh, "--encoder-threads",
-           str(args.encoder_threads[0])]
+           str(args.encoder_threads[0]), "--vcodec", args.vcodec]
     log = work / f"record-{workers}-{writers}.log"
     started = time.time()
     with open(log, "w") as f:
@@ -201,7 +207,7 @@ def encode_and_write(args: Args, episodes: list, work: Path, video: bool) -> dic
     from vla_ladder.recordings import Recording
 
     recording = Recording(policy="scripted", condition=Condition(args.regime, "canonical", args.num_objects),
-                          video=video, robot_mesh=args.robot_mesh)
+                          video=video, robot_mesh=args.robot_mesh, vcodec=args.vcodec if video else "libsvtav1")
     store = DatasetStore(work / ("video" if video else "images"), recording, commit_every=10**6,
                          encoder_threads=args.encoder_threads[0] or None)
     t0, cpu0 = time.perf_counter(), _cpu_s()
@@ -219,19 +225,19 @@ def encode_and_write(args: Args, episodes: list, work: Path, video: bool) -> dic
             "episodes_per_commit": n, "bytes_per_episode": size / n}
 
 
-def encoder_alone(episodes: list, threads: int) -> dict:
-    """The video encoder by itself on the same frames: LeRobot's RGB codec settings (SVT-AV1 by default) through
-    PyAV, one MP4 per camera, without LeRobot's per-frame work around it (image statistics, conversions). The
-    difference to `encode` is what that work costs."""
+def encoder_alone(episodes: list, threads: int, vcodec: str = "libsvtav1") -> dict:
+    """The video encoder by itself on the same frames: LeRobot's RGB settings for `vcodec` (SVT-AV1 by default)
+    through PyAV, one MP4 per camera, without LeRobot's per-frame work around it (image statistics, conversions).
+    The difference to `encode` is what that work costs."""
     import io
     from fractions import Fraction
 
     import av
-    from lerobot.configs.video import rgb_encoder_defaults
+    from lerobot.configs.video import RGBEncoderConfig
 
     from vla_ladder.contract import CONTROL_HZ
 
-    config = rgb_encoder_defaults()
+    config = RGBEncoderConfig(vcodec=vcodec)
     t0, cpu0 = time.perf_counter(), _cpu_s()
     size = 0
     for e in episodes:
@@ -260,7 +266,7 @@ def _cpu_s() -> float:
     return t.user + t.system
 
 
-def _write_shard(root: str, episodes: list, video: bool, threads: int, ready, go, out) -> None:
+def _write_shard(root: str, episodes: list, vcodec: str, threads: int, ready, go, out) -> None:
     """One parallel writer: a shard DatasetStore adding `episodes` once every writer is ready."""
     import lerobot.datasets.lerobot_dataset  # noqa: F401  (imported before the clock starts)
 
@@ -268,8 +274,8 @@ def _write_shard(root: str, episodes: list, video: bool, threads: int, ready, go
     from vla_ladder.recordings import Recording
 
     h = episodes[0].header
-    store = DatasetStore(root, Recording("scripted", Condition.parse(h["condition"]), video=video,
-                                         robot_mesh=h["robot_mesh"]),
+    store = DatasetStore(root, Recording("scripted", Condition.parse(h["condition"]), robot_mesh=h["robot_mesh"],
+                                         vcodec=vcodec),
                          commit_every=10**6, encoder_threads=threads or None)
     ready.wait()
     go.wait()
@@ -281,7 +287,7 @@ def _write_shard(root: str, episodes: list, video: bool, threads: int, ready, go
     out.put(_cpu_s() - cpu0)
 
 
-def writer_scaling(episodes: list, work: Path, writers: int, threads: int) -> dict:
+def writer_scaling(episodes: list, work: Path, writers: int, threads: int, vcodec: str) -> dict:
     """`writers` processes each adding all `episodes` to a shard at once (as `record --writers` runs them):
     demos/s written by all, CPU s per demo; then the merge of the shards into one dataset."""
     import multiprocessing
@@ -293,9 +299,9 @@ def writer_scaling(episodes: list, work: Path, writers: int, threads: int) -> di
     ready, go, out = ctx.Barrier(writers + 1), ctx.Barrier(writers + 1), ctx.Queue()
     root = work / f"writers-{writers}-threads-{threads}"
     main = DatasetStore(root, Recording("scripted", Condition.parse(episodes[0].header["condition"]),
-                                        robot_mesh=episodes[0].header["robot_mesh"]))
+                                        robot_mesh=episodes[0].header["robot_mesh"], vcodec=vcodec))
     procs = [ctx.Process(target=_write_shard,
-                         args=(str(main.shards_dir / f"w{i}"), episodes, True, threads, ready, go, out))
+                         args=(str(main.shards_dir / f"w{i}"), episodes, vcodec, threads, ready, go, out))
              for i in range(writers)]
     for p in procs:
         p.start()
@@ -339,7 +345,8 @@ def main(args: Args) -> None:
     load_before = os.getloadavg()[0]
     result: dict = {"benchmark": "record_speed", "policy": "scripted", "robot_mesh": args.robot_mesh,
                     "condition": Condition(args.regime, "canonical", args.num_objects).key,
-                    "renderer": "cuda" if gpu else "lavapipe (CPU)", "encoder_threads": args.encoder_threads[0]}
+                    "renderer": "cuda" if gpu else "lavapipe (CPU)", "encoder_threads": args.encoder_threads[0],
+                    "vcodec": args.vcodec}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         if args.end_to_end:
@@ -358,10 +365,10 @@ def main(args: Args) -> None:
             e.header["metrics"]["success"] = True
         print("transfer, encode, write ...", flush=True)
         trans = transfer(ok[0])
-        encoder = encoder_alone(ok, args.encoder_threads[0])
+        encoder = encoder_alone(ok, args.encoder_threads[0], args.vcodec)
         video = encode_and_write(args, ok, work, video=True)
         images = encode_and_write(args, ok, work, video=False)
-        scaling = [writer_scaling(ok, work, k, t) for k in args.writers for t in args.encoder_threads]
+        scaling = [writer_scaling(ok, work, k, t, args.vcodec) for k in args.writers for t in args.encoder_threads]
     success = stages[False]["simulator"]["success_rate"] or 1 / args.stage_episodes
     n_cores = cores()
     per_episode, bounds = {}, {}
@@ -388,7 +395,8 @@ def main(args: Args) -> None:
         "machine": {"cores": n_cores, "gpu": gpu, "load_average_1min": [load_before, os.getloadavg()[0]]},
         "provenance": files.provenance(ok[0].header["object_set"]),
     })
-    out = args.out or RESULTS / f"record_speed_{'cuda' if gpu else 'cpu'}.json"
+    codec = "" if args.vcodec == "libsvtav1" else f"_{args.vcodec}"
+    out = args.out or RESULTS / f"record_speed_{'cuda' if gpu else 'cpu'}{codec}.json"
     files.write_json(out, result)
     print(f"encode: {video['encode_cpu_s_per_episode']:.2f} CPU s per episode in LeRobot's writer, of which the "
           f"{encoder['codec']} encoder alone {encoder['cpu_s_per_episode']:.2f}")

@@ -71,9 +71,9 @@ def test_a_bad_seed_is_named_by_its_flag_before_anything_runs(case, value, tmp_p
     assert list(tmp_path.iterdir()) == []  # nothing was created
 
 
-def test_the_last_episodes_seed_is_checked_before_anything_runs(tmp_path, capsys):
-    rc = main(["eval", "--policy", "scripted", "--out", str(tmp_path / "run"), "--first-seed", "4294967294",
-               "--episodes", "3"])
+@pytest.mark.parametrize("argv", [["eval", "--policy", "scripted"], ["record"]])
+def test_the_last_episodes_seed_is_checked_before_anything_runs(argv, tmp_path, capsys):
+    rc = main([*argv, "--out", str(tmp_path / "run"), "--first-seed", "4294967294", "--episodes", "3"])
     _one_line_error(capsys, rc, "error: --first-seed must be >= 0 and --first-seed + --episodes <= 2**32",
                     "got 4294967294 + 3")
     assert list(tmp_path.iterdir()) == []
@@ -387,6 +387,8 @@ def test_a_flag_given_twice_is_refused_not_silently_dropped(argv, flag, capsys, 
 @pytest.mark.parametrize("extra, says", [
     (["--writers", "-1"], "--writers must be >= 0 (0: one per two servers), got -1"),
     (["--encoder-threads", "-2"], "--encoder-threads must be >= 0 (0: the encoder's choice), got -2"),
+    (["--vcodec", "hevc"], "--vcodec 'hevc': allowed: libsvtav1, h264"),
+    (["--no-video", "--vcodec", "h264"], "--vcodec h264 needs video; --no-video stores PNG images, no codec"),
     (["--writers", "2", "--workers", "1"], "--writers 2 needs at least 2 local servers, got --workers 1"),
     (["--writers", "3", "--server", "ws://127.0.0.1:1", "ws://127.0.0.1:2"],
      "--writers 3 needs at least 3 --server URLs (each writer draws from its own), got 2"),

@@ -40,6 +40,18 @@ def test_seed_book_hands_each_seed_out_once_across_processes(tmp_path):
     assert other.next_seed == 5, "a book kept for another recording says nothing about this one"
 
 
+def test_seed_book_stops_at_the_last_numpy_seed(tmp_path):
+    """Failed attempts use seeds too, so a recording that starts near 2**32 can run out: the book hands out the
+    seeds that are left, then refuses in a line that says what to do, never a seed >= 2**32."""
+    last = 2**32 - 1
+    book = SeedBook(tmp_path / "seeds.json", Recording(**CONFIG, first_seed=last - 2), floor=last - 2)
+    assert book.reserve(5) == [last - 2, last - 1, last]
+    with pytest.raises(ValueError, match="no seeds left: .* --first-seed 4294967293 to 2\\*\\*32 - 1; record the "
+                                         "missing demos into another --out with a lower --first-seed"):
+        book.reserve(1)
+    assert book.next_seed == 2**32
+
+
 def test_one_writer_per_two_servers_unless_asked():
     from vla_ladder.machine import auto_writers
 
@@ -136,14 +148,16 @@ def test_shards_merge_after_the_dataset_and_resume(tmp_path):
 def test_record_with_two_writers_killed_then_rerun(tmp_path):
     """`record --writers 2` (real servers, real writer processes) killed by SIGKILL once a shard committed: the
     writers commit and exit, nothing reaches the dataset half-merged; the same command merges what they left and
-    records the rest. Every episode is whole and every seed played once."""
+    records the rest. Every episode is whole and every seed played once. In H.264 (`--vcodec h264`): the writers
+    are told the codec and LeRobot's merge concatenates their H.264 files."""
     import subprocess
 
     from test_recording import CONDITION, ENV, _alive, _cli, _kill_when, _load, _wait_for
 
     root = tmp_path / "grasp"
     cmd = _cli("record", *CONDITION, "--episodes", "5", "--out", str(root), "--first-seed", "300",
-               "--workers", "2", "--writers", "2", "--commit-every", "1", "--encoder-threads", "1")
+               "--workers", "2", "--writers", "2", "--commit-every", "1", "--encoder-threads", "1",
+               "--vcodec", "h264")
     shards = tmp_path / ".grasp.recording" / "shards"
 
     def left() -> list[Path]:  # shards with a commit (a writer's own work directory is hidden)
@@ -166,6 +180,7 @@ def test_record_with_two_writers_killed_then_rerun(tmp_path):
 
     children = _kill_when(cmd, ready, "a writer's first commit")
     assert len(writers) == 2 and all(w[w.index("--encoder-threads") + 1] == "1" for w in writers)
+    assert all(w[w.index("--vcodec") + 1] == "h264" for w in writers)
     # Servers see their stdin close, writers get SIGINT from the kernel (PR_SET_PDEATHSIG): all exit.
     _wait_for(lambda: not any(_alive(p) for p in children), 120, "the recorder's children to exit")
     assert len(children) == 4
@@ -185,3 +200,5 @@ def test_record_with_two_writers_killed_then_rerun(tmp_path):
     assert not list(shards.glob("[!.]*")) and not list(shards.glob(".*")), "merged shards were left behind"
     last = ds[len(ds) - 1]
     assert last["task"] == prov["instruction"].iloc[-1] and last["observation.images.fixed_camera"].shape[0] == 3
+    assert {ds.meta.features[k]["info"]["video.codec"] for k in ds.meta.video_keys} == {"h264"}
+    assert read_recording_state(root)["config"]["vcodec"] == "h264"

@@ -158,6 +158,34 @@ def test_images_mode_and_commit_batches(tmp_path):
     assert item["observation.state"][0].item() == 2 and item["task"] == read_provenance(root)["instruction"][2]
 
 
+def test_h264_recording_loads_and_keeps_its_codec(tmp_path):
+    """`record --vcodec h264`: LeRobot writes H.264 MP4s that it reads back frame for frame; the codec is part of
+    what the dataset is a recording of (one codec per dataset), and the card says which."""
+    import av
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    root = tmp_path / "h264"
+    store = DatasetStore(root, Recording(**CONFIG, vcodec="h264"))
+    episodes = [synthetic_episode(seed) for seed in store.reserve_seeds(2)]
+    for e in episodes:
+        store.count(True)
+        store.add(e)
+    store.close()
+    for video in (root / "videos").rglob("*.mp4"):
+        with av.open(str(video)) as f:
+            assert f.streams.video[0].codec_context.name == "h264", video
+    ds = LeRobotDataset("vla-ladder/h264", root=root)
+    item = ds[FRAMES + 3]  # episode 1, frame 3
+    assert item["observation.state"][0].item() == episodes[1].seed
+    decoded = (item["observation.images.hand_camera"].numpy().transpose(1, 2, 0) * 255).round()
+    psnr = 10 * np.log10(255**2 / np.mean((decoded - episodes[1].images["hand_camera"][3]) ** 2))
+    assert psnr > 30, f"decoded frame far from the one written ({psnr:.1f} dB)"
+    assert "stored as H.264 video" in (root / "README.md").read_text()
+    assert read_recording_state(root)["config"]["vcodec"] == "h264"
+    with pytest.raises(ValueError, match="vcodec='h264' \\(this command: 'libsvtav1'\\)"):
+        DatasetStore(root, Recording(**CONFIG))
+
+
 def test_attempts_after_the_last_commit_are_counted(tmp_path):
     """A recorder whose last episodes failed still records them as attempted when it closes."""
     root = tmp_path / "counted"

@@ -20,6 +20,11 @@ from vla_ladder.conditions import Condition
 FORMAT_VERSION = 2
 RECORDING_FILE = "meta/vla_ladder_recording.json"
 PROVENANCE_DIR = "meta/vla_ladder_episodes"
+# Video codecs a recording may use, by LeRobot's names: SVT-AV1 is LeRobot's default; H.264 costs the writer
+# less than half the CPU (benchmarks/video_codec.py). Not HEVC: LeRobot's torchcodec reader misplaces the
+# timestamps of the HEVC files its own encoder writes (FrameTimestampError in training).
+VCODECS = ("libsvtav1", "h264")
+DEFAULT_VCODEC = "libsvtav1"
 
 
 @dataclass(frozen=True)
@@ -37,10 +42,17 @@ class Recording:
     """how the robot looked in the pictures (see vla_ladder.task.robot)"""
     instructions: str = "canonical"
     """the instruction set worded from: canonical, paraphrase-train or paraphrase-heldout"""
+    vcodec: str = DEFAULT_VCODEC
+    """the cameras' video codec (one per dataset: LeRobot concatenates episodes into shared MP4 files)"""
+
+    def __post_init__(self):
+        if self.vcodec not in VCODECS:
+            raise ValueError(f"unknown vcodec {self.vcodec!r}; allowed: {', '.join(VCODECS)}")
 
     def to_dict(self) -> dict:
         return {"policy": self.policy, "condition": self.condition.key, "first_seed": self.first_seed,
-                "video": self.video, "robot_mesh": self.robot_mesh, "instructions": self.instructions}
+                "video": self.video, "robot_mesh": self.robot_mesh, "instructions": self.instructions,
+                "vcodec": self.vcodec}
 
     @classmethod
     def from_dict(cls, data: dict, format_version: int = FORMAT_VERSION) -> "Recording":
@@ -48,7 +60,8 @@ class Recording:
             data = {"policy": data["policy"], "first_seed": data["seed"], "video": data["video"], "robot_mesh": "full",
                     "condition": Condition(data["regime"], data["split"], data["num_objects"]).key}
         return cls(data["policy"], Condition.parse(data["condition"]), int(data["first_seed"]), bool(data["video"]),
-                   data.get("robot_mesh", "lite"), data.get("instructions", "canonical"))
+                   data.get("robot_mesh", "lite"), data.get("instructions", "canonical"),
+                   data.get("vcodec", DEFAULT_VCODEC))
 
     def differences(self, other: "Recording") -> list[str]:
         mine, theirs = self.to_dict(), other.to_dict()

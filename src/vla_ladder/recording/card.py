@@ -37,6 +37,8 @@ _OBJECT_SETS = {
                "colours, used when the YCB meshes are not on disk",
 }
 
+_CODEC_NAMES = {"libsvtav1": "AV1 (SVT-AV1)", "h264": "H.264"}
+
 
 def description(root: str | Path) -> str:
     """The card's body (Markdown) for the recording at `root`."""
@@ -52,7 +54,8 @@ def description(root: str | Path) -> str:
     expert = json.loads(prov["expert"].iloc[0]) if len(prov) else {"spec": config["policy"]}
     tasks = sorted(prov["instruction"].unique()) if len(prov) else []
     cameras = ", ".join(f"`{c.key}` ({c.width}x{c.height} RGB, {c.fov_deg:g} deg vertical FOV)" for c in CAMERAS)
-    storage = "AV1 video" if config.get("video", True) else "PNG images in the Parquet files"
+    codec = _CODEC_NAMES.get(config.get("vcodec", "libsvtav1"), config.get("vcodec"))
+    storage = f"{codec} video" if config.get("video", True) else "PNG images in the Parquet files"
     lines = [
         f"Synthetic robot demonstrations recorded in simulation by vla-ladder {versions.get('vla-ladder', '?')} "
         f"on GraspObject-v1 (ManiSkill3), the task of "

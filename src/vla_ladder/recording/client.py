@@ -283,8 +283,9 @@ class EpisodeSource:
         while True:
             k = self._demand(window - self.outstanding[url])
             if k:
-                await client.request(self.reserve(k), self.failed_frames)
-                self.outstanding[url] += k
+                seeds = self.reserve(k)  # fewer than k when the seeds run out
+                await client.request(seeds, self.failed_frames)
+                self.outstanding[url] += len(seeds)
             if self.outstanding[url] == 0:
                 if self.successes >= self.successes_needed:
                     return

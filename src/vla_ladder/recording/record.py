@@ -18,6 +18,7 @@ from typing import Annotated
 
 import tyro
 
+from vla_ladder.checks import SEED_LIMIT
 from vla_ladder.conditions import Condition
 from vla_ladder.machine import auto_workers, auto_writers, signal_on_parent_death
 from vla_ladder.recording.card import missing_targets, target_counts
@@ -25,7 +26,7 @@ from vla_ladder.recording.client import Episode, EpisodeClient, EpisodeSource, S
 from vla_ladder.recording.serve import setup_logging
 from vla_ladder.recording.server import TOKEN_ENV
 from vla_ladder.recording.store import DatasetStore, Recording
-from vla_ladder.recordings import read_provenance
+from vla_ladder.recordings import DEFAULT_VCODEC, VCODECS, read_provenance
 
 log = logging.getLogger(__name__)
 SERVER_START_TIMEOUT_S = 900
@@ -62,6 +63,9 @@ class RecordConfig:
     """first episode seed; later ones follow and never repeat, across servers and resumes"""
     video: bool = True
     """store camera frames as MP4 video (LeRobot's default); --no-video stores PNG images"""
+    vcodec: str = DEFAULT_VCODEC
+    """video codec of the cameras: libsvtav1 (AV1, LeRobot's default) or h264 (less than half the writer's CPU
+    time; docs/recording.md has the measured trade-off); fixed for the dataset's life"""
     token: str | None = field(default_factory=lambda: os.environ.get(TOKEN_ENV))
     """server token (default: $VLA_LADDER_TOKEN)"""
     commit_every: int = 50
@@ -70,7 +74,8 @@ class RecordConfig:
     """... or, at the next saved episode, when the open batch is older than this"""
     writers: int = 0
     """dataset writers, each a process of its own drawing from its share of the servers into a shard that is
-    merged into --out at the end (LeRobot's writer costs ~2.4 CPU s a demo); 0: one per two servers"""
+    merged into --out at the end (LeRobot's writer costs 0.9 CPU s a demo on 2 idle cores, 3.3 on 16); 0: one per
+    two servers"""
     encoder_threads: int = 0
     """threads of each camera's video encoder (SVT-AV1's lp); 0: the encoder's choice (on 2 cores neither it nor 1
     thread was consistently faster; see docs/recording.md)"""
@@ -83,12 +88,17 @@ class RecordConfig:
         self.server = tuple(self.server)
         if self.episodes < 1:
             raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
-        if self.first_seed < 0:
-            raise ValueError(f"--first-seed must be >= 0, got {self.first_seed}")
+        if self.first_seed < 0 or self.first_seed + self.episodes > SEED_LIMIT:
+            raise ValueError(f"--first-seed must be >= 0 and --first-seed + --episodes <= 2**32 (each demo takes "
+                             f"a seed of its own, a numpy seed), got {self.first_seed} + {self.episodes}")
         if self.workers < 0:
             raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
         if self.writers < 0:
             raise ValueError(f"--writers must be >= 0 (0: one per two servers), got {self.writers}")
+        if self.vcodec not in VCODECS:
+            raise ValueError(f"--vcodec {self.vcodec!r}: allowed: {', '.join(VCODECS)}")
+        if not self.video and self.vcodec != DEFAULT_VCODEC:
+            raise ValueError(f"--vcodec {self.vcodec} needs video; --no-video stores PNG images, no codec")
         if self.encoder_threads < 0:
             raise ValueError(f"--encoder-threads must be >= 0 (0: the encoder's choice), got {self.encoder_threads}")
         if self.server and len(self.server) < self.writers:
@@ -112,7 +122,8 @@ def recording_of(cfg: RecordConfig) -> Recording:
     """What the dataset will be a recording of: the local server's settings, or what the servers say they
     serve (from their welcome messages)."""
     if not cfg.server:
-        return Recording(cfg.policy, cfg.condition, cfg.first_seed, cfg.video, cfg.robot_mesh, cfg.instructions)
+        return Recording(cfg.policy, cfg.condition, cfg.first_seed, cfg.video, cfg.robot_mesh, cfg.instructions,
+                         cfg.vcodec)
     served = {url: asyncio.run(_welcome(url, cfg.token)) for url in cfg.server}
     kinds = {(info["policy"], info["condition"], info.get("robot_mesh", "full"), info.get("instructions", "canonical"))
              for info in served.values()}
@@ -124,7 +135,7 @@ def recording_of(cfg: RecordConfig) -> Recording:
     if cfg.condition not in (Condition(), condition):
         raise ValueError(f"--server {cfg.server[0]} serves {condition} but the command asks for {cfg.condition}; "
                          "drop the condition flags (the servers' condition is recorded) or start matching servers")
-    return Recording(policy, condition, cfg.first_seed, cfg.video, robot_mesh, instructions)
+    return Recording(policy, condition, cfg.first_seed, cfg.video, robot_mesh, instructions, cfg.vcodec)
 
 
 async def _welcome(url: str, token: str | None) -> dict:
@@ -188,8 +199,8 @@ def run(cfg: RecordConfig) -> int:
         return 130
     except ServerError as e:
         log.error("%s", e)
-        log.info("committing the %d episodes received complete; rerun the same command to continue",
-                  store.pending)
+        log.info("committing the %d episodes received complete%s", store.pending,
+                 "; rerun the same command to continue" if store.next_seed < SEED_LIMIT else "")
         store.close()
         return 1
     except BaseException:
@@ -218,7 +229,7 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writer
                "--episodes", str(needed // k + (i < needed % k)), "--first-seed", str(cfg.first_seed),
                "--commit-every", str(cfg.commit_every), "--commit-seconds", str(cfg.commit_seconds),
                "--seed-book", str(store.seeds.path), "--writers", "1", "--encoder-threads", str(cfg.encoder_threads),
-               *([] if cfg.video else ["--no-video"]),
+               "--vcodec", cfg.vcodec, *([] if cfg.video else ["--no-video"]),
                "--server", *urls[i::k]]
         # A writer gets SIGINT (commit, exit) when the recorder dies, even by kill -9.
         procs.append(subprocess.Popen(cmd, env=env, preexec_fn=partial(signal_on_parent_death, signal.SIGINT)))

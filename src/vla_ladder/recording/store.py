@@ -42,6 +42,7 @@ from typing import Any, Iterator
 import pandas as pd
 
 from vla_ladder import files
+from vla_ladder.checks import SEED_LIMIT
 from vla_ladder.conditions import Condition
 from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, Recording, read_provenance,
                                    read_recording_state)
@@ -173,6 +174,7 @@ class DatasetStore:
     def _dataset(self):
         if self._ds is not None:
             return self._ds
+        from lerobot.configs.video import RGBEncoderConfig
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
         self._batch_started = time.monotonic()
@@ -180,7 +182,8 @@ class DatasetStore:
         # Episodes are whole when they reach the writer, so the encoder queue may take a full episode at
         # once; LeRobot's streaming encoder drops frames when its queue stays full for 0.1 s.
         opts = dict(streaming_encoding=self.config.video, encoder_queue_maxsize=4 * EPISODE_STEPS,
-                    image_writer_threads=0 if self.config.video else 2, encoder_threads=self.encoder_threads)
+                    image_writer_threads=0 if self.config.video else 2, encoder_threads=self.encoder_threads,
+                    rgb_encoder=RGBEncoderConfig(vcodec=self.config.vcodec) if self.config.video else None)
         if self.saved == 0:
             self._ds = LeRobotDataset.create(self.repo_id, fps=CONTROL_HZ, features=dataset_features(self.config.video),
                                              root=self.staging, robot_type="panda", use_videos=self.config.video,
@@ -338,11 +341,18 @@ class SeedBook:
         return self.floor
 
     def reserve(self, n: int) -> list[int]:
+        """Up to n new seeds: fewer when the seeds below 2**32 run out (failed attempts use seeds too, so the
+        last demos of a recording that starts near the limit may find none; then ValueError)."""
         if n < 1:
             raise ValueError(f"reserve at least one seed, got {n}")
         with open(self.path.with_suffix(".lock"), "a+") as lock:  # one open file each: threads exclude too
             fcntl.flock(lock, fcntl.LOCK_EX)
             first = self.next_seed
+            n = min(n, SEED_LIMIT - first)
+            if n < 1:
+                raise ValueError(f"no seeds left: the recording has used every seed from --first-seed "
+                                 f"{self.config.first_seed} to 2**32 - 1; record the missing demos into another "
+                                 "--out with a lower --first-seed")
             files.write_json(self.path, {"config": self.config.to_dict(), "next_seed": first + n})
         return list(range(first, first + n))
 

@@ -1,0 +1,164 @@
+"""The cameras' video codec: what each of `record --vcodec` costs the writer, the disk and the trainer's loader.
+
+    .venv/bin/python benchmarks/video_codec.py [--episodes 6] [--samples 200] [--vcodec libsvtav1 h264]
+
+The same scripted episodes (both 256x256 cameras, rendered as `record`'s servers render them) are written with
+each codec through DatasetStore (LeRobot's streaming encoder with its default settings for that codec: the
+real writer), then read back through LeRobotDataset as `vla-ladder train` reads them:
+  writer  - CPU seconds per episode of DatasetStore.add and its commit (LeRobot's per-frame image statistics
+            included: they cost the same for every codec), and the codec alone on the same frames;
+  size    - bytes of video per episode;
+  fidelity- PSNR (dB) of every decoded frame against the rendered one;
+  decode  - ms per training sample (both cameras of one random frame, one thread, as one DataLoader worker)
+            with PyAV and, where it loads, torchcodec (`--dataset.video_backend`).
+Training on a GPU waits on decoding when the loader workers cannot keep up (docs/gpu.md: PyAV, AV1, 10 workers,
+~0.1 s a step at batch 64); the decode column says how many loader workers a batch size needs per codec.
+
+Writes benchmarks/results/video_codec.json, or --out.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import tyro
+# benchmarks/ is on sys.path when run as a script; importing record_speed also sets the offline and SVT-AV1 logging
+# environment every benchmark that records sets.
+from record_speed import Args as RecordArgs
+from record_speed import _cpu_s, encoder_alone, simulate
+
+from vla_ladder import files
+from vla_ladder.conditions import Condition
+from vla_ladder.contract import CAMERAS
+from vla_ladder.machine import cores
+from vla_ladder.recordings import VCODECS
+
+RESULTS = Path(__file__).parent / "results"
+
+
+@dataclass
+class Args:
+    """Writer cost, size, fidelity and training-side decode speed of each video codec."""
+
+    episodes: int = 6
+    """scripted episodes written with each codec"""
+    samples: int = 200
+    """random training samples decoded per codec and backend"""
+    vcodec: tuple[str, ...] = VCODECS
+    """codecs to measure (`record --vcodec` values)"""
+    regime: str = "small_jitter"
+    """placement regime of the episodes"""
+    num_objects: int = 5
+    """objects on the table"""
+    out: Path = RESULTS / "video_codec.json"
+    """result file"""
+
+    def __post_init__(self):
+        bad = [c for c in self.vcodec if c not in VCODECS]
+        if bad:
+            raise SystemExit(f"--vcodec {' '.join(bad)}: allowed: {', '.join(VCODECS)}")
+        if self.episodes < 1 or self.samples < 1:
+            raise SystemExit(f"--episodes and --samples must be >= 1, got {self.episodes} and {self.samples}")
+
+
+def write(episodes: list, root: Path, vcodec: str, condition: Condition) -> dict:
+    """DatasetStore.add for every episode, then one commit: CPU s per episode, and video bytes per episode."""
+    from vla_ladder.recording.store import DatasetStore
+    from vla_ladder.recordings import Recording
+
+    store = DatasetStore(root, Recording(policy="scripted", condition=condition, vcodec=vcodec), commit_every=10**6)
+    t0, cpu0 = time.perf_counter(), _cpu_s()
+    for e in episodes:
+        store.count(True)
+        store.add(e)
+    store.close()
+    n = len(episodes)
+    video = sum(f.stat().st_size for f in (root / "videos").rglob("*.mp4"))
+    return {"writer_s_per_episode": (time.perf_counter() - t0) / n, "writer_cpu_s_per_episode": (_cpu_s() - cpu0) / n,
+            "video_bytes_per_episode": video / n}
+
+
+def fidelity(episodes: list, root: Path) -> dict:
+    """PSNR (dB) of every decoded frame against the frame rendered, per camera: mean and worst frame."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset(root.name, root=root, video_backend="pyav")
+    out = {}
+    for cam in CAMERAS:
+        psnr, i = [], 0
+        for e in episodes:  # the store writes episodes in the order they were added
+            for frame in e.images[cam.name]:
+                decoded = (ds[i][cam.key].numpy().transpose(1, 2, 0) * 255).round()
+                mse = np.mean((decoded - frame.astype(np.float64)) ** 2)
+                psnr.append(10 * np.log10(255**2 / max(mse, 1e-10)))
+                i += 1
+        out[cam.name] = {"mean_db": float(np.mean(psnr)), "worst_db": float(np.min(psnr))}
+        if out[cam.name]["mean_db"] < 20:
+            raise RuntimeError(f"{cam.name}: decoded frames do not match the rendered ones (PSNR "
+                               f"{out[cam.name]['mean_db']:.1f} dB): the episodes are not in the order written")
+    return out
+
+
+def decode(root: Path, backend: str, samples: int) -> float | None:
+    """ms per training sample (both cameras of one random frame) in one thread; None if the backend fails."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    try:
+        ds = LeRobotDataset(root.name, root=root, video_backend=backend)
+        ds[0]
+    except Exception as e:  # torchcodec without FFmpeg's libraries, for one
+        print(f"  {backend}: unavailable ({type(e).__name__}: {str(e).splitlines()[0][:120]})")
+        return None
+    order = np.random.default_rng(0).integers(0, len(ds), samples)
+    t0 = time.perf_counter()
+    for i in order:
+        ds[int(i)]
+    return (time.perf_counter() - t0) / samples * 1000
+
+
+def main(args: Args) -> None:
+    torch.set_num_threads(1)  # as one DataLoader worker
+    condition = Condition(args.regime, "canonical", args.num_objects)
+    print(f"simulating {args.episodes} episodes of {condition.key} ...", flush=True)
+    _, episodes = simulate(RecordArgs(regime=args.regime, num_objects=args.num_objects,
+                                      stage_episodes=args.episodes), rebuild=False)
+    episodes = [e for e in episodes if e.success and e.has_frames]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for vcodec in args.vcodec:  # warm-up: LeRobot's first dataset and each codec's first encoder cost seconds
+            write(episodes[:1], Path(tmp) / f"warm-up-{vcodec}", vcodec, condition)
+        for vcodec in args.vcodec:
+            root = Path(tmp) / vcodec
+            row = {"vcodec": vcodec, **write(episodes, root, vcodec, condition)}
+            alone = encoder_alone(episodes, 0, vcodec)
+            row["codec_alone_cpu_s_per_episode"] = alone["cpu_s_per_episode"]
+            row["codec_options"] = alone["options"]
+            row["psnr"] = fidelity(episodes, root)
+            row["decode_ms_per_sample"] = {b: decode(root, b, args.samples) for b in ("pyav", "torchcodec")}
+            rows.append(row)
+            print(f"{vcodec}: writer {row['writer_cpu_s_per_episode']:.2f} CPU s/episode (codec alone "
+                  f"{row['codec_alone_cpu_s_per_episode']:.2f}), "
+                  f"{row['video_bytes_per_episode'] / 1024:.0f} KiB/episode, "
+                  "PSNR " + ", ".join(f"{c} {v['mean_db']:.1f} dB" for c, v in row["psnr"].items()) + ", decode "
+                  + ", ".join(f"{b} {'-' if v is None else f'{v:.1f}'} ms" for b, v in
+                              row["decode_ms_per_sample"].items()) + " a sample", flush=True)
+    files.write_json(args.out, {
+        "benchmark": "video_codec", "condition": condition.key, "episodes": len(episodes),
+        "samples": args.samples, "rows": rows,
+        "note": "writer: CPU s per episode of DatasetStore (LeRobot's streaming encoder, its image statistics and "
+                "the commit); codec_alone: the codec on the same frames by itself; decode: ms per training sample "
+                "(both cameras of one random frame) through LeRobotDataset in one thread",
+        "machine": {"cores": cores(), "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+                    "load_average_1min": os.getloadavg()[0]},
+        "provenance": files.provenance()})
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
