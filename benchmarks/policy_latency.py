@@ -8,6 +8,7 @@ with random weights (latency does not depend on them):
     lerobot/smolvla_base), built offline from a local config.
 
     .venv/bin/python benchmarks/policy_latency.py [--full] [--device cpu|cuda] [--threads N] [--batch 1] [--repeats 5]
+                                                  [--use-amp]
 
 Writes benchmarks/results/policy_latency_<device>.json (cpu or cuda; --out elsewhere). Rows of earlier runs with
 other models, batches or thread counts stay in the file; a re-measured one is replaced.
@@ -15,6 +16,7 @@ other models, batches or thread counts stay in the file; a re-measured one is re
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import statistics
@@ -85,13 +87,15 @@ def observation(batch: int, device: str) -> dict:
     return obs
 
 
-def time_chunks(kind: str, device: str, batch: int, repeats: int, vlm_root: Path) -> dict:
+def time_chunks(kind: str, device: str, batch: int, repeats: int, vlm_root: Path, use_amp: bool = False) -> dict:
     t0 = time.perf_counter()
     policy, pre, post = build(kind, device, vlm_root)
     build_s = time.perf_counter() - t0
     obs = observation(batch, device)
     times = []
-    with torch.no_grad():
+    # use_amp: torch.autocast around the chunk, as lerobot-eval and `lerobot:CKPT?use_amp=true` run it
+    precision = torch.autocast(torch.device(device).type) if use_amp else contextlib.nullcontext()
+    with torch.no_grad(), precision:
         for i in range(repeats + 1):  # the first call warms up (allocations, kernels)
             if device.startswith("cuda"):
                 torch.cuda.synchronize()
@@ -103,10 +107,10 @@ def time_chunks(kind: str, device: str, batch: int, repeats: int, vlm_root: Path
                 times.append(time.perf_counter() - t)
     assert chunk.shape == (batch, CHUNK, ACTION_DIM), chunk.shape
     params = sum(p.numel() for p in policy.parameters())
-    row = {"policy": kind, "device": device, "batch": batch, "chunk_size": CHUNK, "params": params,
+    row = {"policy": kind, "device": device, "batch": batch, "use_amp": use_amp, "chunk_size": CHUNK, "params": params,
            "build_s": round(build_s, 2), "repeats": repeats, "chunk_latency_s_median": statistics.median(times),
            "chunk_latency_s_min": min(times), "per_step_s_at_horizon_8": statistics.median(times) / 8}
-    print(f"{kind:14s} {device:5s} batch {batch}: {params / 1e6:7.2f}M params, "
+    print(f"{kind:14s} {device:5s} batch {batch}{' amp' if use_amp else ''}: {params / 1e6:7.2f}M params, "
           f"{row['chunk_latency_s_median'] * 1e3:9.1f} ms/chunk (median of {repeats}), built in {build_s:.1f} s",
           flush=True)
     return row
@@ -128,6 +132,8 @@ class Args:
     """timed chunks of the full-size SmolVLA"""
     threads: int | None = None
     """torch CPU threads (default: torch's choice)"""
+    use_amp: bool = False
+    """run the chunks under torch.autocast (float16 on CUDA, bfloat16 on the CPU), as `?use_amp=true` does"""
     out: Path | None = None
     """result JSON (default: benchmarks/results/policy_latency_<cpu|cuda>.json)"""
 
@@ -139,15 +145,16 @@ def main(args: Args) -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for kind in ("smolvla-tiny", "act-tiny"):
-            rows.append(time_chunks(kind, args.device, args.batch, args.repeats, Path(tmp)))
+            rows.append(time_chunks(kind, args.device, args.batch, args.repeats, Path(tmp), args.use_amp))
         if args.full:
-            rows.append(time_chunks("smolvla-full", args.device, args.batch, args.full_repeats, Path(tmp)))
+            rows.append(time_chunks("smolvla-full", args.device, args.batch, args.full_repeats, Path(tmp),
+                                    args.use_amp))
     gpu = torch.cuda.get_device_name(torch.device(args.device)) if args.device.startswith("cuda") else None
     for row in rows:
         row.update(torch_threads=torch.get_num_threads(), load_average_1min=[load_before, os.getloadavg()[0]],
                    gpu=gpu)
     out = args.out or Path(__file__).parent / "results" / f"policy_latency_{args.device.split(':')[0]}.json"
-    key = lambda r: (r["policy"], r["device"], r["batch"], r.get("torch_threads"))  # noqa: E731
+    key = lambda r: (r["policy"], r["device"], r["batch"], r.get("torch_threads"), r.get("use_amp", False))  # noqa: E731
     old = json.loads(out.read_text())["results"] if out.is_file() else []
     fresh = {key(r) for r in rows}
     rows = [r for r in old if key(r) not in fresh] + rows

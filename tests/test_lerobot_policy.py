@@ -52,6 +52,25 @@ def test_loads_with_processors_and_runs_chunks_batched(smolvla_run):
     assert policy.predict_chunk(obs, ["grasp the apple"] * 2).shape == (2, 4, 7)
 
 
+def test_mixed_precision_as_lerobot_eval_runs_it(smolvla_run):
+    """`?use_amp=true` (or a checkpoint trained with use_amp) acts under torch.autocast, as lerobot-eval does: the
+    same actions up to bfloat16's rounding on the CPU, and not bit for bit the float32 ones."""
+    obs, tasks = _obs(2, seed=3), ["grasp the apple", "grasp the mug"]
+    full = load_policy(f"lerobot:{smolvla_run}", device="cpu")
+    amp = load_policy(f"lerobot:{smolvla_run}?use_amp=true", device="cpu")
+    assert full.describe()["use_amp"] is False and amp.describe()["use_amp"] is True
+    chunks = []
+    for policy in (full, amp):
+        policy.reset([0, 1])
+        chunks.append(policy.predict_chunk(obs, tasks))
+        policy.reset([0, 1])
+        assert policy.act(obs, tasks).dtype == torch.float32
+    assert not torch.equal(chunks[0], chunks[1]), "autocast did not change a single number: it was not used"
+    torch.testing.assert_close(chunks[1], chunks[0], atol=0.03, rtol=0)  # 0.0045 at most measured
+    with pytest.raises(ValueError, match="option use_amp='maybe' .*: expected true or false"):
+        parse_arg(f"{smolvla_run}?use_amp=maybe")
+
+
 def test_checkpoint_paths_resolve(smolvla_run):
     ckpt = smolvla_run / "checkpoints" / "last" / "pretrained_model"
     assert resolve_checkpoint(smolvla_run) == ckpt

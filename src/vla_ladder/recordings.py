@@ -20,9 +20,9 @@ from vla_ladder.conditions import Condition
 FORMAT_VERSION = 2
 RECORDING_FILE = "meta/vla_ladder_recording.json"
 PROVENANCE_DIR = "meta/vla_ladder_episodes"
-# Video codecs a recording may use, by LeRobot's names: SVT-AV1 is LeRobot's default; H.264 costs the writer
-# less than half the CPU (benchmarks/video_codec.py). Not HEVC: LeRobot's torchcodec reader misplaces the
-# timestamps of the HEVC files its own encoder writes (FrameTimestampError in training).
+# Video codecs a recording may use, by LeRobot's names: SVT-AV1 is LeRobot's default; H.264 costs the writer a
+# quarter less CPU (benchmarks/video_codec.py). Not HEVC: torchcodec, LeRobot's default reader, fails on the HEVC
+# files LeRobot's encoder writes (FrameTimestampError: the frame it finds is one step from the one asked for).
 VCODECS = ("libsvtav1", "h264")
 DEFAULT_VCODEC = "libsvtav1"
 

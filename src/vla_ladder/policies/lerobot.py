@@ -4,12 +4,14 @@ The checkpoint is loaded with the pre/post-processors LeRobot saved next to it (
 tokenizer, camera renames), so the policy sees observations exactly as in training: both 256x256 cameras
 as float CHW in [0, 1], the 15-d proprioceptive state and the instruction as `task`. Action chunks run
 through LeRobot's own `select_action` queue, so the execution horizon is the checkpoint's
-`n_action_steps`, which `?n_action_steps=H` (or the `n_action_steps` argument) overrides. The same code
-runs one CPU env or a batch of GPU envs.
+`n_action_steps`, which `?n_action_steps=H` (or the `n_action_steps` argument) overrides. As in `lerobot-eval`,
+a checkpoint whose config says `use_amp` acts under torch.autocast (float16 on CUDA, bfloat16 on the CPU);
+`?use_amp=true|false` overrides it. The same code runs one CPU env or a batch of GPU envs.
 """
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Any, Sequence
 from urllib.parse import parse_qsl
@@ -25,7 +27,15 @@ ENV_IMAGE_SHAPE = (IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1])  # CHW, as Le
 # `empty_camera_i` slots their `empty_cameras` option adds on purpose.
 RESIZES_IMAGES = {"smolvla", "pi0", "pi05", "pi0_fast"}
 WEIGHTS_FILE = "model.safetensors"
-QUERY_KEYS = {"n_action_steps": int, "device": str, "instruction": str}
+
+
+def _bool(value: str) -> bool:
+    if value.lower() not in ("true", "false"):
+        raise ValueError(f"expected true or false, got {value!r}")
+    return value.lower() == "true"
+
+
+QUERY_KEYS = {"n_action_steps": int, "device": str, "instruction": str, "use_amp": _bool}
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -108,7 +118,7 @@ class LeRobotPolicy(Policy):
     obs_mode = "rgb"
 
     def __init__(self, path: str | Path, n_action_steps: int | None = None, device: str | None = None,
-                 instruction: str | None = None):
+                 instruction: str | None = None, use_amp: bool | None = None):
         """`instruction` replaces every episode's instruction (an instruction-blind policy is trained and played
         with one fixed text, contract.BLIND_INSTRUCTION)."""
         from lerobot.configs.policies import PreTrainedConfig
@@ -121,6 +131,8 @@ class LeRobotPolicy(Policy):
             raise ValueError(f"device={device} needs a CUDA GPU and none is visible; use ?device=cpu, or leave "
                              "device out (cuda when there is one, else cpu)")
         overrides.append(f"--device={device}")
+        if use_amp is not None:
+            overrides.append(f"--use_amp={str(bool(use_amp)).lower()}")
         try:
             cfg = PreTrainedConfig.from_pretrained(self.path, cli_overrides=overrides)
         except Exception as e:  # draccus wraps the config's own checks (e.g. n_action_steps > chunk_size)
@@ -162,24 +174,30 @@ class LeRobotPolicy(Policy):
         out["task"] = [self.instruction or str(t) for t in instructions]
         return out
 
+    def _precision(self):
+        """torch.autocast where the config says use_amp (what lerobot-eval does), else nothing."""
+        return torch.autocast(self.device.type) if self.config.use_amp else contextlib.nullcontext()
+
     @torch.no_grad()
     def act(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
         proprio = torch.as_tensor(obs["extra"]["proprio"])
         self._num_envs = proprio.shape[0]
-        batch = self.preprocessor(self.batch(obs, instructions))
-        action = self.postprocessor(self.policy.select_action(batch))
+        with self._precision():
+            batch = self.preprocessor(self.batch(obs, instructions))
+            action = self.postprocessor(self.policy.select_action(batch))
         return action.to(proprio.device, torch.float32).reshape(proprio.shape[0], ACTION_DIM).clamp(-1, 1)
 
     def predict_chunk(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
         """One full action chunk (N, chunk, 7), unnormalised; what the latency benchmark times."""
-        with torch.no_grad():
+        with torch.no_grad(), self._precision():
             batch = self.preprocessor(self.batch(obs, instructions))
             return self.postprocessor(self.policy.predict_action_chunk(batch))
 
     def describe(self) -> dict:
         return {"name": self.name, "type": self.config.type, "checkpoint": str(self.path),
                 "chunk_size": getattr(self.config, "chunk_size", getattr(self.config, "horizon", None)),
-                "n_action_steps": self.n_action_steps, "device": str(self.device), "instruction": self.instruction}
+                "n_action_steps": self.n_action_steps, "device": str(self.device), "instruction": self.instruction,
+                "use_amp": bool(self.config.use_amp)}
 
 
 def parse_arg(arg: str) -> tuple[str, dict]:
@@ -189,14 +207,17 @@ def parse_arg(arg: str) -> tuple[str, dict]:
     for key, value in parse_qsl(query, strict_parsing=bool(query)):
         if key not in QUERY_KEYS:
             raise ValueError(f"unknown option {key!r} in lerobot:{arg}; allowed: {', '.join(QUERY_KEYS)}")
-        kwargs[key] = QUERY_KEYS[key](value)
+        try:
+            kwargs[key] = QUERY_KEYS[key](value)
+        except ValueError as e:
+            raise ValueError(f"option {key}={value!r} in lerobot:{arg}: {e}") from None
     return path, kwargs
 
 
 def make_policy(arg: str | None, **kwargs) -> LeRobotPolicy:
-    """Factory for `load_policy("lerobot:PATH[?n_action_steps=H&device=D&instruction=TEXT]")`."""
+    """Factory for `load_policy("lerobot:PATH[?n_action_steps=H&device=D&instruction=TEXT&use_amp=B]")`."""
     if not arg:
         raise ValueError("policy 'lerobot' needs a checkpoint: lerobot:CHECKPOINT_DIR[?n_action_steps=H]")
     path, options = parse_arg(arg)
-    options.update({k: v for k, v in kwargs.items() if k in ("n_action_steps", "device") and v is not None})
+    options.update({k: v for k, v in kwargs.items() if k in ("n_action_steps", "device", "use_amp") and v is not None})
     return LeRobotPolicy(path, **options)
