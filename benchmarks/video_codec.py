@@ -10,7 +10,9 @@ real writer), then read back through LeRobotDataset as `vla-ladder train` reads 
   size    - bytes of video per episode;
   fidelity- PSNR (dB) of every decoded frame against the rendered one;
   decode  - ms per training sample (both cameras of one random frame, one thread, as one DataLoader worker)
-            with PyAV and, where it loads, torchcodec (`--dataset.video_backend`).
+            with PyAV and, where it loads, torchcodec (`--dataset.video_backend`);
+  long file - ms per random frame of one 20000-frame MP4 (what a 400-demo dataset holds per camera): PyAV opens
+            the file for every sample, torchcodec keeps it open.
 Training on a GPU waits on decoding when the loader workers cannot keep up (docs/gpu.md: PyAV, AV1, 10 workers,
 ~0.1 s a step at batch 64); the decode column says how many loader workers a batch size needs per codec.
 
@@ -52,6 +54,9 @@ class Args:
     """random training samples decoded per codec and backend"""
     vcodec: tuple[str, ...] = VCODECS
     """codecs to measure (`record --vcodec` values)"""
+    long_frames: int = 20000
+    """frames of the long file whose decoding is timed too: a 400-demo dataset keeps each camera's 20000 frames in
+    one MP4 (0 skips it)"""
     regime: str = "small_jitter"
     """placement regime of the episodes"""
     num_objects: int = 5
@@ -122,6 +127,39 @@ def decode(root: Path, backend: str, samples: int) -> float | None:
     return (time.perf_counter() - t0) / samples * 1000
 
 
+def long_file(episodes: list, root: Path, vcodec: str, frames: int, samples: int) -> dict:
+    """ms to decode one random frame of a `frames`-frame MP4 (the episodes' fixed-camera frames over and over,
+    LeRobot's settings for `vcodec`) with PyAV and torchcodec, through LeRobot's decode_video_frames."""
+    from fractions import Fraction
+
+    import av
+    from lerobot.configs.video import RGBEncoderConfig
+    from lerobot.datasets.video_utils import decode_video_frames
+
+    from vla_ladder.contract import CONTROL_HZ
+
+    pictures = np.concatenate([e.images["fixed_camera"] for e in episodes])
+    config, path = RGBEncoderConfig(vcodec=vcodec), root / f"long-{vcodec}.mp4"
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream(config.vcodec, CONTROL_HZ, options=config.get_codec_options(as_strings=True))
+        stream.pix_fmt, stream.width, stream.height = config.pix_fmt, pictures.shape[2], pictures.shape[1]
+        stream.time_base = Fraction(1, CONTROL_HZ)
+        for i in range(frames):
+            vf = av.VideoFrame.from_ndarray(pictures[i % len(pictures)], format="rgb24")
+            vf.pts = i
+            out.mux(stream.encode(vf))
+        out.mux(stream.encode())
+    times = np.random.default_rng(1).integers(0, frames, samples) / CONTROL_HZ
+    row = {"frames": frames}
+    for backend in ("pyav", "torchcodec"):
+        decode_video_frames(path, [0.0], 1e-4, backend)  # torchcodec opens the file once and keeps it
+        t0 = time.perf_counter()
+        for t in times:
+            decode_video_frames(path, [float(t)], 1e-4, backend)
+        row[f"{backend}_ms_per_frame"] = (time.perf_counter() - t0) / samples * 1000
+    return row
+
+
 def main(args: Args) -> None:
     torch.set_num_threads(1)  # as one DataLoader worker
     condition = Condition(args.regime, "canonical", args.num_objects)
@@ -141,6 +179,8 @@ def main(args: Args) -> None:
             row["codec_options"] = alone["options"]
             row["psnr"] = fidelity(episodes, root)
             row["decode_ms_per_sample"] = {b: decode(root, b, args.samples) for b in ("pyav", "torchcodec")}
+            if args.long_frames:
+                row["long_file"] = long_file(episodes, Path(tmp), vcodec, args.long_frames, args.samples)
             rows.append(row)
             print(f"{vcodec}: writer {row['writer_cpu_s_per_episode']:.2f} CPU s/episode (codec alone "
                   f"{row['codec_alone_cpu_s_per_episode']:.2f}), "
@@ -148,12 +188,17 @@ def main(args: Args) -> None:
                   "PSNR " + ", ".join(f"{c} {v['mean_db']:.1f} dB" for c, v in row["psnr"].items()) + ", decode "
                   + ", ".join(f"{b} {'-' if v is None else f'{v:.1f}'} ms" for b, v in
                               row["decode_ms_per_sample"].items()) + " a sample", flush=True)
+            if args.long_frames:
+                lf = row["long_file"]
+                print(f"  {lf['frames']}-frame file: PyAV {lf['pyav_ms_per_frame']:.2f} ms, torchcodec "
+                      f"{lf['torchcodec_ms_per_frame']:.2f} ms a frame", flush=True)
     files.write_json(args.out, {
         "benchmark": "video_codec", "condition": condition.key, "episodes": len(episodes),
         "samples": args.samples, "rows": rows,
         "note": "writer: CPU s per episode of DatasetStore (LeRobot's streaming encoder, its image statistics and "
                 "the commit); codec_alone: the codec on the same frames by itself; decode: ms per training sample "
-                "(both cameras of one random frame) through LeRobotDataset in one thread",
+                "(both cameras of one random frame) through LeRobotDataset in one thread; long_file: ms per random "
+                "frame of one long MP4 through LeRobot's decode_video_frames",
         "machine": {"cores": cores(), "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
                     "load_average_1min": os.getloadavg()[0]},
         "provenance": files.provenance()})

@@ -39,6 +39,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 # Commands that pass everything after `--` to lerobot-train.
 LEROBOT_FLAGS_AFTER_DASHES = ("train", "grid")
+# Commands that train LeRobot policies on recorded videos: restarted with PyAV's FFmpeg where torchcodec has none
+# (training/decoding.py).
+DECODE_VIDEOS = ("train", "grid", "study")
 # Commands whose run() lives in another module than their config.
 RUNNERS = {"serve": "vla_ladder.recording.serve"}
 
@@ -86,6 +89,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         cfg = parse(name, rest)
+        if name in DECODE_VIDEOS:
+            from vla_ladder.training.decoding import restart_with_torchcodec
+            restart_with_torchcodec(argv)
         runner = importlib.import_module(RUNNERS.get(name, COMMANDS[name][0].partition(":")[0]))
         return int(runner.run(cfg) or 0)
     except ValueError as e:  # bad input: one clear line, no traceback

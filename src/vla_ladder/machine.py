@@ -1,8 +1,9 @@
-"""What this machine offers to worker processes: CPU cores and memory."""
+"""What this machine offers: CPU cores and memory for worker processes, and a cache directory for built files."""
 
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 WORKER_MEMORY_BYTES = 2 * 2**30
 """Memory one simulation worker needs with two rendered cameras and a small policy (~1.1 GB peak measured for
@@ -25,6 +26,12 @@ def auto_workers(requested: int = 0) -> int:
     return max(1, min(cores(), available // WORKER_MEMORY_BYTES))
 
 
+def cache_root() -> Path:
+    """Where files built once per machine live (the lite robot, FFmpeg links): $VLA_LADDER_CACHE, else
+    ~/.cache/vla-ladder."""
+    return Path(os.environ.get("VLA_LADDER_CACHE", Path.home() / ".cache" / "vla-ladder"))
+
+
 def limit_threads(threads: int) -> None:
     """In a worker process, before its renderer starts: `threads` threads for lavapipe and for torch, so that N
     worker processes use N cores instead of all fighting over all of them."""
@@ -35,9 +42,10 @@ def limit_threads(threads: int) -> None:
 
 
 def auto_writers(servers: int, requested: int = 0) -> int:
-    """`requested`, or (0) one dataset writer per two simulation servers: a writer takes ~1.6 s a demo and a
-    server rendering on the CPU ~2.2 s (benchmarks/results/record_speed_cpu.json), so one writer keeps up with
-    about 1.4 servers and the servers' cores are still left to them."""
+    """`requested`, or (0) one dataset writer per two simulation servers: on 2 idle cores a writer takes 0.5 s a
+    demo (0.9 CPU s) and a server rendering on the CPU 1.3 s (benchmarks/results/record_speed_cpu.json), so one
+    writer keeps up with about 2.5 servers; on the 16-core GPU machine a writer cost 3.3 CPU s a demo and a server
+    0.9 s, so one per two servers is the margin for both."""
     return requested if requested > 0 else max(1, servers // 2)
 
 

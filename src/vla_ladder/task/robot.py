@@ -12,11 +12,12 @@ physics, seeds and metrics are identical; only pictures change, by a few grey le
 from __future__ import annotations
 
 import hashlib
-import os
 import shutil
 import tempfile
 from importlib.metadata import version
 from pathlib import Path
+
+from vla_ladder.machine import cache_root
 
 ROBOT_MESHES = ("lite", "full")
 LITE_UID = "panda_wristcam_lite"
@@ -26,11 +27,6 @@ CAMERA_MOUNT_FACES = 2000
 """Faces asked of the decimated RealSense D415 (425k in ManiSkill's mesh; the decimation stops near 14k)."""
 URDF = "panda_v3.urdf"
 _COPIED = ("franka_description", "realsense2_description", URDF, "panda_v3.srdf")
-
-
-def cache_root() -> Path:
-    """Where built assets live: $VLA_LADDER_CACHE, else ~/.cache/vla-ladder."""
-    return Path(os.environ.get("VLA_LADDER_CACHE", Path.home() / ".cache" / "vla-ladder"))
 
 
 def lite_urdf() -> Path:
