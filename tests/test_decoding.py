@@ -4,6 +4,7 @@ commands restart themselves that way only where torchcodec finds no FFmpeg."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -41,12 +42,12 @@ def _video(path, frames: np.ndarray) -> None:
 
 
 DECODE = """
-import sys, numpy as np
+import json, sys, numpy as np
 from lerobot.datasets.video_utils import decode_video_frames
 frame = decode_video_frames(sys.argv[1], [0.25], 1e-4, "torchcodec")[0]
 np.save(sys.argv[2], (frame.numpy() * 255).round().astype(np.uint8))
 maps = open("/proc/self/maps").read().splitlines()
-print(sorted({line.split()[-1] for line in maps if "libavcodec" in line}))
+print(json.dumps(sorted({line.split()[-1] for line in maps if "libavcodec" in line})))
 """
 
 
@@ -59,7 +60,7 @@ def test_torchcodec_decodes_on_pyav_ffmpeg(tmp_path):
     run = subprocess.run([sys.executable, "-c", DECODE, str(tmp_path / "v.mp4"), str(tmp_path / "f.npy")], env=env,
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
-    loaded = eval(run.stdout.strip().splitlines()[-1])  # the libavcodec files mapped into that process
+    loaded = json.loads(run.stdout.strip().splitlines()[-1])  # the libavcodec files mapped into that process
     assert loaded and all(str(decoding.pyav_libraries().resolve()) in p for p in loaded), loaded
     decoded = np.load(tmp_path / "f.npy").transpose(1, 2, 0).astype(float)
     assert np.abs(decoded - frames[5]).mean() < 3, "torchcodec did not return frame 5 (t = 0.25 s)"
