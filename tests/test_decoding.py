@@ -90,6 +90,14 @@ def test_training_commands_restart_only_where_torchcodec_has_no_ffmpeg(tmp_path,
     assert env[decoding.RESTARTED] == "1" and "restarting with PyAV's own FFmpeg" in capsys.readouterr().err
     assert not (tmp_path / "study").exists(), "the study started before restarting"
 
+    def unwritable(libs, root):
+        raise PermissionError(13, "Permission denied", str(root))
+
+    with monkeypatch.context() as m:  # links that cannot be made: a speed-up missed, the command goes on with PyAV
+        m.setattr(decoding, "ffmpeg_links", unwritable)
+        decoding.restart_with_torchcodec(argv)
+    assert len(calls) == 1 and "LeRobot decodes with PyAV" in capsys.readouterr().err
+
     monkeypatch.setenv(decoding.RESTARTED, "1")  # the restarted process goes on, whatever torchcodec does
     decoding.restart_with_torchcodec(argv)
     monkeypatch.delenv(decoding.RESTARTED)

@@ -3,9 +3,9 @@
 LeRobot decodes training videos with torchcodec when it loads and falls back to PyAV otherwise, which is 3.1x
 slower a frame of a 400-demo dataset's 20000-frame AV1 file (1.94 ms against 0.63 ms on the 2-core machine,
 benchmarks/results/video_codec.json: torchcodec keeps each file's decoder open, PyAV opens the file for every
-sample). torchcodec ships no FFmpeg: it loads the system's shared libraries
-(FFmpeg 4 to 8), which clusters and this project's GPU machines often lack, and there the H100's study trainings
-waited on PyAV for half of every step (docs/gpu.md). PyAV's wheels carry FFmpeg under renamed files (auditwheel);
+sample). torchcodec ships no FFmpeg: it loads the system's shared libraries (FFmpeg 4 to 8), which clusters and
+this project's GPU machines often lack, and there the H100's study trainings waited on PyAV for half of every step
+(docs/gpu.md). PyAV's wheels carry FFmpeg under renamed files (auditwheel);
 `ffmpeg_links` links them under the names torchcodec asks for, and a process started with those links and PyAV's
 library directory first on LD_LIBRARY_PATH loads torchcodec on them. The dynamic loader reads LD_LIBRARY_PATH
 once, when a process starts, so `restart_with_torchcodec` starts the command again with it, once.
@@ -84,7 +84,12 @@ def restart_with_torchcodec(argv: list[str]) -> None:
     torchcodec); otherwise return and go on."""
     if os.environ.get(RESTARTED) or torchcodec_loads():
         return
-    env = torchcodec_env(cache_root())
+    try:
+        env = torchcodec_env(cache_root())
+    except OSError as e:  # a cache that cannot be written, a PyAV laid out otherwise: a speed-up missed, no more
+        print(f"vla-ladder: torchcodec finds no FFmpeg libraries here and PyAV's could not be linked ({e}); LeRobot "
+              "decodes with PyAV", file=sys.stderr, flush=True)
+        return
     if env is None:
         return
     print("vla-ladder: torchcodec finds no FFmpeg libraries here; restarting with PyAV's own FFmpeg on "
