@@ -34,11 +34,13 @@ import time
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
+from typing import Iterable
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("MS_SKIP_ASSET_DOWNLOAD_PROMPT", "1")
 os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its configuration for every video otherwise
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import tyro  # noqa: E402
 
@@ -46,6 +48,7 @@ from vla_ladder import files  # noqa: E402
 from vla_ladder.conditions import Condition  # noqa: E402
 from vla_ladder.contract import EPISODE_STEPS  # noqa: E402
 from vla_ladder.machine import cores  # noqa: E402
+from vla_ladder.recordings import DEFAULT_VCODEC, VCODECS  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -73,7 +76,7 @@ class Args:
     encoder_threads: tuple[int, ...] = (0,)
     """`record --encoder-threads` values (threads of each camera's encoder; 0: the encoder's choice): the first
     for end to end and the stages, each for the writer stage"""
-    vcodec: str = "libsvtav1"
+    vcodec: str = DEFAULT_VCODEC
     """`record --vcodec`: the cameras' video codec everywhere it is written (benchmarks/video_codec.py compares)"""
     out: Path | None = None
     """result JSON (default: benchmarks/results/record_speed_<cpu|cuda>[_h264].json)"""
@@ -82,7 +85,6 @@ class Args:
         if not self.encoder_threads or min(self.encoder_threads) < 0:
             raise SystemExit(f"--encoder-threads: one or more values >= 0 (0: the encoder's choice), got "
                              f"{self.encoder_threads}")
-        from vla_ladder.recordings import VCODECS
         if self.vcodec not in VCODECS:
             raise SystemExit(f"--vcodec {self.vcodec!r}: allowed: {', '.join(VCODECS)}")
         if self.stage_episodes is None:
@@ -207,7 +209,7 @@ def encode_and_write(args: Args, episodes: list, work: Path, video: bool) -> dic
     from vla_ladder.recordings import Recording
 
     recording = Recording(policy="scripted", condition=Condition(args.regime, "canonical", args.num_objects),
-                          video=video, robot_mesh=args.robot_mesh, vcodec=args.vcodec if video else "libsvtav1")
+                          video=video, robot_mesh=args.robot_mesh, vcodec=args.vcodec if video else DEFAULT_VCODEC)
     store = DatasetStore(work / ("video" if video else "images"), recording, commit_every=10**6,
                          encoder_threads=args.encoder_threads[0] or None)
     t0, cpu0 = time.perf_counter(), _cpu_s()
@@ -217,25 +219,43 @@ def encode_and_write(args: Args, episodes: list, work: Path, video: bool) -> dic
     added, added_cpu = time.perf_counter() - t0, _cpu_s() - cpu0
     t = time.perf_counter()
     store.close()
-    commit = time.perf_counter() - t
+    commit, writer_cpu = time.perf_counter() - t, _cpu_s() - cpu0
     size = sum(f.stat().st_size for f in store.root.rglob("*") if f.is_file())
     n = len(episodes)
     return {"encode_s_per_episode": added / n, "encode_cpu_s_per_episode": added_cpu / n,
-            "write_s_per_episode": commit / n, "commit_s": commit,
+            "write_s_per_episode": commit / n, "commit_s": commit, "writer_cpu_s_per_episode": writer_cpu / n,
             "episodes_per_commit": n, "bytes_per_episode": size / n}
 
 
-def encoder_alone(episodes: list, threads: int, vcodec: str = "libsvtav1") -> dict:
+def encode_mp4(dest, frames: Iterable[np.ndarray], config, threads: int = 0) -> None:
+    """RGB `frames` (H, W, 3 uint8) into one MP4 at `dest` (a path or a file object) with a LeRobot encoder
+    `config` through PyAV, as LeRobot's encoder writes them but without its per-frame work around the codec."""
+    from fractions import Fraction
+
+    import av
+
+    from vla_ladder.contract import CONTROL_HZ
+
+    with av.open(dest, "w", format="mp4") as out:
+        stream = out.add_stream(config.vcodec, CONTROL_HZ,
+                                options=config.get_codec_options(threads or None, as_strings=True))
+        stream.time_base = Fraction(1, CONTROL_HZ)
+        for i, frame in enumerate(frames):
+            if i == 0:
+                stream.pix_fmt, stream.width, stream.height = config.pix_fmt, frame.shape[1], frame.shape[0]
+            vf = av.VideoFrame.from_ndarray(frame, format="rgb24")
+            vf.pts = i
+            out.mux(stream.encode(vf))
+        out.mux(stream.encode())
+
+
+def encoder_alone(episodes: list, threads: int, vcodec: str = DEFAULT_VCODEC) -> dict:
     """The video encoder by itself on the same frames: LeRobot's RGB settings for `vcodec` (SVT-AV1 by default)
     through PyAV, one MP4 per camera, without LeRobot's per-frame work around it (image statistics, conversions).
     The difference to `encode` is what that work costs."""
     import io
-    from fractions import Fraction
 
-    import av
     from lerobot.configs.video import RGBEncoderConfig
-
-    from vla_ladder.contract import CONTROL_HZ
 
     config = RGBEncoderConfig(vcodec=vcodec)
     t0, cpu0 = time.perf_counter(), _cpu_s()
@@ -243,16 +263,7 @@ def encoder_alone(episodes: list, threads: int, vcodec: str = "libsvtav1") -> di
     for e in episodes:
         for frames in e.images.values():
             buf = io.BytesIO()
-            with av.open(buf, "w", format="mp4") as out:
-                stream = out.add_stream(config.vcodec, CONTROL_HZ,
-                                        options=config.get_codec_options(threads or None, as_strings=True))
-                stream.pix_fmt, stream.width, stream.height = config.pix_fmt, frames.shape[2], frames.shape[1]
-                stream.time_base = Fraction(1, CONTROL_HZ)
-                for i, frame in enumerate(frames):
-                    vf = av.VideoFrame.from_ndarray(frame, format="rgb24")
-                    vf.pts = i
-                    out.mux(stream.encode(vf))
-                out.mux(stream.encode())
+            encode_mp4(buf, frames, config, threads)
             size += buf.tell()
     n = len(episodes)
     return {"codec": config.vcodec, "options": config.get_codec_options(threads or None, as_strings=True),
@@ -395,7 +406,7 @@ def main(args: Args) -> None:
         "machine": {"cores": n_cores, "gpu": gpu, "load_average_1min": [load_before, os.getloadavg()[0]]},
         "provenance": files.provenance(ok[0].header["object_set"]),
     })
-    codec = "" if args.vcodec == "libsvtav1" else f"_{args.vcodec}"
+    codec = "" if args.vcodec == DEFAULT_VCODEC else f"_{args.vcodec}"
     out = args.out or RESULTS / f"record_speed_{'cuda' if gpu else 'cpu'}{codec}.json"
     files.write_json(out, result)
     print(f"encode: {video['encode_cpu_s_per_episode']:.2f} CPU s per episode in LeRobot's writer, of which the "

@@ -33,7 +33,7 @@ import tyro
 # benchmarks/ is on sys.path when run as a script; importing record_speed also sets the offline and SVT-AV1 logging
 # environment every benchmark that records sets.
 from record_speed import Args as RecordArgs
-from record_speed import _cpu_s, encoder_alone, simulate
+from record_speed import encode_and_write, encode_mp4, encoder_alone, simulate
 
 from vla_ladder import files
 from vla_ladder.conditions import Condition
@@ -72,21 +72,15 @@ class Args:
             raise SystemExit(f"--episodes and --samples must be >= 1, got {self.episodes} and {self.samples}")
 
 
-def write(episodes: list, root: Path, vcodec: str, condition: Condition) -> dict:
-    """DatasetStore.add for every episode, then one commit: CPU s per episode, and video bytes per episode."""
-    from vla_ladder.recording.store import DatasetStore
-    from vla_ladder.recordings import Recording
-
-    store = DatasetStore(root, Recording(policy="scripted", condition=condition, vcodec=vcodec), commit_every=10**6)
-    t0, cpu0 = time.perf_counter(), _cpu_s()
-    for e in episodes:
-        store.count(True)
-        store.add(e)
-    store.close()
-    n = len(episodes)
-    video = sum(f.stat().st_size for f in (root / "videos").rglob("*.mp4"))
-    return {"writer_s_per_episode": (time.perf_counter() - t0) / n, "writer_cpu_s_per_episode": (_cpu_s() - cpu0) / n,
-            "video_bytes_per_episode": video / n}
+def write(episodes: list, work: Path, vcodec: str, args: Args) -> tuple[Path, dict]:
+    """The episodes through DatasetStore (add each, one commit: record_speed's writer stage) into work/video: the
+    dataset's root, and CPU s and video bytes per episode."""
+    stage = encode_and_write(RecordArgs(regime=args.regime, num_objects=args.num_objects, vcodec=vcodec), episodes,
+                             work, video=True)
+    root, n = work / "video", len(episodes)
+    return root, {"writer_s_per_episode": stage["encode_s_per_episode"] + stage["write_s_per_episode"],
+                  "writer_cpu_s_per_episode": stage["writer_cpu_s_per_episode"],
+                  "video_bytes_per_episode": sum(f.stat().st_size for f in (root / "videos").rglob("*.mp4")) / n}
 
 
 def fidelity(episodes: list, root: Path) -> dict:
@@ -130,25 +124,14 @@ def decode(root: Path, backend: str, samples: int) -> float | None:
 def long_file(episodes: list, root: Path, vcodec: str, frames: int, samples: int) -> dict:
     """ms to decode one random frame of a `frames`-frame MP4 (the episodes' fixed-camera frames over and over,
     LeRobot's settings for `vcodec`) with PyAV and torchcodec, through LeRobot's decode_video_frames."""
-    from fractions import Fraction
-
-    import av
     from lerobot.configs.video import RGBEncoderConfig
     from lerobot.datasets.video_utils import decode_video_frames
 
     from vla_ladder.contract import CONTROL_HZ
 
     pictures = np.concatenate([e.images["fixed_camera"] for e in episodes])
-    config, path = RGBEncoderConfig(vcodec=vcodec), root / f"long-{vcodec}.mp4"
-    with av.open(str(path), "w") as out:
-        stream = out.add_stream(config.vcodec, CONTROL_HZ, options=config.get_codec_options(as_strings=True))
-        stream.pix_fmt, stream.width, stream.height = config.pix_fmt, pictures.shape[2], pictures.shape[1]
-        stream.time_base = Fraction(1, CONTROL_HZ)
-        for i in range(frames):
-            vf = av.VideoFrame.from_ndarray(pictures[i % len(pictures)], format="rgb24")
-            vf.pts = i
-            out.mux(stream.encode(vf))
-        out.mux(stream.encode())
+    path = root / f"long-{vcodec}.mp4"
+    encode_mp4(str(path), (pictures[i % len(pictures)] for i in range(frames)), RGBEncoderConfig(vcodec=vcodec))
     times = np.random.default_rng(1).integers(0, frames, samples) / CONTROL_HZ
     row = {"frames": frames}
     for backend in ("pyav", "torchcodec"):
@@ -170,10 +153,10 @@ def main(args: Args) -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for vcodec in args.vcodec:  # warm-up: LeRobot's first dataset and each codec's first encoder cost seconds
-            write(episodes[:1], Path(tmp) / f"warm-up-{vcodec}", vcodec, condition)
+            write(episodes[:1], Path(tmp) / f"warm-up-{vcodec}", vcodec, args)
         for vcodec in args.vcodec:
-            root = Path(tmp) / vcodec
-            row = {"vcodec": vcodec, **write(episodes, root, vcodec, condition)}
+            root, written = write(episodes, Path(tmp) / vcodec, vcodec, args)
+            row = {"vcodec": vcodec, **written}
             alone = encoder_alone(episodes, 0, vcodec)
             row["codec_alone_cpu_s_per_episode"] = alone["cpu_s_per_episode"]
             row["codec_options"] = alone["options"]

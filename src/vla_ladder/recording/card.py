@@ -22,7 +22,7 @@ from vla_ladder import files
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import (ACTION_NAMES, CAMERAS, CONTROL_HZ, CONTROL_MODE, EPISODE_STEPS, METRICS, ROBOT,
                                  STATE_NAMES)
-from vla_ladder.recordings import PROVENANCE_DIR, RECORDING_FILE, read_provenance, read_recording_state
+from vla_ladder.recordings import DEFAULT_VCODEC, PROVENANCE_DIR, RECORDING_FILE, read_provenance, read_recording_state
 from vla_ladder.task.objects import OBJECTS
 
 CARD_FILE = "README.md"
@@ -54,7 +54,7 @@ def description(root: str | Path) -> str:
     expert = json.loads(prov["expert"].iloc[0]) if len(prov) else {"spec": config["policy"]}
     tasks = sorted(prov["instruction"].unique()) if len(prov) else []
     cameras = ", ".join(f"`{c.key}` ({c.width}x{c.height} RGB, {c.fov_deg:g} deg vertical FOV)" for c in CAMERAS)
-    codec = _CODEC_NAMES.get(config.get("vcodec", "libsvtav1"), config.get("vcodec"))
+    codec = _CODEC_NAMES.get(config.get("vcodec", DEFAULT_VCODEC), config.get("vcodec"))
     storage = f"{codec} video" if config.get("video", True) else "PNG images in the Parquet files"
     lines = [
         f"Synthetic robot demonstrations recorded in simulation by vla-ladder {versions.get('vla-ladder', '?')} "
