@@ -10,7 +10,9 @@ expert; `lerobot:CKPT?device=cuda` measures a learned policy's batched GPU infer
   filmed - every episode filmed: both 256x256 cameras rendered every step (on the GPU when there is one,
            else lavapipe) and encoded to MP4.
 Wall time includes starting the N processes (imports, building the env); the start-up is also timed alone
-(one episode per process) so that the steady rate, (episodes - N) / (wall - start-up), can be given. The
+(one episode per process) so that the steady rate, (episodes - N) / (wall - start-up), can be given. Each row
+also keeps the run's summary.json `timing`: seconds in resets, the policy, the env's steps and filming, and
+the milliseconds of one lockstep step in the policy and in the env (what a slow batched run spends its time on). The
 runs for different N must give the same episodes (for a deterministic policy): the result says whether they did.
 
 Writes benchmarks/results/eval_speed.json (eval_speed_cuda.json where a CUDA GPU renders), or --out.
@@ -63,34 +65,36 @@ class Args:
     """result JSON (default: benchmarks/results/eval_speed.json, eval_speed_cuda.json with a GPU)"""
 
 
-def timed(args: Args, episodes: int, workers: int, filmed: bool, num_envs: int = 1) -> tuple[float, pd.DataFrame]:
-    """Wall seconds of one evaluation, and its episodes (without the video column)."""
+def timed(args: Args, episodes: int, workers: int, filmed: bool, num_envs: int = 1,
+          ) -> tuple[float, pd.DataFrame, dict]:
+    """Wall seconds of one evaluation, its episodes (without the video column), and its summary's timing."""
     grid = ConditionGrid(regimes=(args.regime,), num_objects=(args.num_objects,))
     with tempfile.TemporaryDirectory() as tmp:
         cfg = EvalConfig(policy=args.policy, out=Path(tmp), grid=grid, episodes=episodes, first_seed=args.first_seed,
                          workers=workers, num_envs=num_envs, videos=episodes if filmed else 0,
                          robot_mesh=args.robot_mesh)
         t0 = time.perf_counter()
-        run_evaluation(cfg, progress=False)
+        summary = run_evaluation(cfg, progress=False)
         wall = time.perf_counter() - t0
-        return wall, pd.read_parquet(Path(tmp) / "episodes.parquet").drop(columns="video")
+        return wall, pd.read_parquet(Path(tmp) / "episodes.parquet").drop(columns="video"), summary["timing"]
 
 
 def measure(args: Args, workers: int, filmed: bool, num_envs: int = 1) -> tuple[dict, pd.DataFrame]:
     n = args.filmed if filmed else args.episodes
     procs = max(workers, num_envs)
-    startup, _ = timed(args, procs, workers, filmed, num_envs)  # one episode per process: start-up + 1 episode
-    wall, episodes = timed(args, n, workers, filmed, num_envs)
+    startup, _, _ = timed(args, procs, workers, filmed, num_envs)  # one episode per process: start-up + 1 episode
+    wall, episodes, timing = timed(args, n, workers, filmed, num_envs)
     steady = (n - procs) / (wall - startup) if n > procs and wall > startup else None
     row = {"kind": "filmed" if filmed else "state", "workers": workers, "num_envs": num_envs, "episodes": n,
            "wall_s": round(wall, 2),
            "episodes_per_s": round(n / wall, 3), "env_steps_per_s": round(EPISODE_STEPS * n / wall, 1),
            "startup_and_first_episode_s": round(startup, 2),
            "steady_episodes_per_s": None if steady is None else round(steady, 3),
-           "success": float(episodes["success"].mean())}
+           "success": float(episodes["success"].mean()), "timing": timing}
     print(f"{row['kind']:6s} workers {workers} num_envs {num_envs}: {n} episodes in {wall:.1f} s = "
           f"{row['episodes_per_s']} episodes/s (start-up + 1 episode {startup:.1f} s; steady "
-          f"{row['steady_episodes_per_s']} episodes/s)", flush=True)
+          f"{row['steady_episodes_per_s']} episodes/s); a step: policy {timing['per_step_ms']['policy']} ms, "
+          f"env {timing['per_step_ms']['env']} ms", flush=True)
     return row, episodes
 
 

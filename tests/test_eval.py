@@ -122,11 +122,11 @@ def test_batched_cpu_envs_play_the_same_episodes(tmp_path):
     """--num-envs 2 on physx_cpu: two env processes in lockstep, one policy acting on both as a batch (the
     first episode filmed, from cameras rendered in the env processes), the same rows as one env at a time."""
     grid = ConditionGrid(("small_jitter", "full_random"), num_objects=(3,))
-    runs = {}
+    runs, timing = {}, {}
     for n in (1, 2):
         cfg = EvalConfig("layout-prior", out=tmp_path / f"n{n}", grid=grid, episodes=3, workers=1, num_envs=n,
                          videos=1)
-        run_evaluation(cfg, progress=False)
+        timing[n] = run_evaluation(cfg, progress=False)["timing"]
         runs[n] = pd.read_parquet(cfg.out / "episodes.parquet")
     pd.testing.assert_frame_equal(runs[1].drop(columns="video"), runs[2].drop(columns="video"))
     assert runs[1]["success"].any() and not runs[1]["success"].all()
@@ -135,6 +135,13 @@ def test_batched_cpu_envs_play_the_same_episodes(tmp_path):
         assert frames.shape == (51, 256, 512, 3) and frames.std() > 10
     with pytest.raises(ValueError, match="choose one"):
         EvalConfig("layout-prior", grid=grid, workers=2, num_envs=2)
+    # Where the time went: the 6 episodes are 6 batches of one env, or 3 of two (a batch may mix conditions).
+    for n, batches in ((1, 6), (2, 3)):
+        t = timing[n]
+        assert t["episodes"] == 6 and t["lockstep_steps"] == 50 * batches
+        assert all(t[f"{phase}_s"] > 0 for phase in ("reset", "policy", "env", "film"))
+        assert t["reset_s"] + t["policy_s"] + t["env_s"] + t["film_s"] < t["wall_s"]
+        assert t["per_step_ms"]["env"] == pytest.approx(1e3 * t["env_s"] / t["lockstep_steps"], abs=0.01)
 
 
 @pytest.mark.slow
@@ -150,7 +157,10 @@ def test_a_killed_run_resumes_and_another_request_is_refused(tmp_path, capsys):
     assert main(argv) == 0
     assert "1 episodes done, 2 to play" in capsys.readouterr().out
     pd.testing.assert_frame_equal(pd.read_parquet(out / "episodes.parquet"), full)
-    assert json.loads((out / "summary.json").read_text())["complete"]
+    summary = json.loads((out / "summary.json").read_text())
+    # The timing goes on from the first invocation's: 3 episodes played there, 2 here.
+    assert summary["complete"] and summary["timing"]["episodes"] == 5
+    assert summary["timing"]["lockstep_steps"] == 5 * 50
     # The same request with another worker count, or played as a batch, is the same run; another policy is
     # refused, or replaces it.
     assert main([*argv[:-1], "2"]) == 0

@@ -10,7 +10,9 @@ On physx_cuda, one process steps `num_envs` episodes at once instead.
 
 from __future__ import annotations
 
+import time
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Sequence
@@ -20,6 +22,12 @@ import numpy as np
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import CAMERA_NAMES, CONTROL_HZ, ENV_ID, EPISODE_STEPS
 from vla_ladder.machine import limit_threads
+
+PHASES = ("reset", "policy", "env", "film")
+"""Where an episode's time goes: reset (env reset with its scene rebuild, the policy's reset, the layouts and
+instructions read back), policy (act: preprocessing, inference, the action back on the env's device), env
+(step: physics, the cameras the policy sees, observations out of the env processes), film (the frames of
+filmed episodes and their MP4s)."""
 
 @dataclass(frozen=True)
 class Job:
@@ -74,6 +82,21 @@ def write_video(path: str | Path, frames: np.ndarray, fps: int = CONTROL_HZ) -> 
     return Path(path)
 
 
+class Stopwatch:
+    """Seconds spent in each of PHASES, summed over the `with watch(phase):` blocks timed."""
+
+    def __init__(self):
+        self.seconds = dict.fromkeys(PHASES, 0.0)
+
+    @contextmanager
+    def __call__(self, phase: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[phase] += time.perf_counter() - start
+
+
 class Player:
     """One env and one policy; plays jobs, `num_envs` at a time (on the CPU backend: num_envs processes in
     lockstep, task/vector.py)."""
@@ -108,26 +131,37 @@ class Player:
         # A short batch is padded with copies of its last job; their episodes are discarded.
         batch = jobs + [jobs[-1]] * (n - len(jobs))
         options = {**dict(jobs[0].options), "conditions": [j.condition for j in batch]}
-        obs, _ = env.reset(seed=[j.seed for j in batch], options=options)
-        self.policy.reset([j.seed for j in batch])
-        instructions = u.instructions
+        watch, steps = Stopwatch(), 0
+        with watch("reset"):
+            obs, _ = env.reset(seed=[j.seed for j in batch], options=options)
+            self.policy.reset([j.seed for j in batch])
+            instructions = u.instructions
+            layouts, object_set = u.layouts, u.object_set  # one query each (CPUEnvs asks every env process)
         filmed = [k for k, j in enumerate(jobs) if j.video]
-        frames = [camera_frames(env, obs, filmed)] if filmed else None
+        with watch("film"):
+            frames = [camera_frames(env, obs, filmed)] if filmed else None
         info: dict = {}
         horizon = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else EPISODE_STEPS
         for _ in range(horizon):
-            obs, _, _, truncated, info = env.step(self.policy.act(obs, instructions))
+            with watch("policy"):
+                action = self.policy.act(obs, instructions)
+            with watch("env"):
+                obs, _, _, truncated, info = env.step(action)
+            steps += 1
             if frames is not None:
-                frames.append(camera_frames(env, obs, filmed))
+                with watch("film"):
+                    frames.append(camera_frames(env, obs, filmed))
             if bool(torch.as_tensor(truncated).all()):
                 break
         if frames is not None:
-            for k, clip in zip(filmed, np.stack(frames, axis=1)):
-                write_video(jobs[k].video, clip)
+            with watch("film"):
+                for k, clip in zip(filmed, np.stack(frames, axis=1)):
+                    write_video(jobs[k].video, clip)
+        # Each episode carries its share of the batch's time, so the rows of a run sum to its totals.
+        timing = {"steps": steps / len(jobs), **{f"{p}_s": t / len(jobs) for p, t in watch.seconds.items()}}
         from vla_ladder.task.objects import OBJECT_NAMES
 
         rows = []
-        layouts, object_set = u.layouts, u.object_set  # one query each (CPUEnvs asks every env process)
         for k, job in enumerate(jobs):
             held = int(info["held"][k])
             lay = layouts[k]
@@ -136,7 +170,7 @@ class Player:
                 held=OBJECT_NAMES[held] if held >= 0 else "none",
                 success=bool(info["success"][k]), grasp_any=bool(info["grasp_any"][k]),
                 reach=bool(info["reach"][k]), reach_dist=float(info["reach_dist"][k]),
-                object_set=object_set, layout=lay.to_dict(), policy_info=self.policy.describe()))
+                object_set=object_set, layout=lay.to_dict(), policy_info=self.policy.describe(), timing=timing))
         return rows
 
 

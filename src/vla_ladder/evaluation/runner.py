@@ -23,7 +23,7 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import Condition, ConditionGrid
-from vla_ladder.evaluation.player import EnvSettings, Job, play
+from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
 from vla_ladder.policies import POLICY_KINDS, Policy, check_spec
@@ -169,8 +169,30 @@ def open_run_dir(cfg: EvalConfig) -> list[dict]:
     return pd.read_parquet(path).to_dict("records")
 
 
-def summarize_run(rows: list[dict], cfg: EvalConfig, policy_info: dict) -> tuple:
-    """Rows in condition order, and the summary.json of a (possibly partial) run."""
+def timing_summary(totals: dict[str, float]) -> dict:
+    """summary.json's `timing` from the played episodes' summed shares of their batches' time (player.PHASES).
+    Worker processes play side by side, so with workers > 1 the seconds add up to more than the wall time;
+    per_step_ms is the time of one step of a batch (num_envs episodes at once) in the policy and in the env;
+    wall_s is the commands' own time (process start-up and policy loading included)."""
+    steps = totals.get("lockstep_steps", 0.0)
+    return {"episodes": int(totals.get("episodes", 0)), "wall_s": round(totals.get("wall_s", 0.0), 1),
+            "lockstep_steps": round(steps),
+            **{f"{p}_s": round(totals.get(f"{p}_s", 0.0), 3) for p in PHASES},
+            "per_step_ms": {p: round(1e3 * totals.get(f"{p}_s", 0.0) / steps, 2) if steps else None
+                            for p in ("policy", "env")}}
+
+
+def add_timing(totals: dict[str, float], timing: dict[str, float]) -> None:
+    """Add one episode's share of its batch's time (a player row's `timing`) to a run's totals."""
+    totals["episodes"] = totals.get("episodes", 0) + 1
+    totals["lockstep_steps"] = totals.get("lockstep_steps", 0.0) + timing["steps"]
+    for p in PHASES:
+        totals[f"{p}_s"] = totals.get(f"{p}_s", 0.0) + timing[f"{p}_s"]
+
+
+def summarize_run(rows: list[dict], cfg: EvalConfig, policy_info: dict, timing: dict | None = None) -> tuple:
+    """Rows in condition order, and the summary.json of a (possibly partial) run; `timing`: the totals that
+    add_timing kept, for summary.json's `timing`."""
     import pandas as pd
 
     from vla_ladder.evaluation.metrics import summarize
@@ -183,6 +205,8 @@ def summarize_run(rows: list[dict], cfg: EvalConfig, policy_info: dict) -> tuple
                                                      "robot_mesh": cfg.robot_mesh},
                "first_seed": cfg.first_seed, "episodes_per_condition": cfg.episodes,
                "complete": len(df) == len(cfg.conditions) * cfg.episodes, "conditions": summarize(df)}
+    if timing is not None:
+        summary["timing"] = timing_summary(timing)
     return df, summary
 
 
@@ -191,6 +215,7 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
     condition and return the summary dict; with cfg.out, also write (or resume) the run directory."""
     from tqdm.auto import tqdm
 
+    started = time.monotonic()
     if policy is None:
         if not cfg.policy:
             raise ValueError("--policy SPEC is required; allowed: " + ", ".join(POLICY_KINDS))
@@ -204,8 +229,12 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
         print(f"[eval] resuming {cfg.out}: {len(rows)} episodes done, {len(jobs)} to play")
     obs_mode = policy.obs_mode if policy is not None else None
     settings = EnvSettings(cfg.sim_backend, cfg.num_envs, cfg.object_set, cfg.robot_mesh, render=cfg.videos > 0)
-    policy_info = json.loads((cfg.out / "summary.json").read_text())["policy"] \
-        if rows and cfg.out is not None and (cfg.out / "summary.json").is_file() else {"name": spec}
+    saved = json.loads((cfg.out / "summary.json").read_text()) \
+        if rows and cfg.out is not None and (cfg.out / "summary.json").is_file() else {}
+    policy_info = saved.get("policy", {"name": spec})
+    # A resumed run's timing goes on from the seconds its earlier invocations recorded.
+    timing = {k: v for k, v in saved.get("timing", {}).items() if k != "per_step_ms"}
+    wall_before = timing.get("wall_s", 0.0)
     workers = 1 if obs_mode is not None else min(auto_workers(cfg.workers), max(len(jobs), 1))
     bar = tqdm(total=len(cfg.conditions) * cfg.episodes, initial=len(rows), desc=f"eval {spec}", unit="ep",
                disable=not progress)
@@ -213,7 +242,8 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
     summary: dict = {}
 
     def flush() -> dict:
-        df, summary = summarize_run(rows, cfg, policy_info)
+        timing["wall_s"] = wall_before + time.monotonic() - started
+        df, summary = summarize_run(rows, cfg, policy_info, timing)
         if cfg.out is not None:
             files.write_parquet(cfg.out / "episodes.parquet", df)
             files.write_json(cfg.out / "summary.json", summary)
@@ -222,6 +252,7 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
     try:
         for job, row in play(jobs, spec, settings, workers=workers, policy=policy):
             policy_info = row.pop("policy_info")
+            add_timing(timing, row.pop("timing"))
             c = job.condition
             rows.append(dict(policy=spec, regime=c.regime, split=c.split, num_objects=c.num_objects,
                              episode=job.episode, **{**row, "layout": json.dumps(row["layout"])},
@@ -245,5 +276,9 @@ def run(cfg: EvalConfig) -> int:
     for key, c in summary["conditions"].items():
         print(f"{key}: n={c['n']} success={c['success']:.3f} grasp_any={c['grasp_any']:.3f} "
               f"reach={c['reach']:.3f}")
+    t = summary.get("timing", {})
+    if t.get("lockstep_steps"):
+        print(f"time: {t['per_step_ms']['policy']} ms a step in the policy, {t['per_step_ms']['env']} ms in the env "
+              f"({cfg.num_envs} at once); resets {t['reset_s']:.1f} s, filming {t['film_s']:.1f} s in all")
     print(f"wrote {cfg.out}/episodes.parquet, summary.json, config.json")
     return 0
