@@ -13,7 +13,9 @@ Wall time includes starting the N processes (imports, building the env); the sta
 (one episode per process) so that the steady rate, (episodes - N) / (wall - start-up), can be given. Each row
 also keeps the run's summary.json `timing`: seconds in resets, the policy, the env's steps and filming, and
 the milliseconds of one lockstep step in the policy and in the env (what a slow batched run spends its time on). The
-runs for different N must give the same episodes (for a deterministic policy): the result says whether they did.
+runs for different N must give the same episodes (for a deterministic policy): the result says whether they did,
+bit for bit and in outcomes (held object, success, grasp-any, reach; a learned policy's floats may round
+differently in a batch or with another thread count).
 
 Writes benchmarks/results/eval_speed.json (eval_speed_cuda.json where a CUDA GPU renders), or --out.
 """
@@ -37,6 +39,7 @@ from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.machine import cores
 
 RESULTS = Path(__file__).parent / "results"
+OUTCOMES = ["seed", "target", "held", "success", "grasp_any", "reach"]
 
 
 @dataclass
@@ -110,6 +113,7 @@ def main(args: Args) -> None:
         for workers, num_envs in [(n, 1) for n in args.workers] + [(1, n) for n in args.num_envs if n > 1]:
             row, episodes = measure(args, workers, filmed, num_envs)
             row["same_episodes_as_first_row"] = bool(not played or episodes.equals(played[0]))
+            row["same_outcomes_as_first_row"] = bool(not played or episodes[OUTCOMES].equals(played[0][OUTCOMES]))
             rows.append(row)
             played.append(episodes)
         same[kind] = all(p.equals(played[0]) for p in played[1:])

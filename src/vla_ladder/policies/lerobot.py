@@ -2,20 +2,29 @@
 
 The checkpoint is loaded with the pre/post-processors LeRobot saved next to it (normalisation statistics,
 tokenizer, camera renames), so the policy sees observations exactly as in training: both 256x256 cameras
-as float CHW in [0, 1], the 15-d proprioceptive state and the instruction as `task`. Action chunks run
-through LeRobot's own `select_action` queue, so the execution horizon is the checkpoint's
-`n_action_steps`, which `?n_action_steps=H` (or the `n_action_steps` argument) overrides. As in `lerobot-eval`,
+as float CHW in [0, 1], the 15-d proprioceptive state and the instruction as `task`. The execution horizon is
+the checkpoint's `n_action_steps`, which `?n_action_steps=H` (or the `n_action_steps` argument) overrides.
+
+Flow-matching policies (SmolVLA, pi0, pi0.5) turn noise into an action chunk. LeRobot's `select_action` draws
+that noise for the whole batch from torch's global generator, so an episode's actions would depend on which
+episodes share its batch (`eval --num-envs`). Here each episode's noise is drawn from its own generator, seeded
+by the episode's seed and the chunk's index, and passed to LeRobot's `predict_action_chunk`; the chunk's first
+`n_action_steps` actions are queued as `select_action` queues them (and the observation is preprocessed only
+when a chunk is predicted). So an episode gets the same noise alone or in any batch, on the CPU or the GPU. Other
+policies (ACT, diffusion, ...) act through LeRobot's own `select_action`. As in `lerobot-eval`,
 a checkpoint whose config says `use_amp` acts under torch.autocast (float16 on CUDA, bfloat16 on the CPU);
 `?use_amp=true|false` overrides it. The same code runs one CPU env or a batch of GPU envs.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 from pathlib import Path
 from typing import Any, Sequence
 from urllib.parse import parse_qsl
 
+import numpy as np
 import torch
 
 from vla_ladder.contract import ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IMAGE_SHAPE, STATE_DIM, STATE_KEY
@@ -26,6 +35,9 @@ ENV_IMAGE_SHAPE = (IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1])  # CHW, as Le
 # image size still gets images it can use. Every camera they declare must still be fed, except the blank
 # `empty_camera_i` slots their `empty_cameras` option adds on purpose.
 RESIZES_IMAGES = {"smolvla", "pi0", "pi05", "pi0_fast"}
+# Policies whose predict_action_chunk takes the flow-matching noise, (batch, chunk_size, max_action_dim), and which
+# see one observation a step: their chunks are drawn here from per-episode noise (module docstring).
+NOISE_PER_EPISODE = {"smolvla", "pi0", "pi05"}
 WEIGHTS_FILE = "model.safetensors"
 
 
@@ -150,6 +162,9 @@ class LeRobotPolicy(Policy):
         self.name = f"lerobot-{cfg.type}"
         self.instruction = instruction
         self._num_envs = 0
+        self._seeds: list[int] = []
+        self._chunks = 0  # chunks predicted since the last reset
+        self._queue: collections.deque[torch.Tensor] = collections.deque()
 
     @property
     def n_action_steps(self) -> int | None:
@@ -161,8 +176,21 @@ class LeRobotPolicy(Policy):
         if env_ids is not None and self._num_envs and len(set(env_ids)) < self._num_envs:
             raise ValueError("LeRobot policies keep one action queue per batch: reset all envs together")
         self.policy.reset()
+        self._seeds, self._chunks = [int(s) for s in seeds], 0
+        self._queue.clear()
         if len(seeds):
-            torch.manual_seed(int(seeds[0]))  # the flow-matching/diffusion noise of this batch of episodes
+            torch.manual_seed(int(seeds[0]))  # any other randomness (a diffusion policy's noise): per batch
+
+    def noise(self, num_envs: int) -> torch.Tensor | None:
+        """The flow-matching noise of the next chunk, (num_envs, chunk_size, max_action_dim): row i from a
+        generator seeded by episode i's seed and the chunk's index (None, LeRobot's own draw, without seeds)."""
+        if len(self._seeds) != num_envs:
+            return None
+        shape = (self.config.chunk_size, self.config.max_action_dim)
+        rows = [torch.randn(shape, generator=torch.Generator().manual_seed(
+            int(np.random.SeedSequence((seed, self._chunks)).generate_state(1, np.uint64)[0])))
+            for seed in self._seeds]
+        return torch.stack(rows).to(self.device)
 
     def batch(self, obs: Any, instructions: Sequence[str]) -> dict[str, Any]:
         """Env observation -> LeRobot's raw observation dict (before the saved preprocessor)."""
@@ -182,9 +210,19 @@ class LeRobotPolicy(Policy):
     def act(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
         proprio = torch.as_tensor(obs["extra"]["proprio"])
         self._num_envs = proprio.shape[0]
-        with self._precision():
-            batch = self.preprocessor(self.batch(obs, instructions))
-            action = self.postprocessor(self.policy.select_action(batch))
+        if self.config.type not in NOISE_PER_EPISODE:
+            with self._precision():
+                batch = self.preprocessor(self.batch(obs, instructions))
+                action = self.postprocessor(self.policy.select_action(batch))
+        else:
+            if not self._queue:
+                with self._precision():
+                    batch = self.preprocessor(self.batch(obs, instructions))
+                    noise = self.noise(proprio.shape[0])
+                    chunk = self.postprocessor(self.policy.predict_action_chunk(batch, noise=noise))
+                self._chunks += 1
+                self._queue.extend(chunk[:, :self.n_action_steps].transpose(0, 1))
+            action = self._queue.popleft()
         return action.to(proprio.device, torch.float32).reshape(proprio.shape[0], ACTION_DIM).clamp(-1, 1)
 
     def predict_chunk(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
