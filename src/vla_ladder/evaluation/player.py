@@ -29,6 +29,7 @@ instructions read back), policy (act: preprocessing, inference, the action back 
 (step: physics, the cameras the policy sees, observations out of the env processes), film (the frames of
 filmed episodes and their MP4s)."""
 
+
 @dataclass(frozen=True)
 class Job:
     """One episode to play: its condition and seed, extra reset options, and where its video goes."""
