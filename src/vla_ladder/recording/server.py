@@ -68,7 +68,7 @@ class ServeConfig:
     lazy: bool = False
     """build the simulator on the first request instead of at start (cheap start for protocol checks)"""
     rebuild_scenes: bool = False
-    """rebuild the CPU scene every episode so a recorded seed replays bit for bit (0.26 s more an episode); a
+    """rebuild the CPU scene every episode so a recorded seed replays bit for bit (~0.04 s more an episode); a
     recording stores what happened, so by default the scene is reused (PhysX solver caches may then make a
     replay differ by millimetres; the layout, target and instruction of a seed never differ)"""
     robot_mesh: str = "lite"

@@ -8,6 +8,7 @@ env plays with seed s + i, on either backend.
 
 from __future__ import annotations
 
+import gc
 from typing import Any, Sequence
 
 import numpy as np
@@ -53,6 +54,25 @@ def auto_render_backend(needs_render: bool, cuda: bool) -> str:
     if cuda:
         return "gpu"
     return "cpu" if needs_render else "none"
+
+
+_FROZEN = False
+
+
+def freeze_long_lived_objects() -> None:
+    """Move the objects alive now to the garbage collector's permanent generation, once per process.
+
+    A CPU env rebuilds its scene every episode, and ManiSkill frees the old one with gc.collect(), which walks
+    every object the process tracks: with torch and ManiSkill imported about 300k, 0.14 s of a 0.18 s reset on
+    the 2-core machine. What exists before the first env is built (modules, classes, functions, a loaded policy)
+    lives as long as the process; frozen (gc.freeze), it is no longer walked and a reset takes 0.04 s. Frozen
+    objects are still freed when nothing refers to them; only reference cycles among them would stay, so garbage
+    is collected first and this runs once, not at every rebuild (which would keep every old scene)."""
+    global _FROZEN
+    if not _FROZEN:
+        gc.collect()
+        gc.freeze()
+        _FROZEN = True
 
 
 @register_env(contract.ENV_ID, max_episode_steps=EPISODE_STEPS)
@@ -120,12 +140,14 @@ class GraspObjectEnv(BaseEnv):
             cams[k] = {**cams.get(k, {}), **v} if isinstance(v, dict) else v
         if reconfiguration_freq is None:
             # PhysX keeps solver caches across resets, so on the CPU an episode replayed in a used scene
-            # drifts by millimetres (enough to flip a grasp). Rebuilding the scene each episode (~0.3 s)
+            # drifts by millimetres (enough to flip a grasp). Rebuilding the scene each episode (~0.04 s)
             # makes a seed replay bit for bit, whatever ran before: policies are compared on identical
             # episodes. GPU sub-scenes cannot be rebuilt one at a time, so physx_cuda keeps its scene.
             backend = kwargs.get("sim_backend", "auto")
             on_cpu = backend in ("physx_cpu", "cpu") or (backend == "auto" and kwargs.get("num_envs", 1) == 1)
             reconfiguration_freq = 1 if on_cpu else 0
+        if reconfiguration_freq:
+            freeze_long_lived_objects()
         super().__init__(*args, robot_uids=robot_uids, render_backend=render_backend, obs_mode=obs_mode,
                          render_mode=render_mode, sensor_configs=cams, reconfiguration_freq=reconfiguration_freq,
                          **kwargs)
