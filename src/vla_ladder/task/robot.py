@@ -11,6 +11,7 @@ physics, seeds and metrics are identical; only pictures change, by a few grey le
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import shutil
 import tempfile
@@ -29,12 +30,17 @@ URDF = "panda_v3.urdf"
 _COPIED = ("franka_description", "realsense2_description", URDF, "panda_v3.srdf")
 
 
+@functools.cache
+def _lite_key() -> str:
+    # Read once a process: package metadata lookups cost ~2 ms each, and a CPU env loads the robot every episode.
+    return hashlib.sha256(f"{version('mani-skill')}|{version('fast-simplification')}|{KEEP_FACES}|"
+                          f"{CAMERA_MOUNT_FACES}".encode()).hexdigest()[:12]
+
+
 def lite_urdf() -> Path:
     """The lite Panda's URDF, built on first use. The directory name hashes what decides its contents, so an
     upgrade of ManiSkill or of the decimator builds a fresh copy."""
-    key = hashlib.sha256(f"{version('mani-skill')}|{version('fast-simplification')}|{KEEP_FACES}|"
-                         f"{CAMERA_MOUNT_FACES}".encode()).hexdigest()[:12]
-    root = cache_root() / f"panda_wristcam_lite-{key}"
+    root = cache_root() / f"panda_wristcam_lite-{_lite_key()}"
     if not (root / URDF).is_file():
         _build(root)
     return root / URDF
