@@ -174,20 +174,24 @@ def timing_summary(totals: dict[str, float]) -> dict:
     Worker processes play side by side, so with workers > 1 the seconds add up to more than the wall time;
     per_step_ms is the time of one step of a batch (num_envs episodes at once) in the policy and in the env;
     wall_s is the commands' own time (process start-up and policy loading included)."""
-    steps = totals.get("lockstep_steps", 0.0)
-    return {"episodes": int(totals.get("episodes", 0)), "wall_s": round(totals.get("wall_s", 0.0), 1),
-            "lockstep_steps": round(steps),
-            **{f"{p}_s": round(totals.get(f"{p}_s", 0.0), 3) for p in PHASES},
-            "per_step_ms": {p: round(1e3 * totals.get(f"{p}_s", 0.0) / steps, 2) if steps else None
-                            for p in ("policy", "env")}}
+    steps = totals["lockstep_steps"]
+    return {"episodes": int(totals["episodes"]), "wall_s": round(totals["wall_s"], 1), "lockstep_steps": round(steps),
+            **{f"{p}_s": round(totals[f"{p}_s"], 3) for p in PHASES},
+            "per_step_ms": {p: round(1e3 * totals[f"{p}_s"] / steps, 2) if steps else None for p in ("policy", "env")}}
+
+
+def timing_totals(saved: dict) -> dict[str, float]:
+    """A run's timing totals, going on from a saved summary.json `timing` (zeros for a new run, or one written
+    before timings were kept)."""
+    return {k: float(saved.get(k, 0)) for k in ("episodes", "wall_s", "lockstep_steps", *(f"{p}_s" for p in PHASES))}
 
 
 def add_timing(totals: dict[str, float], timing: dict[str, float]) -> None:
     """Add one episode's share of its batch's time (a player row's `timing`) to a run's totals."""
-    totals["episodes"] = totals.get("episodes", 0) + 1
-    totals["lockstep_steps"] = totals.get("lockstep_steps", 0.0) + timing["steps"]
+    totals["episodes"] += 1
+    totals["lockstep_steps"] += timing["steps"]
     for p in PHASES:
-        totals[f"{p}_s"] = totals.get(f"{p}_s", 0.0) + timing[f"{p}_s"]
+        totals[f"{p}_s"] += timing[f"{p}_s"]
 
 
 def summarize_run(rows: list[dict], cfg: EvalConfig, policy_info: dict, timing: dict | None = None) -> tuple:
@@ -233,8 +237,8 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
         if rows and cfg.out is not None and (cfg.out / "summary.json").is_file() else {}
     policy_info = saved.get("policy", {"name": spec})
     # A resumed run's timing goes on from the seconds its earlier invocations recorded.
-    timing = {k: v for k, v in saved.get("timing", {}).items() if k != "per_step_ms"}
-    wall_before = timing.get("wall_s", 0.0)
+    timing = timing_totals(saved.get("timing", {}))
+    wall_before = timing["wall_s"]
     workers = 1 if obs_mode is not None else min(auto_workers(cfg.workers), max(len(jobs), 1))
     bar = tqdm(total=len(cfg.conditions) * cfg.episodes, initial=len(rows), desc=f"eval {spec}", unit="ep",
                disable=not progress)

@@ -216,20 +216,19 @@ class LeRobotPolicy(Policy):
                 action = self.postprocessor(self.policy.select_action(batch))
         else:
             if not self._queue:
-                with self._precision():
-                    batch = self.preprocessor(self.batch(obs, instructions))
-                    noise = self.noise(proprio.shape[0])
-                    chunk = self.postprocessor(self.policy.predict_action_chunk(batch, noise=noise))
+                chunk = self.predict_chunk(obs, instructions, noise=self.noise(proprio.shape[0]))
                 self._chunks += 1
                 self._queue.extend(chunk[:, :self.n_action_steps].transpose(0, 1))
             action = self._queue.popleft()
         return action.to(proprio.device, torch.float32).reshape(proprio.shape[0], ACTION_DIM).clamp(-1, 1)
 
-    def predict_chunk(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
-        """One full action chunk (N, chunk, 7), unnormalised; what the latency benchmark times."""
+    def predict_chunk(self, obs: Any, instructions: Sequence[str], noise: torch.Tensor | None = None) -> torch.Tensor:
+        """One full action chunk (N, chunk, 7), unnormalised, from `noise` for a flow-matching policy (None: LeRobot
+        draws it); what `act` queues and the latency benchmark times."""
         with torch.no_grad(), self._precision():
             batch = self.preprocessor(self.batch(obs, instructions))
-            return self.postprocessor(self.policy.predict_action_chunk(batch))
+            kwargs = {} if noise is None else {"noise": noise}
+            return self.postprocessor(self.policy.predict_action_chunk(batch, **kwargs))
 
     def describe(self) -> dict:
         return {"name": self.name, "type": self.config.type, "checkpoint": str(self.path),
