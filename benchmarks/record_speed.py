@@ -5,8 +5,8 @@
 End to end: `vla-ladder record --workers N` for each N (N local `vla-ladder serve` processes simulate and
 render, the recorder receives and writes): successful demos/s with start-up included, and as the recorder
 reports it once its servers are up. Then each stage alone, in this process, on the same kind of
-episodes, with and without the per-episode scene rebuild (ServeConfig.rebuild_scenes; `record`'s local servers
-do not rebuild, evaluation does), to say where the time goes:
+episodes, with and without the per-episode scene rebuild (ServeConfig.rebuild_scenes: `record` and evaluation
+rebuild, so that episodes replay bit for bit; --no-rebuild-scenes reuses the scene), to say where the time goes:
   physics  - physics + the scripted expert on a state-only env, per episode (reset included);
   render   - the server's Simulator.run (physics + expert + both 256x256 cameras) minus physics;
   transfer - a real episode message: protocol.encode -> WebSocket over 127.0.0.1 -> decode;

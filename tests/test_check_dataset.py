@@ -58,6 +58,10 @@ def test_a_recorded_dataset_passes(recorded, tmp_path, capsys):
     assert checks["leakage"]["checked"] and checks["leakage"]["episodes_with_held_out_pairs"] == 0
     assert sum(checks["balance"]["counts"].values()) == 3 and checks["balance"]["p_value"] is None
     assert all(-1 <= v <= 1 for v in checks["actions"]["min"] + checks["actions"]["max"])
+    # `record` rebuilds every scene, so each episode's seed and actions give back its states to the last bit.
+    replay = checks["replay"]
+    assert replay["replayed"] == replay["bit_exact"] == 3 and replay["max_state_diff"] == 0.0
+    assert all(e["replayable"] and e["held"] == e["held_replayed"] != "none" for e in replay["episodes"])
 
 
 def _provenance(root: Path) -> tuple[Path, pd.DataFrame]:
@@ -84,6 +88,10 @@ def test_a_leaky_dataset_built_on_purpose_is_caught(recorded, tmp_path, capsys):
     action[2] = 1.5  # outside the normalised action box
     data.at[7, "action"] = action
     data = data.drop(index=data.index[(data["episode_index"] == 2) & (data["frame_index"] == 49)])
+    # Episode 1's actions stored one frame late (the classic off-by-one between an observation and its action):
+    # every other check passes them, only a replay sees that they did not produce the recorded states.
+    ep1 = data.index[data["episode_index"] == 1]
+    data.loc[ep1, "action"] = pd.Series([data.at[ep1[0], "action"], *data.loc[ep1[:-1], "action"]], index=ep1)
     data.to_parquet(data_path, index=False)
 
     rc, summary, lines = check(leaky, tmp_path, capsys)
@@ -96,6 +104,34 @@ def test_a_leaky_dataset_built_on_purpose_is_caught(recorded, tmp_path, capsys):
     assert any(line.startswith("actions: episode 0: 1 frames with actions outside [-1, 1]") for line in lines)
     assert any(line.startswith("frames: episode 2: 49 frames, the contract has 50") for line in lines)
     assert summary["checks"]["leakage"]["episodes_with_held_out_pairs"] == 1
+    replayed = {e["episode_index"]: e for e in summary["checks"]["replay"]["episodes"]}
+    assert 2 not in replayed  # its missing frame is the frames check's to report
+    # Frame 1 now holds action 0 again; the state it leads to, frame 2's, is the first to differ.
+    assert replayed[1]["max_state_diff"] > 0.25 and replayed[1]["first_frame_differing"] == 2
+    assert any(line.startswith("replay: episode 1 ") and line.endswith("must replay bit for bit") for line in lines)
+
+
+@pytest.mark.slow
+def test_replay_tolerates_the_drift_of_a_reused_scene_but_not_altered_actions(recorded, tmp_path):
+    """An episode that does not promise a bit-exact replay (recorded with --no-rebuild-scenes, or before
+    recordings said) may drift by millimetres, not by what an altered action does."""
+    copy = tmp_path / "reused"
+    shutil.copytree(recorded, copy)
+    path, prov = _provenance(copy)
+    prov["replayable"] = False
+    prov.to_parquet(path, index=False)
+    checker = Checker(CheckDatasetConfig(copy, replay=2))
+    checker.replay()
+    assert checker.violations == [] and [e["episode_index"] for e in checker.summary["replay"]["episodes"]] == [0, 2]
+    data_path = sorted((copy / "data").glob("*/*.parquet"))[0]
+    data = pd.read_parquet(data_path)
+    row = data.index[(data["episode_index"] == 2) & (data["frame_index"] == 10)][0]
+    data.at[row, "action"] = -data.at[row, "action"]  # one action reversed: the arm moves the other way
+    data.to_parquet(data_path, index=False)
+    checker = Checker(CheckDatasetConfig(copy, replay=2))
+    checker.replay()
+    assert len(checker.violations) == 1 and checker.violations[0].startswith("replay: episode 2 ")
+    assert "more than a reused scene drifts" in checker.violations[0]
 
 
 @pytest.mark.slow
@@ -122,3 +158,5 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     assert "is not a vla-ladder recording" in err and len(err.strip().splitlines()) == 1
     assert main(["check-dataset", str(tmp_path / "ds"), "--balance-alpha", "2"]) == 2
     assert "--balance-alpha must be in (0, 1)" in capsys.readouterr().err
+    assert main(["check-dataset", str(tmp_path / "ds"), "--replay", "-1"]) == 2
+    assert "--replay must be >= 0" in capsys.readouterr().err

@@ -89,9 +89,10 @@ def description(root: str | Path) -> str:
         "",
         f"- `{RECORDING_FILE}`: what this is a recording of (expert, condition, first seed), counters, versions.",
         f"- `{PROVENANCE_DIR}/*.parquet`: one row per episode (by `episode_index`): seed, layout, target, "
-        f"instruction, expert, object set, and the episode's metrics ({', '.join(METRICS)}, lifted, held, "
-        "reach_dist). vla-ladder reads these to train and evaluate by condition; LeRobot's editing tools "
-        "(`lerobot-edit-dataset`) do not carry them: see vla-ladder's docs/datasets.md.",
+        f"instruction, expert, object set, whether it replays bit for bit, and the episode's metrics "
+        f"({', '.join(METRICS)}, lifted, held, reach_dist). vla-ladder reads these to train and evaluate by "
+        "condition; LeRobot's editing tools (`lerobot-edit-dataset`) do not carry them: see vla-ladder's "
+        "docs/datasets.md.",
         "- `meta/stats.json`: the quantiles (q01...q99) of numeric features are computed over all frames, not "
         "averaged over episodes as LeRobot does.",
         "",
@@ -147,4 +148,12 @@ def _seeds(config: dict, state: dict, prov: pd.DataFrame) -> str:
         return played + "."
     return (f"{played}; the recorded episodes have seeds {int(prov['seed'].min())} to "
             f"{int(prov['seed'].max())} (per episode in `{PROVENANCE_DIR}`). Episode seed s fixes the layout, "
-            "the target and the robot's initial pose (`env.reset(seed=s)`).")
+            "the target and the robot's initial pose (`env.reset(seed=s)`)." + _replay(prov))
+
+
+def _replay(prov: pd.DataFrame) -> str:
+    replayable = int(prov["replayable"].fillna(False).astype(bool).sum()) if "replayable" in prov else 0
+    if not replayable:
+        return ""
+    return (f" {replayable} of the {len(prov)} episodes were simulated on a scene rebuilt for them (physx_cpu): their "
+            "seed and recorded actions replay them bit for bit (`vla-ladder check-dataset` replays some).")

@@ -54,8 +54,9 @@ class RecordConfig:
     """parallel envs of each local server (more than one needs a GPU)"""
     robot_mesh: str = "lite"
     """how the local servers render the robot: lite (decimated visual meshes) or full (ManiSkill's)"""
-    rebuild_scenes: bool = False
-    """local servers rebuild the CPU scene every episode, so each recorded seed replays bit for bit (slower)"""
+    rebuild_scenes: bool = True
+    """local servers rebuild the CPU scene every episode, so that every recorded episode replays bit for bit from
+    its seed and actions (~2% of a demo's simulation); --no-rebuild-scenes reuses it (replays may drift by mm)"""
     instructions: str = "canonical"
     """how the local servers word instructions: canonical, paraphrase-train (record these to evaluate on held-out
     paraphrases) or paraphrase-heldout"""
@@ -313,13 +314,13 @@ class LocalServer:
     """`vla-ladder serve` as a child process on 127.0.0.1 with a free port, tied to this process: it exits
     when our end of its stdin closes, so even a kill -9 of the recorder does not leave it behind."""
 
-    def __init__(self, recording: Recording, num_envs: int = 1, threads: int = 0, rebuild: bool = False):
+    def __init__(self, recording: Recording, num_envs: int = 1, threads: int = 0, rebuild: bool = True):
         c = recording.condition
         cmd = [sys.executable, "-m", "vla_ladder.cli", "serve", "--policy", recording.policy, "--regime", c.regime,
                "--split", c.split, "--num-objects", str(c.num_objects), "--num-envs", str(num_envs),
                "--robot-mesh", recording.robot_mesh, "--instructions", recording.instructions,
                "--host", "127.0.0.1", "--port", "0", "--exit-on-stdin-close",
-               *(["--rebuild-scenes"] if rebuild else [])]
+               "--rebuild-scenes" if rebuild else "--no-rebuild-scenes"]
         env = dict(os.environ)
         if threads:  # several servers on one machine: one renderer thread each instead of all fighting for all
             env.update(LP_NUM_THREADS=str(threads), OMP_NUM_THREADS=str(threads))

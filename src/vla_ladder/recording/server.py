@@ -67,10 +67,12 @@ class ServeConfig:
     """episodes one client may have requested but not yet received (0: 4 x num_envs, at least 8)"""
     lazy: bool = False
     """build the simulator on the first request instead of at start (cheap start for protocol checks)"""
-    rebuild_scenes: bool = False
-    """rebuild the CPU scene every episode so a recorded seed replays bit for bit (~0.04 s more an episode); a
-    recording stores what happened, so by default the scene is reused (PhysX solver caches may then make a
-    replay differ by millimetres; the layout, target and instruction of a seed never differ)"""
+    rebuild_scenes: bool = True
+    """rebuild the CPU scene every episode, as evaluation does, so that every recorded episode replays bit for bit
+    from its seed and recorded actions (`vla-ladder check-dataset` replays some): ~0.02 s of a ~1 s episode on the
+    2-core machine. --no-rebuild-scenes reuses the scene: PhysX keeps solver caches across resets, so a replay may
+    then drift by millimetres (the layout, target and instruction of a seed never differ). physx_cuda envs
+    (--num-envs > 1) never rebuild and do not replay on the CPU."""
     robot_mesh: str = "lite"
     """lite (decimated visual meshes, fast on a CPU renderer) or full (ManiSkill's); physics is the same"""
     instructions: str = "canonical"
@@ -125,11 +127,13 @@ class Simulator:
         obs_mode = "rgb" if mode == "rgb" else "state_dict+rgb"
         self._flatten = mode == "state"
         backend = "physx_cuda" if cfg.num_envs > 1 else "physx_cpu"
+        # What an episode promises: a rebuilt physx_cpu scene replays from (seed, actions) to the last bit.
+        self.replayable = backend == "physx_cpu" and cfg.rebuild_scenes
         c = cfg.condition
         self.env = gym.make(contract.ENV_ID, obs_mode=obs_mode, regime=c.regime, split=c.split,
                             num_objects=c.num_objects, num_envs=cfg.num_envs, sim_backend=backend,
                             robot_mesh=cfg.robot_mesh, instructions=cfg.instructions,
-                            reconfiguration_freq=1 if cfg.rebuild_scenes else 0)
+                            reconfiguration_freq=1 if self.replayable else 0)
         self.base = self.env.unwrapped
         self.steps = EPISODE_STEPS
         self.object_set = self.base.object_set
@@ -179,6 +183,7 @@ class Simulator:
                 "target": layouts[i]["target"], "condition": self.cfg.condition.key, "object_set": self.object_set,
                 "robot_mesh": self.cfg.robot_mesh, "instructions": self.cfg.instructions,
                 "expert": self.expert, "metrics": metrics, "num_frames": T, "sim_seconds": sim_s,
+                "replayable": self.replayable,
             }
             arrays = {**{f"images.{cam}": frames[cam][i] for cam in CAMERA_NAMES},
                       "state": state[i], "action": action[i]}

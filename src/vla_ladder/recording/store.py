@@ -377,6 +377,8 @@ def _provenance_row(index: int, episode) -> dict[str, Any]:
         "success": bool(m["success"]), "grasp_any": bool(m["grasp_any"]), "reach": bool(m["reach"]),
         "lifted": bool(m["lifted"]), "held": m["held"], "reach_dist": float(m["reach_dist"]),
         "num_frames": int(episode.num_frames), "server": episode.server,
+        # Recorded on a rebuilt physx_cpu scene: its seed and actions give back its states to the bit.
+        "replayable": bool(h.get("replayable", False)),
         "recorded_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
 

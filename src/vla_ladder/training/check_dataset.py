@@ -15,7 +15,12 @@ command checks, from LeRobot's files and the provenance the recorder writes (vla
 - coverage: every object-region pair the recording's condition produces (expected >= --min-expected times)
   occurs at least once;
 - leakage: a canonical or pairings_id dataset holds no held-out object-region pair (layouts.HELD_OUT_REGIONS),
-  for any object on the table, instructed or not.
+  for any object on the table, instructed or not;
+- replay: --replay episodes, spread over the dataset, re-simulated from their seed and recorded actions
+  (task/replay.py): one recorded on a rebuilt physx_cpu scene (provenance `replayable`, `record`'s default) must
+  give back its recorded states and held object to the bit; any other may drift (PhysX solver caches of a reused
+  scene: up to ~0.02 in the 2-core machine's test) but not by more than REPLAY_DRIFT_TOLERANCE. An action stored
+  a frame late moved the states by more than 1.
 
 Every violation is one line on stderr and the exit status is 1; the JSON summary (counts, tables, p-value,
 violations) goes to --out or stdout.
@@ -41,9 +46,13 @@ from vla_ladder.contract import ACTION_KEY, EPISODE_STEPS, STATE_KEY
 from vla_ladder.recordings import read_provenance, read_recording
 from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, layout_from_dict
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
+from vla_ladder.task.replay import Replayer
 from vla_ladder.training.dataset import check_features, read_info
 
 ACTION_TOLERANCE = 1e-5
+REPLAY_DRIFT_TOLERANCE = 0.25
+"""largest |recorded - replayed| state (rad, rad/s, m) accepted from an episode that does not promise bit-exact
+replay: scene reuse drifted 0.0002-0.022 in four episodes; shifting actions by one frame moved them 1.3-2.8"""
 COVERAGE_SEEDS = 2000
 """layouts sampled to estimate how often the recording's condition puts each object in each region"""
 
@@ -60,6 +69,9 @@ class CheckDatasetConfig:
     """a chi-square p-value below this flags unbalanced instructions"""
     min_expected: float = 5.0
     """flag an object-region pair never recorded when the condition makes it expected at least this often"""
+    replay: int = 10
+    """episodes to re-simulate from their seed and recorded actions, spread evenly over the dataset (0: none; more
+    than it holds: all; ~0.2 s each on a state-only CPU env, after ~5 s to build it)"""
 
     def __post_init__(self):
         self.dataset = Path(self.dataset)
@@ -67,6 +79,8 @@ class CheckDatasetConfig:
             raise ValueError(f"--balance-alpha must be in (0, 1), got {self.balance_alpha}")
         if self.min_expected <= 0:
             raise ValueError(f"--min-expected must be > 0, got {self.min_expected}")
+        if self.replay < 0:
+            raise ValueError(f"--replay must be >= 0 (episodes to replay; 0: none), got {self.replay}")
 
 
 def region_of(xy, regions: dict | None, name: str) -> int:
@@ -113,7 +127,7 @@ class Checker:
 
     def run(self) -> dict:
         for check in (self.structure, self.seeds, self.layouts_regenerate, self.frames, self.actions, self.balance,
-                      self.coverage, self.leakage):
+                      self.coverage, self.leakage, self.replay):
             check()
         return {"dataset": str(self.root), "recording": self.recording.to_dict(), "episodes": int(len(self.prov)),
                 "frames": int(self.info.get("total_frames", 0)), "ok": not self.violations,
@@ -253,6 +267,49 @@ class Checker:
         self.summary["leakage"] = {"checked": True, "episodes_with_held_out_pairs": leaks,
                                    "held_out": {o: sorted(HELD_OUT_REGIONS[i]) for i, o in enumerate(OBJECT_NAMES)}}
 
+    def replay(self) -> None:
+        picks = _spread(len(self.prov), self.cfg.replay)
+        out: dict = {"replayed": 0, "bit_exact": 0, "max_state_diff": None, "episodes": []}
+        self.summary["replay"] = out
+        if not len(picks):
+            return
+        rows = self.prov.iloc[picks]
+        object_sets = rows["object_set"].astype(str).unique()
+        try:
+            replayer = Replayer(self.recording.condition, object_sets[0], self.recording.robot_mesh)
+        except ValueError as e:  # e.g. recorded with YCB meshes that this machine lacks: cannot say, no violation
+            out["note"] = f"not replayed: {e}"
+            return
+        data = self._data([ACTION_KEY, STATE_KEY])
+        episodes = {int(ep): g.sort_values("frame_index") for ep, g in data.groupby("episode_index")}
+        try:
+            for row in rows.itertuples(index=False):
+                g = episodes.get(int(row.episode_index))
+                if g is None or len(g) != EPISODE_STEPS or str(row.object_set) != object_sets[0]:
+                    continue  # the frames check says what is missing; one env per object set is enough here
+                replayed = replayer.replay(int(row.seed), np.stack(g[ACTION_KEY].to_numpy()))
+                diff = np.abs(replayed.states - np.stack(g[STATE_KEY].to_numpy())).max(axis=1)
+                promised = _true(getattr(row, "replayable", False))  # absent or NaN in older recordings
+                ep = {"episode_index": int(row.episode_index), "seed": int(row.seed), "replayable": promised,
+                      "max_state_diff": float(diff.max()),
+                      "first_frame_differing": int(np.argmax(diff > 0)) if diff.max() > 0 else None,
+                      "held": row.held, "held_replayed": replayed.held}
+                out["episodes"].append(ep)
+                exact = ep["max_state_diff"] == 0 and replayed.held == row.held
+                out["bit_exact"] += exact
+                where = (f"episode {ep['episode_index']} (seed {ep['seed']}): its recorded actions replayed from its "
+                         f"seed give states differing by up to {ep['max_state_diff']:.3g} from frame "
+                         f"{ep['first_frame_differing']}, held {replayed.held!r} (recorded {row.held!r})")
+                if promised and not exact:
+                    self.flag("replay", f"{where}; it was recorded on a rebuilt physx_cpu scene and must replay "
+                                        "bit for bit")
+                elif ep["max_state_diff"] > REPLAY_DRIFT_TOLERANCE:
+                    self.flag("replay", f"{where}; more than a reused scene drifts ({REPLAY_DRIFT_TOLERANCE})")
+        finally:
+            replayer.close()
+        out["replayed"] = len(out["episodes"])
+        out["max_state_diff"] = max((e["max_state_diff"] for e in out["episodes"]), default=None)
+
     # ------------------------------------------------------------------ LeRobot files
     def _episodes_meta(self) -> pd.DataFrame:
         paths = sorted((self.root / "meta" / "episodes").glob("*/*.parquet"))
@@ -282,6 +339,17 @@ def _same(a, b) -> bool:
     if isinstance(a, float) or isinstance(b, float):
         return isinstance(a, (int, float)) and isinstance(b, (int, float)) and abs(a - b) <= 2e-5
     return a == b
+
+
+def _true(value) -> bool:
+    return not pd.isna(value) and bool(value)
+
+
+def _spread(n: int, k: int) -> np.ndarray:
+    """min(k, n) distinct positions spread evenly over 0..n-1, first and last included."""
+    if k <= 0 or n == 0:
+        return np.zeros(0, dtype=int)
+    return np.unique(np.linspace(0, n - 1, min(k, n)).round().astype(int))
 
 
 def _ranges(values) -> str:
