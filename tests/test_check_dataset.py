@@ -132,6 +132,12 @@ def test_replay_tolerates_the_drift_of_a_reused_scene_but_not_altered_actions(re
     checker.replay()
     assert len(checker.violations) == 1 and checker.violations[0].startswith("replay: episode 2 ")
     assert "more than a reused scene drifts" in checker.violations[0]
+    # Episodes simulated by GPU PhysX are not replayed on the CPU: they would drift by design.
+    prov["sim_backend"] = "physx_cuda"
+    prov.to_parquet(path, index=False)
+    checker = Checker(CheckDatasetConfig(copy, replay=2))
+    checker.replay()
+    assert checker.violations == [] and checker.summary["replay"]["not_replayed_gpu"] == 2
 
 
 @pytest.mark.slow

@@ -160,7 +160,7 @@ def test_recorded_seeds_replay_bit_for_bit(recorded, make_env):
     root, _ = recorded
     ds = _load(root)
     prov = read_provenance(root)
-    assert prov["replayable"].all()
+    assert prov["replayable"].all() and (prov["sim_backend"] == "physx_cpu").all()
     assert f"{EPISODES} of the {EPISODES} episodes were simulated on a scene rebuilt for them" in (
         root / "README.md").read_text()
     env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=2)

@@ -128,7 +128,7 @@ class Simulator:
         self._flatten = mode == "state"
         backend = "physx_cuda" if cfg.num_envs > 1 else "physx_cpu"
         # What an episode promises: a rebuilt physx_cpu scene replays from (seed, actions) to the last bit.
-        self.replayable = backend == "physx_cpu" and cfg.rebuild_scenes
+        self.backend, self.replayable = backend, backend == "physx_cpu" and cfg.rebuild_scenes
         c = cfg.condition
         self.env = gym.make(contract.ENV_ID, obs_mode=obs_mode, regime=c.regime, split=c.split,
                             num_objects=c.num_objects, num_envs=cfg.num_envs, sim_backend=backend,
@@ -183,7 +183,7 @@ class Simulator:
                 "target": layouts[i]["target"], "condition": self.cfg.condition.key, "object_set": self.object_set,
                 "robot_mesh": self.cfg.robot_mesh, "instructions": self.cfg.instructions,
                 "expert": self.expert, "metrics": metrics, "num_frames": T, "sim_seconds": sim_s,
-                "replayable": self.replayable,
+                "sim_backend": self.backend, "replayable": self.replayable,
             }
             arrays = {**{f"images.{cam}": frames[cam][i] for cam in CAMERA_NAMES},
                       "state": state[i], "action": action[i]}

@@ -378,7 +378,7 @@ def _provenance_row(index: int, episode) -> dict[str, Any]:
         "lifted": bool(m["lifted"]), "held": m["held"], "reach_dist": float(m["reach_dist"]),
         "num_frames": int(episode.num_frames), "server": episode.server,
         # Recorded on a rebuilt physx_cpu scene: its seed and actions give back its states to the bit.
-        "replayable": bool(h.get("replayable", False)),
+        "sim_backend": h.get("sim_backend", "physx_cpu"), "replayable": bool(h.get("replayable", False)),
         "recorded_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
 
