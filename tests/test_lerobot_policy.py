@@ -74,6 +74,16 @@ def test_flow_matching_noise_is_drawn_per_episode(smolvla_run):
     policy.act(first, tasks[:1])
     assert not torch.equal(policy.noise(1), chunk0)  # the next chunk draws other noise
 
+    # ?noise_seed=K plays the same episode with another stream; the same K, the same stream again.
+    other = load_policy(f"lerobot:{smolvla_run}?n_action_steps=2&noise_seed=1", device="cpu")
+    assert other.describe()["noise_seed"] == 1 and policy.describe()["noise_seed"] == 0
+    policy = other  # what actions() plays
+    stream_1 = actions(first, [11])
+    assert (stream_1 - alone).abs().max() > 1e-3
+    torch.testing.assert_close(actions(both, [11, 12]), stream_1, atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="noise_seed=.-1.* expected an integer >= 0"):
+        load_policy(f"lerobot:{smolvla_run}?noise_seed=-1")
+
 
 def test_mixed_precision_as_lerobot_eval_runs_it(smolvla_run):
     """`?use_amp=true` (or a checkpoint trained with use_amp) acts under torch.autocast, as lerobot-eval does: the

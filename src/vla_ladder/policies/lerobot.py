@@ -10,7 +10,9 @@ that noise for the whole batch from torch's global generator, so an episode's ac
 episodes share its batch (`eval --num-envs`). Here each episode's noise is drawn from its own generator, seeded
 by the episode's seed and the chunk's index, and passed to LeRobot's `predict_action_chunk`; the chunk's first
 `n_action_steps` actions are queued as `select_action` queues them (and the observation is preprocessed only
-when a chunk is predicted). So an episode gets the same noise alone or in any batch, on the CPU or the GPU. Other
+when a chunk is predicted). So an episode gets the same noise alone or in any batch, on the CPU or the GPU.
+`?noise_seed=K` (K > 0) draws another stream for every episode: the same scenes played again with other noise
+measure how much of a policy's result is its own sampling rather than the scene (docs/evaluation.md). Other
 policies (ACT, diffusion, ...) act through LeRobot's own `select_action`. As in `lerobot-eval`,
 a checkpoint whose config says `use_amp` acts under torch.autocast (float16 on CUDA, bfloat16 on the CPU);
 `?use_amp=true|false` overrides it. The same code runs one CPU env or a batch of GPU envs.
@@ -47,7 +49,13 @@ def _bool(value: str) -> bool:
     return value.lower() == "true"
 
 
-QUERY_KEYS = {"n_action_steps": int, "device": str, "instruction": str, "use_amp": _bool}
+def _noise_seed(value: str) -> int:
+    if not value.isdigit():
+        raise ValueError(f"expected an integer >= 0, got {value!r}")
+    return int(value)
+
+
+QUERY_KEYS = {"n_action_steps": int, "device": str, "instruction": str, "use_amp": _bool, "noise_seed": _noise_seed}
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -130,9 +138,10 @@ class LeRobotPolicy(Policy):
     obs_mode = "rgb"
 
     def __init__(self, path: str | Path, n_action_steps: int | None = None, device: str | None = None,
-                 instruction: str | None = None, use_amp: bool | None = None):
+                 instruction: str | None = None, use_amp: bool | None = None, noise_seed: int = 0):
         """`instruction` replaces every episode's instruction (an instruction-blind policy is trained and played
-        with one fixed text, contract.BLIND_INSTRUCTION)."""
+        with one fixed text, contract.BLIND_INSTRUCTION). `noise_seed` picks the stream of flow-matching noise (0:
+        the one every run before the option used)."""
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
@@ -161,6 +170,9 @@ class LeRobotPolicy(Policy):
             preprocessor_overrides={"device_processor": {"device": str(self.device)}})
         self.name = f"lerobot-{cfg.type}"
         self.instruction = instruction
+        if noise_seed < 0:
+            raise ValueError(f"noise_seed must be >= 0, got {noise_seed}")
+        self.noise_seed = int(noise_seed)
         self._num_envs = 0
         self._seeds: list[int] = []
         self._chunks = 0  # chunks predicted since the last reset
@@ -187,8 +199,9 @@ class LeRobotPolicy(Policy):
         if len(self._seeds) != num_envs:
             return None
         shape = (self.config.chunk_size, self.config.max_action_dim)
+        extra = (self.noise_seed,) if self.noise_seed else ()  # stream 0 keeps the entropy it always had
         rows = [torch.randn(shape, generator=torch.Generator().manual_seed(
-            int(np.random.SeedSequence((seed, self._chunks)).generate_state(1, np.uint64)[0])))
+            int(np.random.SeedSequence((seed, self._chunks, *extra)).generate_state(1, np.uint64)[0])))
             for seed in self._seeds]
         return torch.stack(rows).to(self.device)
 
@@ -234,7 +247,7 @@ class LeRobotPolicy(Policy):
         return {"name": self.name, "type": self.config.type, "checkpoint": str(self.path),
                 "chunk_size": getattr(self.config, "chunk_size", getattr(self.config, "horizon", None)),
                 "n_action_steps": self.n_action_steps, "device": str(self.device), "instruction": self.instruction,
-                "use_amp": bool(self.config.use_amp)}
+                "use_amp": bool(self.config.use_amp), "noise_seed": self.noise_seed}
 
 
 def parse_arg(arg: str) -> tuple[str, dict]:
@@ -252,7 +265,7 @@ def parse_arg(arg: str) -> tuple[str, dict]:
 
 
 def make_policy(arg: str | None, **kwargs) -> LeRobotPolicy:
-    """Factory for `load_policy("lerobot:PATH[?n_action_steps=H&device=D&instruction=TEXT&use_amp=B]")`."""
+    """Factory for `load_policy("lerobot:PATH[?n_action_steps=H&device=D&instruction=TEXT&use_amp=B&noise_seed=K]")`."""
     if not arg:
         raise ValueError("policy 'lerobot' needs a checkpoint: lerobot:CHECKPOINT_DIR[?n_action_steps=H]")
     path, options = parse_arg(arg)
