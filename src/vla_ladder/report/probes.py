@@ -25,8 +25,8 @@ COLOUR_NAMES = {"instructed": "instructed object (shape)", "partner": "colour pa
                 "other": "another object", "none": "nothing"}
 WORDINGS = ("canonical", "paraphrase-train", "paraphrase-heldout")
 ABSENT_SERIES = {"grasp_present": "grasp, own target named", "grasp_absent": "grasp, absent object named",
-                 "shortcut_reach": "ends at the absent object's usual place", "same_grasp": "grasps what it grasps "
-                 "when its own target is named"}
+                 "shortcut_reach": "ends at an empty usual place of the absent object",
+                 "same_grasp": "grasps what it grasps when its own target is named"}
 EXPLAIN = {
     "instruction-swap": "Each scene is played once per present object, instructing each in turn; only the "
     "instruction changes. <b>Instruction sensitivity</b>: share of scenes whose held object is not the same under "
