@@ -1,11 +1,13 @@
 """The reference policies under the grounding probes: the calibration docs/probes.md quotes.
 
-    .venv/bin/python benchmarks/probes_reference.py [--swap-scenes 20] [--scenes 10] [--out DIR]
+    .venv/bin/python benchmarks/probes_reference.py [--swap-scenes 20] [--scenes 10] [--absent-scenes 20] [--out DIR]
 
 Runs `vla-ladder probe` (CPU, state only, five objects, small jitter and full random) for
 - instruction-swap: scripted, nearest, layout-prior, random;
 - paraphrase: scripted, layout-prior (nearest and random never read the instruction);
-- appearance-swap: scripted, layout-prior (state policies see no colour: a sanity check of the probe's plumbing),
+- appearance-swap: scripted, layout-prior (state policies see no colour: a sanity check of the probe's plumbing);
+- absent-object: scripted, nearest, layout-prior, random, with three objects, canonical and pairings_id (small
+  jitter; full random has no pairing split),
 and writes every probe's per-condition results to benchmarks/results/probes_reference.json. With --out the probe
 directories are kept there and a second run resumes them (only probe.json is recomputed).
 """
@@ -22,15 +24,17 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import ConditionGrid
-from vla_ladder.experiments.probes import ProbeConfig, run_probe
+from vla_ladder.experiments.probes import ProbeConfig, ProbeGrid, run_probe
 from vla_ladder.report.probes import summary_lines
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULT = ROOT / "benchmarks" / "results" / "probes_reference.json"
 PLAN = {"instruction-swap": ("scripted", "nearest", "layout-prior", "random"),
         "paraphrase": ("scripted", "layout-prior"),
-        "appearance-swap": ("scripted", "layout-prior")}
+        "appearance-swap": ("scripted", "layout-prior"),
+        "absent-object": ("scripted", "nearest", "layout-prior", "random")}
 REGIMES = ("small_jitter", "full_random")
+ABSENT_GRID = ProbeGrid(REGIMES, ("canonical", "pairings_id"), (3,))
 
 
 @dataclass
@@ -39,6 +43,8 @@ class Args:
     """scenes per condition of the instruction-swap probe (each played once per object)"""
     scenes: int = 10
     """scenes per condition of the paraphrase and appearance-swap probes"""
+    absent_scenes: int = 20
+    """scenes per condition of the absent-object probe (each played once as it is and once per absent object)"""
     first_seed: int = 0
     """scene j plays seed first_seed + j"""
     workers: int = 1
@@ -54,15 +60,20 @@ def main(args: Args) -> None:
         base = args.out or Path(tmp)
         for probe, policies in PLAN.items():
             for policy in policies:
-                cfg = ProbeConfig(probe, policy=policy, out=base / probe / policy, grid=ConditionGrid(REGIMES),
-                                  episodes=args.swap_scenes if probe == "instruction-swap" else args.scenes,
+                absent = probe == "absent-object"
+                cfg = ProbeConfig(probe, policy=policy, out=base / probe / policy,
+                                  grid=ABSENT_GRID if absent else ConditionGrid(REGIMES),
+                                  episodes={"instruction-swap": args.swap_scenes,
+                                            "absent-object": args.absent_scenes}.get(probe, args.scenes),
                                   first_seed=args.first_seed, workers=args.workers, report=False)
                 data = run_probe(cfg, progress=False)
                 results.setdefault(probe, {})[policy] = data["conditions"]
                 print(f"{probe} {policy}:", *summary_lines(data), sep="\n  ")
     files.write_json(RESULT, {
         "benchmark": "probes_reference", "device": "cpu", "regimes": list(REGIMES), "num_objects": 5,
-        "scenes": {"instruction-swap": args.swap_scenes, "paraphrase": args.scenes, "appearance-swap": args.scenes},
+        "absent_object": {"num_objects": 3, "splits": list(ABSENT_GRID.splits)},
+        "scenes": {"instruction-swap": args.swap_scenes, "paraphrase": args.scenes, "appearance-swap": args.scenes,
+                   "absent-object": args.absent_scenes},
         "first_seed": args.first_seed, "wall_s": round(time.perf_counter() - t0, 1),
         "provenance": json.loads(json.dumps(data["provenance"])), "results": results})
     print(RESULT)

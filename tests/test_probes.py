@@ -156,7 +156,7 @@ def test_probe_variants_share_seeds_and_a_probe_dir_refuses_another_request(tmp_
 def test_run_directories_from_before_the_presentation_fields_still_resume(tmp_path):
     cfg = EvalConfig("nearest", out=tmp_path / "run", episodes=2)
     saved = {k: v for k, v in json.loads(json.dumps(cfg.request())).items()
-             if k not in ("instructions", "appearance", "instruct")}
+             if k not in ("instructions", "appearance", "instruct", "instruct_absent")}
     write_json(tmp_path / "run" / "config.json", saved)
     assert open_run_dir(cfg) == []
     with pytest.raises(ValueError, match="another evaluation request"):

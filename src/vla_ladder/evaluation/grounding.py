@@ -12,6 +12,10 @@ on what the instruction says:
   play counts or none does, which no resample can leave).
 - paraphrases and appearance swaps: rates of each variant on the same scenes (Wilson), their paired difference
   (bootstrap over scenes) and McNemar's exact test.
+- absent object: the same scenes instructing an object that is not on the table. The grasp rate (something held)
+  and the share of plays whose gripper ends at the named object's usual place (shortcut reach), pooled over a
+  scene's absent plays (bootstrap over scenes), next to the scene's ordinary play (Wilson); the named x held
+  matrix.
 
 An object "held" is the one grasped at the final step ("none" when nothing is), as for success.
 """
@@ -24,11 +28,13 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from vla_ladder.contract import METRICS
+from vla_ladder.conditions import MAX_OBJECTS, Condition
+from vla_ladder.contract import METRICS, REACH_THRESHOLD
 from vla_ladder.evaluation.compare import mcnemar_exact
 from vla_ladder.evaluation.metrics import CONDITION_KEYS, HELD_COLUMNS, NONE, condition_key, confusion
 from vla_ladder.stats import CONFIDENCE, rates, wilson
 from vla_ladder.task.instructions import CANONICAL, NOVELTIES, parse_instruction
+from vla_ladder.task.layouts import REGION_CENTERS, usual_regions
 from vla_ladder.task.objects import OBJECT_NAMES
 
 RESAMPLES = 2000
@@ -244,5 +250,72 @@ def appearance_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: in
                                                     fill_value=0).astype(int).values.tolist()},
             "pairs": {f"{a}/{b}": int(c) for (a, b), c in
                       s.groupby(["target_s", "partner"]).size().items()},
+        }
+    return out
+
+
+# ---------------------------------------------------------------------- absent object
+def at_usual_place(plays: pd.DataFrame, condition: Condition) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per play (episodes.parquet rows naming an absent object): whether the named object has an empty usual place
+    in the scene, and whether the TCP ends within REACH_THRESHOLD (5 cm, horizontally) of the centre of one. Its
+    usual places are the regions where it stands in the condition's training layouts (layouts.usual_regions);
+    empty: no present object stands in that region (always so in the canonical split, where object j sits in
+    region j; in the pairing splits present objects often fill some of the three, and ending there is grasping
+    whatever stands there, not going where the named object would be). None where no place is usual (full
+    random) or a play has no recorded TCP (a run from before tcp_x/tcp_y were kept)."""
+    tcp = plays[["tcp_x", "tcp_y"]].to_numpy(dtype=float)
+    usual = [usual_regions(n, condition) for n in plays["target"]]
+    if not len(plays) or any(r is None for r in usual) or not np.isfinite(tcp).all():
+        return None
+    occupied = [set((json.loads(lay).get("regions") or {}).values()) for lay in plays["layout"]]
+    empty = [[r for r in regions if r not in taken] for regions, taken in zip(usual, occupied)]
+    eligible = np.array([bool(e) for e in empty])
+    at = np.array([bool(e) and np.linalg.norm(REGION_CENTERS[e] - xy, axis=1).min() <= REACH_THRESHOLD
+                   for e, xy in zip(empty, tcp)])
+    return eligible, at
+
+
+def absent_object(present: pd.DataFrame, absent: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
+    """Per condition: what a policy does when told to grasp an object that is not on the table. `absent`: the
+    absent plays (episodes.parquet rows with an `absent` column, the named object's rank among the absent ones;
+    `target` is the named object), `present`: the same scenes' ordinary plays (their own target instructed).
+    Scenes missing a play are left out. Rates over the present plays (one a scene) are Wilson; rates pooled over a
+    scene's absent plays get the bootstrap over scenes, as does the paired change absent - present."""
+    out = {}
+    for key, g in _by_condition(absent):
+        cond = Condition.parse(key)
+        missing = MAX_OBJECTS - cond.num_objects
+        full = g.groupby("episode").filter(lambda s: s["absent"].nunique() == missing)
+        own = present[(present["regime"] == cond.regime) & (present["split"] == cond.split)
+                      & (present["num_objects"] == cond.num_objects)].set_index("episode")
+        full = full[full["episode"].isin(own.index)].sort_values(["episode", "absent"])
+        own = own.loc[sorted(set(full["episode"]))]
+        if (own["seed"].reindex(full["episode"]).to_numpy() != full["seed"].to_numpy()).any():
+            raise ValueError("the variants played different seeds; a probe compares the same scenes")
+        n = len(own)
+        # (scenes, absent plays) arrays: the rows are sorted by scene, then by rank.
+        held = (full["held"] != NONE).to_numpy().reshape(n, missing)
+        same = (full["held"].to_numpy().reshape(n, missing) == own["held"].to_numpy()[:, None]) & held
+        held_present = (own["held"] != NONE).to_numpy()
+        plays = np.full(n, float(missing))
+        shortcut = at_usual_place(full, cond)
+        change = held.mean(1) - held_present if n else np.zeros(0)
+        lo, hi = bootstrap(lambda idx: change[idx].mean(1), n, resamples)
+        regions = {o: usual_regions(o, cond) for o in OBJECT_NAMES}  # all None in full random
+        out[key] = {
+            "scenes": n, "absent_plays": int(n * missing),
+            "usual_regions": None if None in regions.values() else {o: list(r) for o, r in regions.items()},
+            "grasp_present": wilson_rate(int(held_present.sum()), n),
+            "grasp_absent": pooled_rate(held.sum(1).astype(float), plays, resamples),
+            "grasp_change": {"value": float(change.mean()) if n else float("nan"), "ci95": [lo, hi],
+                             "method": "bootstrap over scenes", "n": n},
+            "shortcut_reach": None if shortcut is None else
+            pooled_rate(shortcut[1].reshape(n, missing).sum(1).astype(float),
+                        shortcut[0].reshape(n, missing).sum(1).astype(float), resamples),
+            "usual_place_empty": None if shortcut is None else
+            pooled_rate(shortcut[0].reshape(n, missing).sum(1).astype(float), plays, resamples),
+            "same_grasp": pooled_rate(same.sum(1).astype(float), plays, resamples),
+            "success_present": wilson_rate(int(own["success"].astype(bool).sum()), n),
+            "matrix": _matrix(confusion(full)),
         }
     return out

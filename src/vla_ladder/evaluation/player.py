@@ -171,6 +171,7 @@ class Player:
                 held=OBJECT_NAMES[held] if held >= 0 else "none",
                 success=bool(info["success"][k]), grasp_any=bool(info["grasp_any"][k]),
                 reach=bool(info["reach"][k]), reach_dist=float(info["reach_dist"][k]),
+                tcp_x=float(info["tcp_xy"][k][0]), tcp_y=float(info["tcp_xy"][k][1]),
                 object_set=object_set, layout=lay.to_dict(), policy_info=self.policy.describe(), timing=timing))
         return rows
 

@@ -22,7 +22,11 @@ REQUIRED_FILES = ("episodes.parquet", "summary.json")
 EPISODE_KEY = (*CONDITION_KEYS, "episode")
 """What identifies an episode within a run: its condition and its index j in it (it plays seed first_seed + j)."""
 EPISODE_COLUMNS = ("policy", "regime", "split", "num_objects", "episode", "seed", "target", "instruction",
-                   "held", "success", "grasp_any", "reach", "reach_dist", "object_set", "layout", "video")
+                   "held", "success", "grasp_any", "reach", "reach_dist", "tcp_x", "tcp_y", "object_set", "layout",
+                   "video")
+ADDED_COLUMNS = {"tcp_x": float("nan"), "tcp_y": float("nan")}
+"""Columns added after run directories existed, with what a run written before them reads as (the TCP's final
+x, y in metres, world frame: unknown)."""
 
 
 @dataclass
@@ -59,6 +63,7 @@ def load_run(path: str | Path) -> Run:
                          f"(a run directory holds {', '.join(REQUIRED_FILES)} and config.json, "
                          f"written by `vla-ladder eval --out DIR`)")
     episodes = pd.read_parquet(path / "episodes.parquet")
+    episodes = episodes.assign(**{c: v for c, v in ADDED_COLUMNS.items() if c not in episodes.columns})
     absent = [c for c in EPISODE_COLUMNS if c not in episodes.columns]
     if absent:
         raise ValueError(f"{path}/episodes.parquet lacks columns: {', '.join(absent)}")

@@ -22,7 +22,7 @@ import numpy as np
 import tyro
 
 from vla_ladder import files
-from vla_ladder.conditions import Condition, ConditionGrid
+from vla_ladder.conditions import MAX_OBJECTS, Condition, ConditionGrid
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
@@ -37,7 +37,7 @@ FLUSH_SECONDS = 10.0
 NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite")
 # Fields added after run directories existed, with the value a config.json without them meant; they become env
 # reset options of every episode when not at that value (the probes, experiments/probes.py, set them).
-PRESENTATION = {"instructions": "canonical", "appearance": "original", "instruct": 0}
+PRESENTATION = {"instructions": "canonical", "appearance": "original", "instruct": 0, "instruct_absent": None}
 
 
 @dataclass
@@ -80,6 +80,10 @@ class EvalConfig:
     instruct: int = 0
     """which present object the instruction names: 0 the layout's target, k its k-th distractor, in the same scene
     (the instruction-swap probe plays 0..num_objects-1)"""
+    instruct_absent: int | None = None
+    """instruct an object that is NOT on the table instead: k names the k-th absent object in the object list's
+    order (apple, orange, rubiks_cube, mug, large_marker); the scene is unchanged (the absent-object probe plays
+    0..4-num_objects); None: instruct a present object"""
 
     def __post_init__(self):
         self.out = None if self.out is None else Path(self.out)
@@ -120,6 +124,16 @@ class EvalConfig:
         if isinstance(self.instruct, bool) or not 0 <= self.instruct < fewest:
             raise ValueError(f"instruct must be a present-object rank from 0 to {fewest - 1} (the grid's fewest "
                              f"objects: {fewest}), got {self.instruct!r}")
+        if self.instruct_absent is not None:
+            missing = MAX_OBJECTS - max(self.grid.num_objects)  # the fewest absent objects of any condition
+            if isinstance(self.instruct_absent, bool) or not 0 <= self.instruct_absent < missing:
+                allowed = (f"from 0 to {missing - 1} (the grid's most objects: {max(self.grid.num_objects)})"
+                           if missing else "none: 5 objects leave none off the table (allowed: --num-objects 1-4)")
+                raise ValueError(f"instruct_absent must be an absent-object rank {allowed}, got "
+                                 f"{self.instruct_absent!r}")
+            if self.instruct != 0:
+                raise ValueError(f"instruct {self.instruct} and instruct_absent {self.instruct_absent} each name the "
+                                 "instructed object; give one")
 
     @property
     def conditions(self) -> list[Condition]:

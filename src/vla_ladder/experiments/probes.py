@@ -14,6 +14,10 @@ DIR/probe.json (metrics with 95% intervals, evaluation/grounding.py), DIR/<probe
   motion, not object selection).
 - appearance-swap: original and swap (the instructed object and a distractor exchange colours): does the
   policy follow the named object's shape or its usual colour?
+- absent-object: with fewer than five objects on the table, each scene once as it is (present) and once per
+  object NOT on the table, instructing it (absent-k; the scene is identical). A policy that grounds the words in
+  what it sees has nothing to grasp; one that maps the words to a place goes to where the named object usually
+  stood (shortcut reach); one that ignores the instruction grasps what it grasps anyway.
 
 Rerunning the same command resumes every variant; another request into DIR is refused unless --overwrite.
 """
@@ -30,7 +34,7 @@ import pandas as pd
 import tyro
 
 from vla_ladder import files
-from vla_ladder.conditions import ConditionGrid
+from vla_ladder.conditions import MAX_OBJECTS, ConditionGrid
 from vla_ladder.evaluation import grounding
 from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
@@ -38,7 +42,10 @@ from vla_ladder.policies import POLICY_KINDS, Policy, parse_spec
 from vla_ladder.task.appearance import SWAPS, SWAPS_VERSION
 from vla_ladder.task.instructions import INSTRUCTION_SETS, paraphrase_version
 
-PROBES = ("instruction-swap", "paraphrase", "appearance-swap")
+PROBES = ("instruction-swap", "paraphrase", "appearance-swap", "absent-object")
+PROBE_OBJECTS = {"absent-object": 3}
+"""Objects on the table when --num-objects is not given, where a probe's differ from five: absent-object needs
+objects off the table (with three, two are absent in every scene)."""
 # Probes that paint each scene's objects, so play one env per copy of the policy (never --num-envs > 1).
 ONE_ENV_PROBES = ("appearance-swap",)
 PROBE_FILE = "probe.json"
@@ -47,19 +54,33 @@ FORMAT_VERSION = 1
 NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite", "report", "resamples")
 
 
+@dataclass(frozen=True)
+class ProbeGrid(ConditionGrid):
+    """A ConditionGrid whose object counts, left out, are the probe's own (PROBE_OBJECTS, else five): ProbeConfig
+    resolves it to a plain ConditionGrid once it knows the probe."""
+
+    num_objects: Annotated[tuple[int, ...], tyro.conf.arg(help_behavior_hint="(default: 5; absent-object: 3)")] = ()
+    """objects on the table, 1-5 (several give several conditions)"""
+
+    def __post_init__(self):
+        if self.num_objects:
+            super().__post_init__()
+
+
 @dataclass
 class ProbeConfig:
     """Probe instruction grounding on the same seeded scenes (`vla-ladder probe NAME --policy SPEC --out DIR`)."""
 
     name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
-    """the probe: instruction-swap, paraphrase or appearance-swap"""
+    """the probe: instruction-swap, paraphrase, appearance-swap or absent-object"""
     policy: str | None = None
     """policy spec: scripted, ppo:PATH, lerobot:DIR, nearest, layout-prior, random (required on the command line)"""
     out: Path | None = None
     """probe directory: one run directory per variant, probe.json, the figure, report.html (required)"""
-    grid: Annotated[ConditionGrid, tyro.conf.arg(name="")] = field(
-        default_factory=lambda: ConditionGrid(("small_jitter", "full_random")))
-    """the conditions probed (by default the two ends of the ladder, canonical, five objects)"""
+    grid: Annotated[ProbeGrid, tyro.conf.arg(name="")] = field(
+        default_factory=lambda: ProbeGrid(("small_jitter", "full_random")))
+    """the conditions probed (by default the two ends of the ladder, canonical, five objects; absent-object:
+    three)"""
     episodes: int = 50
     """scenes per condition (scene j plays seed first_seed + j in every variant)"""
     first_seed: int = 0
@@ -88,7 +109,9 @@ class ProbeConfig:
             raise ValueError(f"unknown probe {self.name!r}; allowed: {', '.join(PROBES)}")
         self.out = None if self.out is None else Path(self.out)
         if not isinstance(self.grid, ConditionGrid):
-            self.grid = ConditionGrid(**self.grid)
+            self.grid = ProbeGrid(**self.grid)
+        g = self.grid
+        self.grid = ConditionGrid(g.regimes, g.splits, g.num_objects or (PROBE_OBJECTS.get(self.name, MAX_OBJECTS),))
         if self.policy is not None:
             parse_spec(self.policy)
         if self.resamples < 100:
@@ -97,6 +120,9 @@ class ProbeConfig:
         if self.name in ("instruction-swap", "appearance-swap") and min(counts) < 2:
             raise ValueError(f"{self.name} needs at least two objects on the table; got --num-objects "
                              f"{' '.join(map(str, counts))} (allowed: 2-5)")
+        if self.name == "absent-object" and max(counts) == MAX_OBJECTS:
+            raise ValueError(f"absent-object needs an object off the table; got --num-objects "
+                             f"{' '.join(map(str, counts))} (allowed: 1-4)")
         if self.name in ONE_ENV_PROBES and self.num_envs != 1:
             raise ValueError(f"appearance-swap paints each scene's objects and needs --num-envs 1, got {self.num_envs}")
         self.variants()  # every evaluation is configured, and so checked, before a simulator starts
@@ -108,6 +134,11 @@ class ProbeConfig:
             plays = {f"instruct-{r}": dict(grid=ConditionGrid(g.regimes, g.splits, tuple(k for k in g.num_objects
                                                                                         if k > r)), instruct=r)
                      for r in range(max(g.num_objects))}
+        elif self.name == "absent-object":  # absent-k names the k-th object off the table (fewer objects: more)
+            plays = {"present": dict(grid=g)}
+            plays.update({f"absent-{k}": dict(grid=ConditionGrid(g.regimes, g.splits, tuple(
+                n for n in g.num_objects if n < MAX_OBJECTS - k)), instruct_absent=k)
+                for k in range(MAX_OBJECTS - min(g.num_objects))})
         elif self.name == "paraphrase":  # with the distractor-free control: one object on the table
             control = ConditionGrid(g.regimes, g.splits, tuple(sorted({*g.num_objects, 1}, reverse=True)))
             plays = {s: dict(grid=control, instructions=s) for s in INSTRUCTION_SETS}
@@ -146,6 +177,10 @@ def probe_results(probe: str, runs: dict[str, Run], resamples: int) -> dict:
         plays = pd.concat([r.episodes.assign(instruct=int(name.rsplit("-", 1)[1])) for name, r in runs.items()],
                           ignore_index=True)
         return grounding.instruction_swap(plays, resamples)
+    if probe == "absent-object":
+        absent = pd.concat([r.episodes.assign(absent=int(name.rsplit("-", 1)[1])) for name, r in runs.items()
+                            if name != "present"], ignore_index=True)
+        return grounding.absent_object(runs["present"].episodes, absent, resamples)
     if probe == "appearance-swap":
         return grounding.appearance_swap(runs["original"].episodes, runs["swap"].episodes, resamples)
     return grounding.paraphrase({name: r.episodes for name, r in runs.items()}, resamples)

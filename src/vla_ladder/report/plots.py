@@ -98,7 +98,7 @@ def plot_pairings(results: dict[str, dict], path: str | Path, regime: str = "sma
     return _save(fig, path)
 
 
-def plot_confusion(panels: dict[str, dict], path: str | Path) -> Path:
+def plot_confusion(panels: dict[str, dict], path: str | Path, ylabel: str = "instructed") -> Path:
     """panels: title -> condition summary with a "confusion" entry; counts annotated, rows normalised."""
     plt = _plt()
     k = len(panels)
@@ -121,7 +121,7 @@ def plot_confusion(panels: dict[str, dict], path: str | Path) -> Path:
                       ha="right", fontsize=7)
         ax.set_yticks(range(len(cm["rows"])), [names.get(r, r) for r in cm["rows"]], fontsize=7)
         ax.set_xlabel("held at the end", fontsize=8)
-        ax.set_ylabel("instructed", fontsize=8)
+        ax.set_ylabel(ylabel, fontsize=8)
         ax.set_title(title, fontsize=9)
     fig.tight_layout()
     return _save(fig, path)

@@ -3,7 +3,8 @@
 A probe directory holds probe.json (experiments/probes.py) and its variants' run directories; the report finds
 a probe next to any run it is given (a run directory whose parent holds probe.json) or is handed the probe
 directories directly. Every value is shown with its 95% interval: Wilson for proportions over scenes, a
-bootstrap over scenes where plays of one scene are pooled (grounded accuracy, mutual information).
+bootstrap over scenes where plays of one scene are pooled (grounded accuracy, mutual information, the absent
+plays of a scene).
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ COLOUR_OUTCOMES = ("instructed", "partner", "other", "none")
 COLOUR_NAMES = {"instructed": "instructed object (shape)", "partner": "colour partner (colour)",
                 "other": "another object", "none": "nothing"}
 WORDINGS = ("canonical", "paraphrase-train", "paraphrase-heldout")
+ABSENT_SERIES = {"grasp_present": "grasp, own target named", "grasp_absent": "grasp, absent object named",
+                 "shortcut_reach": "ends at an empty usual place of the absent object",
+                 "same_grasp": "grasps what it grasps when its own target is named"}
 EXPLAIN = {
     "instruction-swap": "Each scene is played once per present object, instructing each in turn; only the "
     "instruction changes. <b>Instruction sensitivity</b>: share of scenes whose held object is not the same under "
@@ -39,6 +43,16 @@ EXPLAIN = {
     "(task/appearance.py). Shares of what is held, without the swap → with it: the instructed object (follows "
     "shape and words) or its colour partner, which now wears the instructed object's usual colour (follows "
     "colour). Scenes whose instructed object has no swap partner are left out.",
+    "absent-object": "The same scenes (fewer than five objects) instructing each object that is <i>not</i> on the "
+    "table, next to the ordinary play naming the scene's own target. <b>Grasp</b>: some object is held at the final "
+    "step (present → absent; Δ is the paired change). <b>Shortcut reach</b>: among absent plays whose named object "
+    "has an empty usual place, the gripper ends within 5 cm (horizontally) of the centre of one; its usual places "
+    "are the regions where it stands in this condition's training layouts (its canonical region; its three "
+    "training regions for the pairing splits; undefined under full random), empty when no present object stands "
+    "there (always, in the canonical split). <b>Same grasp</b>: the absent play holds the object the present play "
+    "holds. A policy that grounds the words in what it sees grasps nothing; one that maps them to a place goes "
+    "there (high shortcut reach); one that ignores them grasps as often, and the same object, as when its own "
+    "target is named.",
 }
 
 
@@ -72,10 +86,15 @@ def _rate(cond: dict, metric: str) -> str:
     return _cell({"value": cond[metric], "ci95": cond["ci95"][metric]})
 
 
-def _delta(entry: dict) -> str:
+def _signed(entry: dict, note: str = "") -> str:
+    """"+value [lo, hi]" of a difference, in points, with an optional note inside the interval's span."""
     lo, hi = entry["ci95"]
     sign = lambda x: "–" if x != x else f"{100 * x:+.0f}"  # noqa: E731
-    return f"{sign(entry['value'])}<span class=ci> [{sign(lo)}, {sign(hi)}], p={entry['mcnemar_p']:.2g}</span>"
+    return f"{sign(entry['value'])}<span class=ci> [{sign(lo)}, {sign(hi)}]{note}</span>"
+
+
+def _delta(entry: dict) -> str:
+    return _signed(entry, f", p={entry['mcnemar_p']:.2g}")
 
 
 def _table(head: list[str], rows: list[list[str]]) -> str:
@@ -101,26 +120,35 @@ def table_html(data: dict) -> str:
                 rows.append([html.escape(key), wording, str(c["n"]), _rate(c, "success"), _rate(c, "grasp_any"),
                              _rate(c, "reach"), _cell(c["wrong_object"]),
                              _delta(c["vs_canonical"]["success"]) if "vs_canonical" in c else "", novelty])
+    elif name == "absent-object":
+        head = ["condition", "scenes (absent plays)", "success, own target named", "grasp: present → absent",
+                "Δ grasp", "shortcut reach", "usual place empty", "same grasp as present"]
+        rows = [[html.escape(k), f"{c['scenes']} ({c['absent_plays']})", _cell(c["success_present"]),
+                 f"{_cell(c['grasp_present'])} → {_cell(c['grasp_absent'])}", _signed(c["grasp_change"]),
+                 *(["n/a (no usual place)"] * 2 if c["shortcut_reach"] is None else
+                   [_cell(c["shortcut_reach"]), _cell(c["usual_place_empty"])]), _cell(c["same_grasp"])]
+                for k, c in conds.items()]
     else:
         head = ["condition", "swapped scenes", *(f"{COLOUR_NAMES[o]}: no swap → swap" for o in COLOUR_OUTCOMES),
                 "Δ follows shape"]
         rows = [[html.escape(k), f"{c['swapped']} of {c['scenes']}"]
                 + [f"{_cell(c['original'][o])} → {_cell(c['swap'][o])}" for o in COLOUR_OUTCOMES]
                 + [_delta(c["shape_change"])] for k, c in conds.items()]
-    unit = " (NMI on [0, 1])" if name == "instruction-swap" else ""
+    unit = {"instruction-swap": " (NMI on [0, 1])", "absent-object": "; Δ in points"}.get(name, "")
     return _table(head, rows) + f"<p class=note>In %, 95% intervals in brackets{unit}.</p>"
 
 
 def matrices_html(data: dict) -> str:
     """The pooled instructed x held matrices (instruction swap) or transition tables (appearance swap)."""
-    key = {"instruction-swap": "matrix", "appearance-swap": "transitions"}.get(data["probe"])
+    key = {"instruction-swap": "matrix", "appearance-swap": "transitions", "absent-object": "matrix"}.get(data["probe"])
     if key is None:
         return ""
     parts = []
     for cond, c in data["conditions"].items():
         m = c[key]
         rows = [[f"<b>{html.escape(r)}</b>", *map(str, counts)] for r, counts in zip(m["rows"], m["counts"])]
-        corner = "instructed \\ held" if key == "matrix" else "no swap \\ swap"
+        corner = {"instruction-swap": "instructed \\ held", "appearance-swap": "no swap \\ swap",
+                  "absent-object": "named (absent) \\ held"}[data["probe"]]
         parts.append(f"<p>{html.escape(cond)}</p>" + _table([corner, *map(html.escape, m["columns"])], rows))
     return "<details><summary>Counts</summary>" + "".join(parts) + "</details>"
 
@@ -138,11 +166,14 @@ def section(data: dict, figures: list[str], where: str) -> str:
 def plot_probe(data: dict, path: str | Path) -> list[Path]:
     """The probe's figure at `path` (and, for the instruction swap, its matrices next to it)."""
     path = Path(path)
-    draw = {"instruction-swap": _plot_swap, "paraphrase": _plot_paraphrase, "appearance-swap": _plot_appearance}
+    draw = {"instruction-swap": _plot_swap, "paraphrase": _plot_paraphrase, "appearance-swap": _plot_appearance,
+            "absent-object": _plot_absent}
     out = [draw[data["probe"]](data, path)]
-    if data["probe"] == "instruction-swap":
+    if data["probe"] in ("instruction-swap", "absent-object"):
+        # (absent-object: the rows are the named objects, all absent, so every grasp counted is a substitute)
         panels = {k: {"confusion": c["matrix"]} for k, c in data["conditions"].items()}
-        out.append(plot_confusion(panels, path.with_name(path.stem + "_matrix.png")))
+        out.append(plot_confusion(panels, path.with_name(path.stem + "_matrix.png"),
+                                  "named (not on the table)" if data["probe"] == "absent-object" else "instructed"))
     return out
 
 
@@ -170,6 +201,23 @@ def _plot_swap(data: dict, path: Path) -> Path:
     _bars(ax, list(conds), {label: [c[m] for c in conds.values()] for m, label in SWAP_METRICS.items()},
           "% (NMI × 100), 95% interval")
     ax.set_title(f"Instruction swap: {data['policy'].get('spec', '')}")
+    return _save(fig, path)
+
+
+def _plot_absent(data: dict, path: Path) -> Path:
+    plt = _plt()
+    conds = data["conditions"]
+    missing = {"value": np.nan, "ci95": [np.nan, np.nan]}
+    series = {label: [c[m] or missing for c in conds.values()] for m, label in ABSENT_SERIES.items()}
+    fig, ax = plt.subplots(figsize=(max(6.0, 2.4 * len(conds)), 4.4))
+    _bars(ax, list(conds), series, "% of plays, 95% interval")
+    width = 0.8 / len(series)
+    for i, c in enumerate(conds.values()):  # an undefined rate is no bar at all, not a bar at 0
+        if c["shortcut_reach"] is None:
+            j = list(ABSENT_SERIES).index("shortcut_reach")
+            ax.text(i + (j - (len(series) - 1) / 2) * width, 2, "n/a", ha="center", fontsize=6, rotation=90)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)  # below: the bars reach 100
+    ax.set_title(f"Absent object: {data['policy'].get('spec', '')}")
     return _save(fig, path)
 
 
@@ -217,6 +265,11 @@ def summary_lines(data: dict) -> list[str]:
                          f"success={c['success']['value']:.2f}")
         elif name == "paraphrase":
             lines.append(f"{key}: success " + ", ".join(f"{w} {c[w]['success']:.2f}" for w in WORDINGS if w in c))
+        elif name == "absent-object":
+            reach = "n/a" if c["shortcut_reach"] is None else f"{c['shortcut_reach']['value']:.2f}"
+            lines.append(f"{key}: scenes={c['scenes']} grasp present={c['grasp_present']['value']:.2f} "
+                         f"absent={c['grasp_absent']['value']:.2f} shortcut_reach={reach} "
+                         f"same_grasp={c['same_grasp']['value']:.2f}")
         else:
             lines.append(f"{key}: swapped={c['swapped']} follows_shape={c['follows_shape']['value']:.2f} "
                          f"(no swap {c['original']['instructed']['value']:.2f}) "

@@ -75,6 +75,11 @@ def freeze_long_lived_objects() -> None:
         _FROZEN = True
 
 
+def _per_env(value, n: int) -> list:
+    """A reset option given once for all reset envs, or as a list with one value each, as a list of n."""
+    return list(value) if isinstance(value, (list, tuple)) else [value] * n
+
+
 @register_env(contract.ENV_ID, max_episode_steps=EPISODE_STEPS)
 class GraspObjectEnv(BaseEnv):
     """Grasp the instructed object among up to five: "grasp the <object>".
@@ -94,12 +99,17 @@ class GraspObjectEnv(BaseEnv):
     Both are also reset options (they override the env's own for that reset), next to "instruct": an object
     name or a present-object rank (0 the target, k the k-th distractor), one for all reset envs or a list with
     one each, which keeps the seed's whole scene (layout, colours, robot start, physics) and instructs that object
-    instead (the instruction-swap probe; "target" instead samples another scene with that target).
+    instead (the instruction-swap probe; "target" instead samples another scene with that target), and
+    "instruct_absent": an object that is not on the table (a name, or its rank among the absent objects in the
+    object list's order), which keeps the same scene and instructs that object (the absent-object probe): it stays
+    parked off the table, so success and reach are False by construction. A name given to "instruct" must be on
+    the table: asking for an absent object takes the explicit "instruct_absent", so a mistyped swap still fails.
 
     Success: the instructed object is grasped (both fingers push on it) at the final step. Episodes
     always run 50 steps (2.5 s at 20 Hz, physics at 100 Hz) and never terminate early. `info` also holds
     grasp_any (some object grasped at some step), reach (TCP within 5 cm of the target's box at the end),
-    held (index of the object grasped now, -1 for none), reach_dist, lift and lifted.
+    held (index of the object grasped now, -1 for none), reach_dist, lift, lifted and tcp_xy (the TCP's
+    horizontal position, world frame: where the gripper went, whatever it grasped).
     """
 
     SUPPORTED_ROBOTS = [contract.ROBOT, robot.LITE_UID]
@@ -231,7 +241,8 @@ class GraspObjectEnv(BaseEnv):
         options["conditions"], one Condition (or key) per reset env, overrides the env's own condition for
         these episodes (one GPU env can then train on a mixture of conditions). options["instructions"] and
         options["appearance"] override the env's own for these episodes; options["instruct"] (an object name or
-        present-object rank, or a list with one per reset env) instructs another object of the same scene."""
+        present-object rank, or a list with one per reset env) instructs another object of the same scene, and
+        options["instruct_absent"] (a name or rank among the absent objects, or a list) an object not on it."""
         options = dict(options or {})
         env_idx = options.get("env_idx")
         idx = np.arange(self.num_envs) if env_idx is None else np.asarray(
@@ -258,9 +269,14 @@ class GraspObjectEnv(BaseEnv):
             check_instruction_set(options["instructions"])
         if options.get("appearance") is not None and check_appearance(options["appearance"]) != "original":
             self._check_paintable()
-        instruct = options.get("instruct")
-        if isinstance(instruct, (list, tuple)) and len(instruct) != len(idx):
-            raise ValueError(f"got {len(instruct)} instruct values for {len(idx)} envs being reset")
+        for name in ("instruct", "instruct_absent"):
+            value = options.get(name)
+            if isinstance(value, (list, tuple)) and len(value) != len(idx):
+                raise ValueError(f"got {len(value)} {name} values for {len(idx)} envs being reset")
+        both = [_per_env(options.get(name), len(idx)) for name in ("instruct", "instruct_absent")]
+        if any(a is not None and b is not None for a, b in zip(*both)):
+            raise ValueError("instruct (a present object) and instruct_absent (an absent one) name the instructed "
+                             "object each; give one per env")
         return super().reset(seed=None if seed is None else [int(s) for s in seeds] if env_idx is None
                              else None, options=options)
 
@@ -279,15 +295,17 @@ class GraspObjectEnv(BaseEnv):
         conditions = options.get("conditions") or [self.condition] * b
         instructions = options.get("instructions") or self.instruction_set
         look = options.get("appearance") or self.appearance
-        instruct = options.get("instruct")
-        if not isinstance(instruct, (list, tuple)):
-            instruct = [instruct] * b
+        instruct = _per_env(options.get("instruct"), b)
+        instruct_absent = _per_env(options.get("instruct_absent"), b)
         centers = self._center.cpu().numpy()  # once, not per object and env: on CUDA each .cpu() waits on the GPU
         for row, i in enumerate(ids):
             seed = int(self._layout_seeds[i])
             lay = sample_layout(conditions[row], seed, target, instructions, look)
             if instruct[row] is not None:
                 lay = lay.instructed(instruct[row])
+            if instruct_absent[row] is not None:
+                # Only the target changes: the absent object stays parked, present stays the layout's objects.
+                lay = lay.instructed_absent(instruct_absent[row])
             # A rebuilt scene has fresh materials (layouts[i] is None); a kept one may still wear the last swap.
             worn = self.layouts[i] is not None and self.layouts[i].colour_swap is not None
             if self._looks is not None and (lay.colour_swap is not None or worn):
@@ -381,7 +399,7 @@ class GraspObjectEnv(BaseEnv):
         success = self._target_select(grasped)
         return dict(success=success, grasp_any=self._grasp_any.clone(), reach=dist <= REACH_THRESHOLD,
                     is_grasped=grasped, held=held, reach_dist=dist, lift=lift,
-                    lifted=success & (lift >= LIFT_HEIGHT), wrong_grasp=any_now & ~success)
+                    lifted=success & (lift >= LIFT_HEIGHT), wrong_grasp=any_now & ~success, tcp_xy=c["tcp"][:, :2])
 
     def _get_obs_extra(self, info: dict):
         obs = dict(proprio=self.proprio())

@@ -60,10 +60,13 @@ class Layout:
     """the instruction set the wording is drawn from (task/instructions.py)"""
     colour_swap: tuple[str, str] | None = None
     """(instructed object, distractor) whose colours are exchanged (task/appearance.py); None: usual colours"""
+    absent_target: str | None = None
+    """an object NOT on the table that the instruction names instead of objects[0] (the absent-object probe,
+    `instructed_absent`); None: the target is objects[0]"""
 
     @property
     def target(self) -> str:
-        return self.objects[0]
+        return self.objects[0] if self.absent_target is None else self.absent_target
 
     @property
     def target_index(self) -> int:
@@ -72,6 +75,12 @@ class Layout:
     @property
     def instruction(self) -> str:
         return instruction_text(self.target, self.seed, self.instructions)
+
+    @property
+    def absent(self) -> tuple[str, ...]:
+        """The objects not on the table, in the object list's order (apple, orange, rubiks_cube, mug,
+        large_marker): what `instructed_absent` ranks."""
+        return tuple(n for n in OBJECT_NAMES if n not in self.objects)
 
     def instructed(self, obj: str | int) -> "Layout":
         """The same scene instructing another present object (a name, or its rank in `objects`: 0 is the
@@ -91,7 +100,27 @@ class Layout:
                              f"{', '.join(self.objects)}")
         order = [k] + [i for i in range(len(self.objects)) if i != k]
         return replace(self, objects=tuple(self.objects[i] for i in order), xy=self.xy[order], yaw=self.yaw[order],
-                       regions=None if self.regions is None else tuple(self.regions[i] for i in order))
+                       regions=None if self.regions is None else tuple(self.regions[i] for i in order),
+                       absent_target=None)
+
+    def instructed_absent(self, obj: str | int) -> "Layout":
+        """The same scene instructing an object that is NOT on the table (a name, or its rank in `absent`): objects,
+        positions, yaw and colours are unchanged; `target`, `target_index` and the instruction name the absent
+        object. The counterfactual of the absent-object probe. Separate from `instructed` on purpose: there a name
+        that is not on the table is a mistake (a typo in a swap) and fails; here it is the point."""
+        absent = self.absent
+        if isinstance(obj, (int, np.integer)) and not isinstance(obj, bool):
+            if not 0 <= obj < len(absent):
+                allowed = f"allowed 0-{len(absent) - 1} ({', '.join(absent)})" if absent else "all five are present"
+                raise ValueError(f"absent rank {obj} is not an object missing from seed {self.seed} of "
+                                 f"{self.condition}: {allowed}")
+            name = absent[int(obj)]
+        elif obj in self.objects:
+            raise ValueError(f"cannot instruct {obj!r} as absent: it is on the table of seed {self.seed} of "
+                             f"{self.condition} (instruct it as a present object instead)")
+        else:
+            name = OBJECT_NAMES[object_index(obj)]
+        return replace(self, absent_target=name)
 
     def to_dict(self) -> dict:
         out = {
@@ -106,6 +135,8 @@ class Layout:
             out.update(instructions=self.instructions, paraphrases_version=paraphrase_version())
         if self.colour_swap is not None:
             out["colour_swap"] = list(self.colour_swap)
+        if self.absent_target is not None:  # "target" names an object that "positions" does not hold
+            out["absent_target"] = True
         return out
 
 
@@ -121,6 +152,16 @@ def region_assignments(objects: tuple[int, ...], split: str) -> tuple[tuple[int,
         if ok_distractors and regions[0] in target_pool:
             out.append(regions)
     return tuple(out)
+
+
+def usual_regions(obj: str, condition: Condition) -> tuple[int, ...] | None:
+    """The regions where object `obj` stands in the training layouts of the condition: region i for object i
+    (canonical split), its three training regions TRAIN_REGIONS[i] (pairings_id and pairings_ood: an OOD
+    evaluation tests a policy trained on pairings_id layouts); None in full_random, where no place is usual."""
+    i = object_index(obj)
+    if REGIMES[condition.regime] is None:
+        return None
+    return (i,) if condition.split == "canonical" else tuple(sorted(TRAIN_REGIONS[i]))
 
 
 def _collides(xy: list[tuple[float, float]], radii: tuple[float, ...], i: int) -> bool:
@@ -223,5 +264,6 @@ def layout_from_dict(data: dict) -> Layout:
     """The layout that the seed of a recorded `Layout.to_dict()` gives, sampled again (dataset checks compare
     the two): condition, object count, instruction set and appearance as the dict says."""
     condition = Condition(data["regime"], data["split"], len(data["positions"]))
-    return sample_layout(condition, int(data["seed"]), instructions=data.get("instructions", CANONICAL),
-                         appearance="swap" if data.get("colour_swap") else "original")
+    lay = sample_layout(condition, int(data["seed"]), instructions=data.get("instructions", CANONICAL),
+                        appearance="swap" if data.get("colour_swap") else "original")
+    return lay.instructed_absent(data["target"]) if data.get("absent_target") else lay
