@@ -11,7 +11,7 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src" / "vla_ladder"
 CONTRACT_NAMES = ("ENV_ID", "EPISODE_STEPS", "SIM_HZ", "CONTROL_HZ", "CAMERAS", "CAMERA_NAMES", "CAMERA_KEYS",
                   "IMAGE_SHAPE", "STATE_DIM", "STATE_NAMES", "ACTION_DIM", "ACTION_NAMES", "STATE_KEY",
-                  "ACTION_KEY", "METRICS", "REACH_THRESHOLD", "REGIMES", "SPLITS")
+                  "ACTION_KEY", "METRICS", "INFO_KEYS", "REACH_THRESHOLD", "REGIMES", "SPLITS")
 
 
 def _assignments() -> dict[str, list[str]]:

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from vla_ladder.conditions import REGIMES, Condition
+from vla_ladder.contract import INFO_KEYS, METRICS
 from vla_ladder.task.layouts import sample_layout
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
 
@@ -56,6 +57,9 @@ def test_state_observation_shapes_and_dtypes(make_env):
     np.testing.assert_allclose(ex["proprio"][0, :7].numpy(), qpos[:7].numpy())
     assert ex["proprio"][0, 14].item() == pytest.approx((qpos[7] + qpos[8]).item())  # gripper width
     assert env.action_space.shape == (7,)
+    info = env.unwrapped.evaluate()  # what every step's info holds besides ManiSkill's keys: the contract's list
+    assert list(info) == list(INFO_KEYS) and list(INFO_KEYS)[:len(METRICS)] == list(METRICS)
+    assert info["is_grasped"].shape == (1, 5) and info["tcp_xy"].shape == (1, 2) and info["held"].shape == (1,)
     flat = make_env(obs_mode="state", regime="medium_jitter")
     fobs, _ = flat.reset(seed=3)
     assert fobs.shape == (1, 18 + sum(shapes.values())) and fobs.dtype == torch.float32

@@ -68,6 +68,20 @@ METRICS: tuple[str, ...] = ("success", "grasp_any", "reach")
 """success: the instructed object is held at the final step; grasp_any: some object was grasped at some step;
 reach: the TCP ends within REACH_THRESHOLD of the instructed object's bounding box."""
 REACH_THRESHOLD = 0.05
+INFO_KEYS: dict[str, str] = {
+    "success": "(N,) bool: the instructed object is grasped now (judged at the final step)",
+    "grasp_any": "(N,) bool: some object was grasped at some step of the episode",
+    "reach": "(N,) bool: the TCP is within REACH_THRESHOLD of the instructed object's bounding box",
+    "is_grasped": "(N, 5) bool: each object grasped now (both fingers push on it)",
+    "held": "(N,) int: index (task/objects.py) of the object grasped now, -1 for none",
+    "reach_dist": "(N,) m: TCP distance to the instructed object's bounding box",
+    "lift": "(N,) m: height of the instructed object above its resting height",
+    "lifted": "(N,) bool: success and lift >= 5 cm",
+    "wrong_grasp": "(N,) bool: an object other than the instructed one is grasped now",
+    "tcp_xy": "(N, 2) m: the TCP's horizontal position, world frame (where the gripper went)",
+}
+"""What GraspObject-v1's `info` holds after every step (its evaluate()), besides ManiSkill's own keys: METRICS
+first. The LeRobot env plugin forwards the scalar ones; evaluation keeps METRICS, held, reach_dist and tcp_xy."""
 
 FEATURE_SHAPES: dict[str, tuple[int, ...]] = {
     **{c.key: c.shape for c in CAMERAS}, STATE_KEY: (STATE_DIM,), ACTION_KEY: (ACTION_DIM,)}

@@ -109,7 +109,7 @@ class GraspObjectEnv(BaseEnv):
     always run 50 steps (2.5 s at 20 Hz, physics at 100 Hz) and never terminate early. `info` also holds
     grasp_any (some object grasped at some step), reach (TCP within 5 cm of the target's box at the end),
     held (index of the object grasped now, -1 for none), reach_dist, lift, lifted and tcp_xy (the TCP's
-    horizontal position, world frame: where the gripper went, whatever it grasped).
+    horizontal position, world frame: where the gripper went, whatever it grasped): contract.INFO_KEYS.
     """
 
     SUPPORTED_ROBOTS = [contract.ROBOT, robot.LITE_UID]
