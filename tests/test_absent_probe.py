@@ -3,7 +3,6 @@ metrics on constructed plays, its commands, and its calibration by the reference
 (CPU, state only)."""
 
 import json
-from importlib import resources
 
 import numpy as np
 import pandas as pd
@@ -14,7 +13,6 @@ from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.evaluation import grounding
 from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.experiments.probes import ProbeConfig, ProbeGrid, run_probe
-from vla_ladder.experiments.study_config import StudyConfig, from_dict
 from vla_ladder.report.html import build_report
 from vla_ladder.task.instructions import parse_instruction
 from vla_ladder.task.layouts import REGION_CENTERS, TRAIN_REGIONS, layout_from_dict, sample_layout, usual_regions
@@ -172,13 +170,18 @@ def test_absent_object_configs_and_refusals(tmp_path, capsys):
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "p").exists() and not (tmp_path / "e").exists()
-    # A study probes each model in its training condition: five objects leave nothing to name, refused at load.
-    data = json.loads(resources.files("vla_ladder.configs.study").joinpath("micro.json").read_text())
-    data["evaluation"]["probes"] = ["absent-object"]
-    assert from_dict(StudyConfig, data, "").evaluation.probes == ["absent-object"]  # micro has two objects
-    data["datasets"][0]["condition"] = "small_jitter/canonical/5"
-    with pytest.raises(ValueError, match="absent-object needs objects off the table, and datasets .* have 5"):
-        from_dict(StudyConfig, data, "")
+    # A study probes each model in its training condition; five objects leave nothing to name, so five-object data
+    # are probed with four (cpu-mini's datasets all have five).
+    from vla_ladder.experiments.study import Study, StudyCommand
+
+    study = Study(StudyCommand("cpu-mini", out=tmp_path / "s"))
+    study.cfg.evaluation.probes = ["instruction-swap", "absent-object"]
+    units = {u.id: u.config["grid"] for u in study.probe_units(study.best({}))}
+    assert units["probe-SmolVLA-scratch-sj-absent-object"] == {
+        "regimes": ["small_jitter"], "splits": ["canonical"], "num_objects": [4]}
+    assert units["probe-SmolVLA-scratch-sj-instruction-swap"]["num_objects"] == [5]
+    assert ProbeConfig("absent-object", policy="nearest", out=tmp_path / "u",
+                       grid=units["probe-SmolVLA-scratch-pid-absent-object"]).variants()["absent-0"].conditions
 
 
 # ---------------------------------------------------------------------- the real simulator

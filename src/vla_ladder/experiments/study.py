@@ -23,7 +23,7 @@ from pathlib import Path
 import tyro
 
 from vla_ladder import files
-from vla_ladder.conditions import parse_regimes
+from vla_ladder.conditions import MAX_OBJECTS, parse_regimes
 from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
 from vla_ladder.machine import cores
@@ -282,8 +282,11 @@ class Study:
             if p.blind:
                 continue
             best = chosen[(p.name, d.name)]
-            own = {"regimes": [d.cond.regime], "splits": [d.cond.split], "num_objects": [d.cond.num_objects]}
             for name in ev.probes:
+                # In the training condition; absent-object needs an object off the table, so five-object data are
+                # probed with four, the nearest scenes to training that leave one to name.
+                n = min(d.cond.num_objects, MAX_OBJECTS - 1) if name == "absent-object" else d.cond.num_objects
+                own = {"regimes": [d.cond.regime], "splits": [d.cond.split], "num_objects": [n]}
                 cfg = {"name": name, "policy": self.spec(p, best["model"], best["horizon"]),
                        "out": str(self.root / "probes" / f"{p.name}-{d.name}-{name}"), "grid": own,
                        "episodes": ev.probe_episodes, "first_seed": ev.first_seed, **self.players(name)}
