@@ -78,8 +78,8 @@ class RecordConfig:
     merged into --out at the end (LeRobot's writer costs 0.9 CPU s a demo on 2 idle cores, 3.3 on 16); 0: one per
     two servers"""
     encoder_threads: int = 0
-    """threads of each camera's video encoder (SVT-AV1's lp); 0: the encoder's choice (on 2 cores neither it nor 1
-    thread was consistently faster; see docs/recording.md)"""
+    """threads of each camera's video encoder (SVT-AV1's lp); 0: the encoder's choice (on 2 cores one thread was up
+    to 17% faster with one writer, no faster with two; see docs/recording.md)"""
     seed_book: Path | None = None
     """seed reservation shared with other writers (set by `record --writers` for its writers)"""
 
