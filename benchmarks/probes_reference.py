@@ -1,6 +1,7 @@
 """The reference policies under the grounding probes: the calibration docs/probes.md quotes.
 
-    .venv/bin/python benchmarks/probes_reference.py [--swap-scenes 20] [--scenes 10] [--absent-scenes 20] [--out DIR]
+    .venv/bin/python benchmarks/probes_reference.py [--swap-scenes 20] [--scenes 10] [--absent-scenes 20]
+        [--position-scenes 20] [--out DIR]
 
 Runs `vla-ladder probe` (CPU, state only, five objects, small jitter and full random) for
 - instruction-swap: scripted, nearest, layout-prior, random;
@@ -8,6 +9,7 @@ Runs `vla-ladder probe` (CPU, state only, five objects, small jitter and full ra
 - appearance-swap: scripted, layout-prior (state policies see no colour: a sanity check of the probe's plumbing);
 - absent-object: scripted, nearest, layout-prior, random, with three objects, canonical and pairings_id (small
   jitter; full random has no pairing split),
+- position-swap: scripted, nearest, layout-prior, random,
 and writes every probe's per-condition results to benchmarks/results/probes_reference.json. With --out the probe
 directories are kept there and a second run resumes them (only probe.json is recomputed).
 """
@@ -32,7 +34,8 @@ RESULT = ROOT / "benchmarks" / "results" / "probes_reference.json"
 PLAN = {"instruction-swap": ("scripted", "nearest", "layout-prior", "random"),
         "paraphrase": ("scripted", "layout-prior"),
         "appearance-swap": ("scripted", "layout-prior"),
-        "absent-object": ("scripted", "nearest", "layout-prior", "random")}
+        "absent-object": ("scripted", "nearest", "layout-prior", "random"),
+        "position-swap": ("scripted", "nearest", "layout-prior", "random")}
 REGIMES = ("small_jitter", "full_random")
 ABSENT_GRID = ProbeGrid(REGIMES, ("canonical", "pairings_id"), (3,))
 
@@ -45,6 +48,8 @@ class Args:
     """scenes per condition of the paraphrase and appearance-swap probes"""
     absent_scenes: int = 20
     """scenes per condition of the absent-object probe (each played once as it is and once per absent object)"""
+    position_scenes: int = 20
+    """scenes per condition of the position-swap probe (each played as it is and swapped)"""
     first_seed: int = 0
     """scene j plays seed first_seed + j"""
     workers: int = 1
@@ -64,7 +69,8 @@ def main(args: Args) -> None:
                 cfg = ProbeConfig(probe, policy=policy, out=base / probe / policy,
                                   grid=ABSENT_GRID if absent else ConditionGrid(REGIMES),
                                   episodes={"instruction-swap": args.swap_scenes,
-                                            "absent-object": args.absent_scenes}.get(probe, args.scenes),
+                                            "absent-object": args.absent_scenes,
+                                            "position-swap": args.position_scenes}.get(probe, args.scenes),
                                   first_seed=args.first_seed, workers=args.workers, report=False)
                 data = run_probe(cfg, progress=False)
                 results.setdefault(probe, {})[policy] = data["conditions"]
@@ -73,7 +79,7 @@ def main(args: Args) -> None:
         "benchmark": "probes_reference", "device": "cpu", "regimes": list(REGIMES), "num_objects": 5,
         "absent_object": {"num_objects": 3, "splits": list(ABSENT_GRID.splits)},
         "scenes": {"instruction-swap": args.swap_scenes, "paraphrase": args.scenes, "appearance-swap": args.scenes,
-                   "absent-object": args.absent_scenes},
+                   "absent-object": args.absent_scenes, "position-swap": args.position_scenes},
         "first_seed": args.first_seed, "wall_s": round(time.perf_counter() - t0, 1),
         "provenance": json.loads(json.dumps(data["provenance"])), "results": results})
     print(RESULT)

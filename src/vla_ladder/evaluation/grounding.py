@@ -16,6 +16,10 @@ on what the instruction says:
   and the share of plays whose gripper ends at the named object's usual place (shortcut reach), pooled over a
   scene's absent plays (bootstrap over scenes), next to the scene's ordinary play (Wilson); the named x held
   matrix.
+- position swap: the same scenes with the instructed object and one distractor (its partner) exchanging places.
+  What is held in each play (instructed, partner, other, none) over the scenes that had a swap: shares (Wilson),
+  follows-object and follows-place in both plays and their paired changes (bootstrap over scenes, McNemar's exact
+  p), the transition table original -> swapped.
 
 An object "held" is the one grasped at the final step ("none" when nothing is), as for success.
 """
@@ -35,13 +39,17 @@ from vla_ladder.evaluation.metrics import CONDITION_KEYS, HELD_COLUMNS, NONE, co
 from vla_ladder.stats import CONFIDENCE, rates, wilson
 from vla_ladder.task.instructions import CANONICAL, NOVELTIES, parse_instruction
 from vla_ladder.task.layouts import REGION_CENTERS, usual_regions
-from vla_ladder.task.objects import OBJECT_NAMES
+from vla_ladder.task.objects import OBJECT_NAMES, OBJECTS, object_index
 
 RESAMPLES = 2000
 BOOTSTRAP_SEED = 0
 COLOUR_OUTCOMES = ("instructed", "partner", "other", "none")
 """What is held under an appearance swap: the instructed object (follows its shape and the words), the
 partner that wears the instructed object's usual colour (follows colour), another object, nothing."""
+PLACE_OUTCOMES = COLOUR_OUTCOMES
+"""What is held in a position-swap scene, by the same rule (colour_outcome): the instructed object (follows the
+object), its partner, which in the swapped play stands where the instructed object stood (follows the place),
+another object, nothing."""
 
 
 def _interval(value: float, lo: float, hi: float, method: str, n: int) -> dict:
@@ -318,4 +326,79 @@ def absent_object(present: pd.DataFrame, absent: pd.DataFrame, resamples: int = 
             "success_present": wilson_rate(int(own["success"].astype(bool).sum()), n),
             "matrix": _matrix(confusion(full)),
         }
+    return out
+
+
+# ---------------------------------------------------------------------- position swap
+def _paired_change(x: np.ndarray, y: np.ndarray, resamples: int) -> dict:
+    """y - x of paired per-scene outcomes: its mean, a bootstrap interval over scenes and McNemar's exact p."""
+    d = y.astype(float) - x.astype(float)
+    lo, hi = bootstrap(lambda idx: d[idx].mean(1), len(d), resamples)
+    return {"value": float(d.mean()) if len(d) else float("nan"), "ci95": [lo, hi], "method": "bootstrap over scenes",
+            "n": int(len(d)), "mcnemar_p": mcnemar_exact(int((x & ~y).sum()), int((~x & y).sum()))}
+
+
+def ends_near(plays: pd.DataFrame, target: str, partner: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per play: whether the TCP ends at the instructed object or at the partner, whatever it grasped: within
+    REACH_THRESHOLD (5 cm, horizontally) of that object's footprint circle (centre from the play's layout), and
+    nearer to it than to the other. Where a policy goes tells a place-follower whose grasp does not fit the
+    partner's shape (layout-prior grasps at the instructed object's height) from one that goes nowhere. None when
+    a play has no recorded TCP (a run from before tcp_x/tcp_y were kept)."""
+    tcp = plays[["tcp_x", "tcp_y"]].to_numpy(dtype=float)
+    if not np.isfinite(tcp).all():
+        return None
+    out = []
+    for names in (target, partner):
+        pos = [json.loads(lay)["positions"][n] for lay, n in zip(plays["layout"], names)]
+        radius = np.array([OBJECTS[object_index(n)].footprint_radius for n in names])
+        out.append(np.linalg.norm(tcp - np.array(pos, dtype=float).reshape(-1, 2), axis=1) - radius)
+    at_obj, at_partner = out
+    return (at_obj <= REACH_THRESHOLD) & (at_obj <= at_partner), (at_partner <= REACH_THRESHOLD) & (at_partner < at_obj)
+
+
+def position_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
+    """Per condition, on the scenes where the instructed object exchanged places with a partner (the swapped play's
+    layout names it in "position_swap"; scenes where no distractor fitted played unswapped and are counted, not
+    scored): what is held in the original and the swapped play, as shares of PLACE_OUTCOMES (Wilson over scenes).
+    follows_object: the instructed object is held; follows_place: the partner is held (in the swapped play it
+    stands at the instructed object's original place; in the original play it is a wrong grasp like any other).
+    reaches_object / reaches_place: the TCP ends at the instructed object / at the partner (`ends_near`), whatever
+    is held. Their paired changes swapped - original get a bootstrap interval over scenes and McNemar's exact p."""
+    keys = [*CONDITION_KEYS, "episode"]
+    merged = original.merge(swapped, on=keys, suffixes=("_o", "_s"))
+    if (merged["seed_o"] != merged["seed_s"]).any() or (merged["target_o"] != merged["target_s"]).any():
+        raise ValueError("the variants played different seeds or instructions; a probe compares the same scenes")
+    merged["partner"] = [(json.loads(lay).get("position_swap") or [None, None])[1] for lay in merged["layout_s"]]
+    out = {}
+    for key, g in _by_condition(merged):
+        s = g[g["partner"].notna()]
+        n = len(s)
+        before = [colour_outcome(h, t, p) for h, t, p in zip(s["held_o"], s["target_o"], s["partner"])]
+        after = [colour_outcome(h, t, p) for h, t, p in zip(s["held_s"], s["target_s"], s["partner"])]
+        counts = np.zeros((len(PLACE_OUTCOMES), len(PLACE_OUTCOMES)), dtype=int)  # (any n, 0 included)
+        for o, o2 in zip(before, after):
+            counts[PLACE_OUTCOMES.index(o), PLACE_OUTCOMES.index(o2)] += 1
+        entry = {"scenes": int(len(g)), "swapped": n, "no_swap": int(len(g) - n),
+                 "original": {o: wilson_rate(before.count(o), n) for o in PLACE_OUTCOMES},
+                 "swap": {o: wilson_rate(after.count(o), n) for o in PLACE_OUTCOMES}}
+        for metric, outcome in (("follows_object", "instructed"), ("follows_place", "partner")):
+            x, y = np.array([o == outcome for o in before], bool), np.array([o == outcome for o in after], bool)
+            entry[f"{metric}_original"] = wilson_rate(int(x.sum()), n)
+            entry[f"{metric}_swapped"] = wilson_rate(int(y.sum()), n)
+            entry[f"{metric}_change"] = _paired_change(x, y, resamples)
+        # Where the gripper ends (the instructed object vs the partner), for policies whose grasp can miss.
+        ends = [ends_near(s[[f"{c}_{v}" for c in ("tcp_x", "tcp_y", "layout")]].set_axis(
+            ["tcp_x", "tcp_y", "layout"], axis=1), s["target_o"], s["partner"]) for v in "os"]
+        for i, metric in enumerate(("reaches_object", "reaches_place")):
+            if ends[0] is None or ends[1] is None:
+                entry.update({f"{metric}_{p}": None for p in ("original", "swapped", "change")})
+                continue
+            x, y = ends[0][i], ends[1][i]
+            entry[f"{metric}_original"] = wilson_rate(int(x.sum()), n)
+            entry[f"{metric}_swapped"] = wilson_rate(int(y.sum()), n)
+            entry[f"{metric}_change"] = _paired_change(x, y, resamples)
+        entry["transitions"] = {"rows": list(PLACE_OUTCOMES), "columns": list(PLACE_OUTCOMES),
+                                "counts": counts.tolist()}
+        entry["pairs"] = {f"{a}/{b}": int(c) for (a, b), c in s.groupby(["target_s", "partner"]).size().items()}
+        out[key] = entry
     return out

@@ -37,7 +37,8 @@ FLUSH_SECONDS = 10.0
 NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite")
 # Fields added after run directories existed, with the value a config.json without them meant; they become env
 # reset options of every episode when not at that value (the probes, experiments/probes.py, set them).
-PRESENTATION = {"instructions": "canonical", "appearance": "original", "instruct": 0, "instruct_absent": None}
+PRESENTATION = {"instructions": "canonical", "appearance": "original", "instruct": 0, "instruct_absent": None,
+                "swap_positions": False}
 
 
 @dataclass
@@ -84,6 +85,10 @@ class EvalConfig:
     """instruct an object that is NOT on the table instead: k names the k-th absent object in the object list's
     order (apple, orange, rubiks_cube, mug, large_marker); the scene is unchanged (the absent-object probe plays
     0..4-num_objects); None: instruct a present object"""
+    swap_positions: bool = False
+    """the instructed object and one distractor (chosen from the seed) exchange places, everything else unchanged
+    (the position-swap probe; task/layouts.py Layout.positions_swapped; needs 2+ objects): scenes where no
+    distractor fits collision-free play unswapped and say so (no position_swap in their layout)"""
 
     def __post_init__(self):
         self.out = None if self.out is None else Path(self.out)
@@ -134,6 +139,13 @@ class EvalConfig:
             if self.instruct != 0:
                 raise ValueError(f"instruct {self.instruct} and instruct_absent {self.instruct_absent} each name the "
                                  "instructed object; give one")
+        if self.swap_positions:
+            if min(self.grid.num_objects) < 2:
+                raise ValueError(f"swap_positions needs at least two objects on the table; got --num-objects "
+                                 f"{' '.join(map(str, self.grid.num_objects))} (allowed: 2-5)")
+            if self.instruct_absent is not None:
+                raise ValueError("swap_positions moves the instructed object and instruct_absent names one that is "
+                                 "not on the table; give one")
 
     @property
     def conditions(self) -> list[Condition]:

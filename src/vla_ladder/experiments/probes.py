@@ -18,6 +18,9 @@ DIR/probe.json (metrics with 95% intervals, evaluation/grounding.py), DIR/<probe
   object NOT on the table, instructing it (absent-k; the scene is identical). A policy that grounds the words in
   what it sees has nothing to grasp; one that maps the words to a place goes to where the named object usually
   stood (shortcut reach); one that ignores the instruction grasps what it grasps anyway.
+- position-swap: each scene as it is (original) and with the instructed object and one distractor exchanging
+  places (swapped; everything else identical). A policy that follows the named object goes to its new place; a
+  location shortcut grasps the partner, which now stands where the instructed object stood.
 
 Rerunning the same command resumes every variant; another request into DIR is refused unless --overwrite.
 """
@@ -42,7 +45,7 @@ from vla_ladder.policies import POLICY_KINDS, Policy, parse_spec
 from vla_ladder.task.appearance import SWAPS, SWAPS_VERSION
 from vla_ladder.task.instructions import INSTRUCTION_SETS, paraphrase_version
 
-PROBES = ("instruction-swap", "paraphrase", "appearance-swap", "absent-object")
+PROBES = ("instruction-swap", "paraphrase", "appearance-swap", "absent-object", "position-swap")
 PROBE_OBJECTS = {"absent-object": 3}
 """Objects on the table when --num-objects is not given, where a probe's differ from five: absent-object needs
 objects off the table (with three, two are absent in every scene)."""
@@ -72,7 +75,7 @@ class ProbeConfig:
     """Probe instruction grounding on the same seeded scenes (`vla-ladder probe NAME --policy SPEC --out DIR`)."""
 
     name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
-    """the probe: instruction-swap, paraphrase, appearance-swap or absent-object"""
+    """the probe: instruction-swap, paraphrase, appearance-swap, absent-object or position-swap"""
     policy: str | None = None
     """policy spec: scripted, ppo:PATH, lerobot:DIR, nearest, layout-prior, random (required on the command line)"""
     out: Path | None = None
@@ -117,7 +120,7 @@ class ProbeConfig:
         if self.resamples < 100:
             raise ValueError(f"--resamples must be >= 100, got {self.resamples}")
         counts = self.grid.num_objects
-        if self.name in ("instruction-swap", "appearance-swap") and min(counts) < 2:
+        if self.name in ("instruction-swap", "appearance-swap", "position-swap") and min(counts) < 2:
             raise ValueError(f"{self.name} needs at least two objects on the table; got --num-objects "
                              f"{' '.join(map(str, counts))} (allowed: 2-5)")
         if self.name == "absent-object" and max(counts) == MAX_OBJECTS:
@@ -139,6 +142,8 @@ class ProbeConfig:
             plays.update({f"absent-{k}": dict(grid=ConditionGrid(g.regimes, g.splits, tuple(
                 n for n in g.num_objects if n < MAX_OBJECTS - k)), instruct_absent=k)
                 for k in range(MAX_OBJECTS - min(g.num_objects))})
+        elif self.name == "position-swap":  # scenes without a collision-free swap play unswapped (left out)
+            plays = {"original": dict(grid=g), "swapped": dict(grid=g, swap_positions=True)}
         elif self.name == "paraphrase":  # with the distractor-free control: one object on the table
             control = ConditionGrid(g.regimes, g.splits, tuple(sorted({*g.num_objects, 1}, reverse=True)))
             plays = {s: dict(grid=control, instructions=s) for s in INSTRUCTION_SETS}
@@ -181,6 +186,8 @@ def probe_results(probe: str, runs: dict[str, Run], resamples: int) -> dict:
         absent = pd.concat([r.episodes.assign(absent=int(name.rsplit("-", 1)[1])) for name, r in runs.items()
                             if name != "present"], ignore_index=True)
         return grounding.absent_object(runs["present"].episodes, absent, resamples)
+    if probe == "position-swap":
+        return grounding.position_swap(runs["original"].episodes, runs["swapped"].episodes, resamples)
     if probe == "appearance-swap":
         return grounding.appearance_swap(runs["original"].episodes, runs["swap"].episodes, resamples)
     return grounding.paraphrase({name: r.episodes for name, r in runs.items()}, resamples)

@@ -4,7 +4,7 @@ A probe directory holds probe.json (experiments/probes.py) and its variants' run
 a probe next to any run it is given (a run directory whose parent holds probe.json) or is handed the probe
 directories directly. Every value is shown with its 95% interval: Wilson for proportions over scenes, a
 bootstrap over scenes where plays of one scene are pooled (grounded accuracy, mutual information, the absent
-plays of a scene).
+plays of a scene); McNemar's exact p with every paired change.
 """
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ SWAP_METRICS = {"instruction_sensitivity": "instruction sensitivity", "scene_acc
 COLOUR_OUTCOMES = ("instructed", "partner", "other", "none")
 COLOUR_NAMES = {"instructed": "instructed object (shape)", "partner": "colour partner (colour)",
                 "other": "another object", "none": "nothing"}
+PLACE_NAMES = {"instructed": "instructed object (follows the object)",
+               "partner": "swap partner (follows the place)", "other": "another object", "none": "nothing"}
 WORDINGS = ("canonical", "paraphrase-train", "paraphrase-heldout")
 ABSENT_SERIES = {"grasp_present": "grasp, own target named", "grasp_absent": "grasp, absent object named",
                  "shortcut_reach": "ends at an empty usual place of the absent object",
@@ -53,6 +55,17 @@ EXPLAIN = {
     "holds. A policy that grounds the words in what it sees grasps nothing; one that maps them to a place goes "
     "there (high shortcut reach); one that ignores them grasps as often, and the same object, as when its own "
     "target is named.",
+    "position-swap": "The same scenes with the instructed object and one distractor (its partner, chosen from the "
+    "seed) exchanging places, each keeping its yaw; the other objects, colours, robot start and instruction are "
+    "unchanged (task/layouts.py Layout.positions_swapped). Shares of what is held, original → swapped: the "
+    "instructed object (<b>follows the object</b>) or the partner, which in the swapped play stands where the "
+    "instructed object stood (<b>follows the place</b>; in the original play holding it is an ordinary wrong "
+    "grasp). Δ is the paired change (bootstrap over scenes) with McNemar's exact p. A grounded policy follows the "
+    "object in both plays; a location shortcut's follows-object drops and its follows-place rises; a policy that "
+    "ignores the instruction grasps by its own rule. <b>Gripper ends at the object / place</b>: the TCP ends "
+    "within 5 cm (horizontally) of the instructed object's / the partner's footprint, nearer it than the other, "
+    "whatever is held (a place-follower whose grasp does not fit the partner's shape still goes there). Scenes "
+    "where no distractor fitted collision-free played unswapped and are left out.",
 }
 
 
@@ -128,19 +141,36 @@ def table_html(data: dict) -> str:
                  *(["n/a (no usual place)"] * 2 if c["shortcut_reach"] is None else
                    [_cell(c["shortcut_reach"]), _cell(c["usual_place_empty"])]), _cell(c["same_grasp"])]
                 for k, c in conds.items()]
+    elif name == "position-swap":
+        head = ["condition", "swapped scenes", "follows object: original → swapped", "Δ follows object",
+                "follows place: original → swapped", "Δ follows place",
+                *(f"{PLACE_NAMES[o]}: original → swapped" for o in ("other", "none")),
+                "gripper ends at the object: original → swapped", "gripper ends at the place: original → swapped"]
+        rows = [[html.escape(k), f"{c['swapped']} of {c['scenes']}",
+                 f"{_cell(c['follows_object_original'])} → {_cell(c['follows_object_swapped'])}",
+                 _delta(c["follows_object_change"]),
+                 f"{_cell(c['follows_place_original'])} → {_cell(c['follows_place_swapped'])}",
+                 _delta(c["follows_place_change"])]
+                + [f"{_cell(c['original'][o])} → {_cell(c['swap'][o])}" for o in ("other", "none")]
+                + ["n/a (no TCP recorded)" if c[f"{m}_original"] is None else
+                   f"{_cell(c[f'{m}_original'])} → {_cell(c[f'{m}_swapped'])}"
+                   for m in ("reaches_object", "reaches_place")]
+                for k, c in conds.items()]
     else:
         head = ["condition", "swapped scenes", *(f"{COLOUR_NAMES[o]}: no swap → swap" for o in COLOUR_OUTCOMES),
                 "Δ follows shape"]
         rows = [[html.escape(k), f"{c['swapped']} of {c['scenes']}"]
                 + [f"{_cell(c['original'][o])} → {_cell(c['swap'][o])}" for o in COLOUR_OUTCOMES]
                 + [_delta(c["shape_change"])] for k, c in conds.items()]
-    unit = {"instruction-swap": " (NMI on [0, 1])", "absent-object": "; Δ in points"}.get(name, "")
+    unit = {"instruction-swap": " (NMI on [0, 1])", "absent-object": "; Δ in points",
+            "position-swap": "; Δ in points"}.get(name, "")
     return _table(head, rows) + f"<p class=note>In %, 95% intervals in brackets{unit}.</p>"
 
 
 def matrices_html(data: dict) -> str:
     """The pooled instructed x held matrices (instruction swap) or transition tables (appearance swap)."""
-    key = {"instruction-swap": "matrix", "appearance-swap": "transitions", "absent-object": "matrix"}.get(data["probe"])
+    key = {"instruction-swap": "matrix", "appearance-swap": "transitions", "absent-object": "matrix",
+           "position-swap": "transitions"}.get(data["probe"])
     if key is None:
         return ""
     parts = []
@@ -148,7 +178,8 @@ def matrices_html(data: dict) -> str:
         m = c[key]
         rows = [[f"<b>{html.escape(r)}</b>", *map(str, counts)] for r, counts in zip(m["rows"], m["counts"])]
         corner = {"instruction-swap": "instructed \\ held", "appearance-swap": "no swap \\ swap",
-                  "absent-object": "named (absent) \\ held"}[data["probe"]]
+                  "absent-object": "named (absent) \\ held",
+                  "position-swap": "held: original \\ swapped"}[data["probe"]]
         parts.append(f"<p>{html.escape(cond)}</p>" + _table([corner, *map(html.escape, m["columns"])], rows))
     return "<details><summary>Counts</summary>" + "".join(parts) + "</details>"
 
@@ -167,7 +198,7 @@ def plot_probe(data: dict, path: str | Path) -> list[Path]:
     """The probe's figure at `path` (and, for the instruction swap, its matrices next to it)."""
     path = Path(path)
     draw = {"instruction-swap": _plot_swap, "paraphrase": _plot_paraphrase, "appearance-swap": _plot_appearance,
-            "absent-object": _plot_absent}
+            "absent-object": _plot_absent, "position-swap": _plot_position}
     out = [draw[data["probe"]](data, path)]
     if data["probe"] in ("instruction-swap", "absent-object"):
         # (absent-object: the rows are the named objects, all absent, so every grasp counted is a substitute)
@@ -233,19 +264,28 @@ def _plot_paraphrase(data: dict, path: Path) -> Path:
 
 
 def _plot_appearance(data: dict, path: Path) -> Path:
+    return _plot_outcomes(data, path, COLOUR_NAMES, ("no swap", "swap"))
+
+
+def _plot_position(data: dict, path: Path) -> Path:
+    return _plot_outcomes(data, path, PLACE_NAMES, ("original", "swapped"))
+
+
+def _plot_outcomes(data: dict, path: Path, names: dict[str, str], plays: tuple[str, str]) -> Path:
+    """Stacked shares of what is held, one bar per condition and play (without and with the swap)."""
     plt = _plt()
     conds = data["conditions"]
     fig, ax = plt.subplots(figsize=(6.5, max(2.4, 0.9 * len(conds) + 1.2)))
     labels, rows = [], []
     for key, c in conds.items():
-        for variant, text in (("original", "no swap"), ("swap", "swap")):
+        for variant, text in zip(("original", "swap"), plays):
             labels.append(f"{key}  {text}")
             rows.append([c[variant][o]["value"] for o in COLOUR_OUTCOMES])
     shares = np.nan_to_num(np.array(rows, dtype=float).reshape(-1, len(COLOUR_OUTCOMES))) * 100
     left = np.zeros(len(labels))
     colours = ("tab:green", "tab:orange", "tab:gray", "lightgray")
     for j, o in enumerate(COLOUR_OUTCOMES):
-        ax.barh(range(len(labels)), shares[:, j], left=left, color=colours[j], label=COLOUR_NAMES[o])
+        ax.barh(range(len(labels)), shares[:, j], left=left, color=colours[j], label=names[o])
         left += shares[:, j]
     ax.set_yticks(range(len(labels)), labels, fontsize=7)
     ax.invert_yaxis()
@@ -270,6 +310,11 @@ def summary_lines(data: dict) -> list[str]:
             lines.append(f"{key}: scenes={c['scenes']} grasp present={c['grasp_present']['value']:.2f} "
                          f"absent={c['grasp_absent']['value']:.2f} shortcut_reach={reach} "
                          f"same_grasp={c['same_grasp']['value']:.2f}")
+        elif name == "position-swap":
+            lines.append(f"{key}: swapped={c['swapped']}/{c['scenes']} follows_object "
+                         f"{c['follows_object_original']['value']:.2f} -> {c['follows_object_swapped']['value']:.2f} "
+                         f"follows_place {c['follows_place_original']['value']:.2f} -> "
+                         f"{c['follows_place_swapped']['value']:.2f}")
         else:
             lines.append(f"{key}: swapped={c['swapped']} follows_shape={c['follows_shape']['value']:.2f} "
                          f"(no swap {c['original']['instructed']['value']:.2f}) "

@@ -104,6 +104,9 @@ class GraspObjectEnv(BaseEnv):
     object list's order), which keeps the same scene and instructs that object (the absent-object probe): it stays
     parked off the table, so success and reach are False by construction. A name given to "instruct" must be on
     the table: asking for an absent object takes the explicit "instruct_absent", so a mistyped swap still fails.
+    "swap_positions" (True, or a list of bools, one per reset env) exchanges the places of the instructed object
+    and one distractor chosen from the seed (`Layout.positions_swapped`: collision-free, each keeps its yaw), the
+    rest of the scene unchanged (the position-swap probe); a scene where no distractor fits plays unswapped.
 
     Success: the instructed object is grasped (both fingers push on it) at the final step. Episodes
     always run 50 steps (2.5 s at 20 Hz, physics at 100 Hz) and never terminate early. `info` also holds
@@ -241,8 +244,9 @@ class GraspObjectEnv(BaseEnv):
         options["conditions"], one Condition (or key) per reset env, overrides the env's own condition for
         these episodes (one GPU env can then train on a mixture of conditions). options["instructions"] and
         options["appearance"] override the env's own for these episodes; options["instruct"] (an object name or
-        present-object rank, or a list with one per reset env) instructs another object of the same scene, and
-        options["instruct_absent"] (a name or rank among the absent objects, or a list) an object not on it."""
+        present-object rank, or a list with one per reset env) instructs another object of the same scene,
+        options["instruct_absent"] (a name or rank among the absent objects, or a list) an object not on it, and
+        options["swap_positions"] (a bool, or a list) exchanges the instructed object's place with a distractor's."""
         options = dict(options or {})
         env_idx = options.get("env_idx")
         idx = np.arange(self.num_envs) if env_idx is None else np.asarray(
@@ -269,7 +273,7 @@ class GraspObjectEnv(BaseEnv):
             check_instruction_set(options["instructions"])
         if options.get("appearance") is not None and check_appearance(options["appearance"]) != "original":
             self._check_paintable()
-        for name in ("instruct", "instruct_absent"):
+        for name in ("instruct", "instruct_absent", "swap_positions"):
             value = options.get(name)
             if isinstance(value, (list, tuple)) and len(value) != len(idx):
                 raise ValueError(f"got {len(value)} {name} values for {len(idx)} envs being reset")
@@ -277,6 +281,13 @@ class GraspObjectEnv(BaseEnv):
         if any(a is not None and b is not None for a, b in zip(*both)):
             raise ValueError("instruct (a present object) and instruct_absent (an absent one) name the instructed "
                              "object each; give one per env")
+        swap = _per_env(options.get("swap_positions"), len(idx))
+        if any(v is not None and not isinstance(v, (bool, np.bool_)) for v in swap):
+            raise ValueError(f"swap_positions must be True or False (or a list with one per env), got "
+                             f"{options['swap_positions']!r}")
+        if any(s and a is not None for s, a in zip(swap, both[1])):
+            raise ValueError("swap_positions moves the instructed object, and instruct_absent names one that is not "
+                             "on the table; give one per env")
         return super().reset(seed=None if seed is None else [int(s) for s in seeds] if env_idx is None
                              else None, options=options)
 
@@ -297,6 +308,7 @@ class GraspObjectEnv(BaseEnv):
         look = options.get("appearance") or self.appearance
         instruct = _per_env(options.get("instruct"), b)
         instruct_absent = _per_env(options.get("instruct_absent"), b)
+        swap_positions = _per_env(options.get("swap_positions"), b)
         centers = self._center.cpu().numpy()  # once, not per object and env: on CUDA each .cpu() waits on the GPU
         for row, i in enumerate(ids):
             seed = int(self._layout_seeds[i])
@@ -306,6 +318,9 @@ class GraspObjectEnv(BaseEnv):
             if instruct_absent[row] is not None:
                 # Only the target changes: the absent object stays parked, present stays the layout's objects.
                 lay = lay.instructed_absent(instruct_absent[row])
+            if swap_positions[row]:
+                # After "instruct": the object the instruction names is the one that moves.
+                lay = lay.positions_swapped()
             # A rebuilt scene has fresh materials (layouts[i] is None); a kept one may still wear the last swap.
             worn = self.layouts[i] is not None and self.layouts[i].colour_swap is not None
             if self._looks is not None and (lay.colour_swap is not None or worn):

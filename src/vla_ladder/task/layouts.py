@@ -40,6 +40,7 @@ HELD_OUT_REGIONS: tuple[frozenset[int], ...] = tuple(
     frozenset(range(NUM_OBJECTS)) - TRAIN_REGIONS[i] for i in range(NUM_OBJECTS))
 MIN_GAP = 0.01  # free space kept between object footprints
 MAX_TRIES = 2000
+_POSITION_STREAM = 0x5A4B0  # the random stream of a position swap's partner order (Layout.position_partners)
 
 
 @dataclass(frozen=True)
@@ -63,6 +64,9 @@ class Layout:
     absent_target: str | None = None
     """an object NOT on the table that the instruction names instead of objects[0] (the absent-object probe,
     `instructed_absent`); None: the target is objects[0]"""
+    position_swap: tuple[str, str] | None = None
+    """(instructed object, distractor) whose positions were exchanged (the position-swap probe,
+    `positions_swapped`); None: every object stands where the seed put it"""
 
     @property
     def target(self) -> str:
@@ -122,6 +126,41 @@ class Layout:
             name = OBJECT_NAMES[object_index(obj)]
         return replace(self, absent_target=name)
 
+    def position_partners(self) -> tuple[str, ...]:
+        """The distractors, in the order `positions_swapped` tries them: a seed-determined permutation on a random
+        stream of its own (the first is the seed's partner, the others the fallbacks), so layouts are unchanged."""
+        rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFFFFFFFFFF, _POSITION_STREAM])
+        return tuple(self.objects[1 + int(k)] for k in rng.permutation(len(self.objects) - 1))
+
+    def positions_swapped(self) -> "Layout":
+        """The same scene with the instructed object and one distractor exchanging places (xy and region; each
+        keeps its own yaw): the counterfactual of the position-swap probe. Everything else (the other objects,
+        colours, wording, robot start) is unchanged. The distractor is the first of `position_partners` whose
+        exchange leaves every pair of footprints MIN_GAP apart, as the sampler requires (objects differ in size,
+        so a place that fits one may not fit the other), and, under full random, every footprint on the
+        workspace; when none fits, the scene is returned unchanged (`position_swap` None), as an appearance swap
+        without a partner is. Yaw stays: footprints are circles, so it cannot change a collision, and a
+        rotated object would be a second change."""
+        if self.absent_target is not None:
+            raise ValueError(f"cannot swap positions in seed {self.seed}: the instructed object "
+                             f"{self.absent_target!r} is not on the table")
+        if self.position_swap is not None:
+            return self
+        radii = tuple(OBJECTS[object_index(n)].footprint_radius for n in self.objects)
+        for partner in self.position_partners():
+            k = self.objects.index(partner)
+            xy = self.xy.copy()
+            xy[[0, k]] = xy[[k, 0]]
+            points = [tuple(p) for p in xy.tolist()]
+            if any(_collides(points, radii, i) for i in range(1, len(points))):
+                continue
+            if self.regions is None and not _on_workspace(xy, radii):
+                continue
+            regions = None if self.regions is None else tuple(
+                self.regions[{0: k, k: 0}.get(i, i)] for i in range(len(self.regions)))
+            return replace(self, xy=xy, regions=regions, position_swap=(self.objects[0], partner))
+        return self
+
     def to_dict(self) -> dict:
         out = {
             "seed": self.seed, "regime": self.condition.regime, "split": self.condition.split, "target": self.target,
@@ -137,6 +176,8 @@ class Layout:
             out["colour_swap"] = list(self.colour_swap)
         if self.absent_target is not None:  # "target" names an object that "positions" does not hold
             out["absent_target"] = True
+        if self.position_swap is not None:  # "positions" and "regions" are where the objects stand after it
+            out["position_swap"] = list(self.position_swap)
         return out
 
 
@@ -174,6 +215,13 @@ def _collides(xy: list[tuple[float, float]], radii: tuple[float, ...], i: int) -
         if math.sqrt(dx * dx + dy * dy) < radii[j] + radii[i] + MIN_GAP:
             return True
     return False
+
+
+def _on_workspace(xy: np.ndarray, radii: tuple[float, ...]) -> bool:
+    """Every footprint lies on the workspace: what full_random's sampling boxes guarantee (_boxes)."""
+    r = np.asarray(radii)[:, None]
+    lo, hi = WORKSPACE_CENTER - WORKSPACE_SIZE / 2, WORKSPACE_CENTER + WORKSPACE_SIZE / 2
+    return bool(((xy - r >= lo) & (xy + r <= hi)).all())
 
 
 @lru_cache(maxsize=None)
@@ -262,8 +310,10 @@ def sample_layouts(condition: Condition, seeds=(0,), target: str | None = None, 
 
 def layout_from_dict(data: dict) -> Layout:
     """The layout that the seed of a recorded `Layout.to_dict()` gives, sampled again (dataset checks compare
-    the two): condition, object count, instruction set and appearance as the dict says."""
+    the two): condition, object count, instruction set, appearance and position swap as the dict says."""
     condition = Condition(data["regime"], data["split"], len(data["positions"]))
     lay = sample_layout(condition, int(data["seed"]), instructions=data.get("instructions", CANONICAL),
                         appearance="swap" if data.get("colour_swap") else "original")
+    if data.get("position_swap"):
+        lay = lay.positions_swapped()
     return lay.instructed_absent(data["target"]) if data.get("absent_target") else lay
