@@ -172,6 +172,23 @@ def _matrix(table: pd.DataFrame) -> dict:
 
 
 # ---------------------------------------------------------------------- paired variants
+def paired_change(x: np.ndarray, y: np.ndarray, resamples: int = RESAMPLES) -> dict:
+    """y - x of paired per-scene outcomes (bool arrays): its mean, a bootstrap interval over scenes and McNemar's
+    exact p."""
+    d = y.astype(float) - x.astype(float)
+    lo, hi = bootstrap(lambda idx: d[idx].mean(1), len(d), resamples)
+    return {"value": float(d.mean()) if len(d) else float("nan"), "ci95": [lo, hi], "method": "bootstrap over scenes",
+            "n": int(len(d)), "mcnemar_p": mcnemar_exact(int((x & ~y).sum()), int((~x & y).sum()))}
+
+
+def transitions(before: list[str], after: list[str], outcomes: tuple[str, ...]) -> dict:
+    """Counts of what is held in one play (rows) against the other (columns), every outcome shown."""
+    counts = np.zeros((len(outcomes), len(outcomes)), dtype=int)
+    for a, b in zip(before, after):
+        counts[outcomes.index(a), outcomes.index(b)] += 1
+    return {"rows": list(outcomes), "columns": list(outcomes), "counts": counts.tolist()}
+
+
 def paired(a: pd.DataFrame, b: pd.DataFrame, metrics=METRICS, resamples: int = RESAMPLES) -> dict:
     """Per condition: both variants' rates (Wilson), and per metric the paired difference b - a with a bootstrap
     interval over scenes and McNemar's exact p-value. Episodes pair on condition and episode index."""
@@ -183,12 +200,8 @@ def paired(a: pd.DataFrame, b: pd.DataFrame, metrics=METRICS, resamples: int = R
     for key, g in _by_condition(merged):
         diffs = {}
         for m in metrics:
-            x, y = g[f"{m}_a"].astype(bool).to_numpy(), g[f"{m}_b"].astype(bool).to_numpy()
-            d = y.astype(float) - x.astype(float)
-            lo, hi = bootstrap(lambda idx: d[idx].mean(1), len(d), resamples)
-            diffs[m] = {"value": float(d.mean()) if len(d) else float("nan"), "ci95": [lo, hi],
-                        "method": "bootstrap over scenes", "n": int(len(d)),
-                        "mcnemar_p": mcnemar_exact(int((x & ~y).sum()), int((~x & y).sum()))}
+            diffs[m] = paired_change(g[f"{m}_a"].astype(bool).to_numpy(), g[f"{m}_b"].astype(bool).to_numpy(),
+                                     resamples)
         out[key] = {"n": int(len(g)), "difference": diffs}
     return out
 
@@ -238,24 +251,16 @@ def appearance_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: in
         before = [colour_outcome(h, t, p) for h, t, p in zip(s["held_o"], s["target_o"], s["partner"])]
         after = [colour_outcome(h, t, p) for h, t, p in zip(s["held_s"], s["target_s"], s["partner"])]
         n = len(s)
-        trans = pd.crosstab(pd.Categorical(before, categories=COLOUR_OUTCOMES),
-                            pd.Categorical(after, categories=COLOUR_OUTCOMES), dropna=False)
-        x = np.array([o == "instructed" for o in before])
-        y = np.array([o == "instructed" for o in after])
-        d = y.astype(float) - x.astype(float)
-        lo, hi = bootstrap(lambda idx: d[idx].mean(1), n, resamples)
+        x = np.array([o == "instructed" for o in before], bool)
+        y = np.array([o == "instructed" for o in after], bool)
         out[key] = {
             "scenes": int(len(g)), "swapped": n,
             "original": {o: wilson_rate(before.count(o), n) for o in COLOUR_OUTCOMES},
             "swap": {o: wilson_rate(after.count(o), n) for o in COLOUR_OUTCOMES},
             "follows_shape": wilson_rate(after.count("instructed"), n),
             "follows_colour": wilson_rate(after.count("partner"), n),
-            "shape_change": {"value": float(d.mean()) if n else float("nan"), "ci95": [lo, hi],
-                             "method": "bootstrap over scenes", "n": n,
-                             "mcnemar_p": mcnemar_exact(int((x & ~y).sum()), int((~x & y).sum()))},
-            "transitions": {"rows": list(COLOUR_OUTCOMES), "columns": list(COLOUR_OUTCOMES),
-                            "counts": trans.reindex(index=list(COLOUR_OUTCOMES), columns=list(COLOUR_OUTCOMES),
-                                                    fill_value=0).astype(int).values.tolist()},
+            "shape_change": paired_change(x, y, resamples),
+            "transitions": transitions(before, after, COLOUR_OUTCOMES),
             "pairs": {f"{a}/{b}": int(c) for (a, b), c in
                       s.groupby(["target_s", "partner"]).size().items()},
         }
@@ -330,14 +335,6 @@ def absent_object(present: pd.DataFrame, absent: pd.DataFrame, resamples: int = 
 
 
 # ---------------------------------------------------------------------- position swap
-def _paired_change(x: np.ndarray, y: np.ndarray, resamples: int) -> dict:
-    """y - x of paired per-scene outcomes: its mean, a bootstrap interval over scenes and McNemar's exact p."""
-    d = y.astype(float) - x.astype(float)
-    lo, hi = bootstrap(lambda idx: d[idx].mean(1), len(d), resamples)
-    return {"value": float(d.mean()) if len(d) else float("nan"), "ci95": [lo, hi], "method": "bootstrap over scenes",
-            "n": int(len(d)), "mcnemar_p": mcnemar_exact(int((x & ~y).sum()), int((~x & y).sum()))}
-
-
 def ends_near(plays: pd.DataFrame, target: str, partner: str) -> tuple[np.ndarray, np.ndarray] | None:
     """Per play: whether the TCP ends at the instructed object or at the partner, whatever it grasped: within
     REACH_THRESHOLD (5 cm, horizontally) of that object's footprint circle (centre from the play's layout), and
@@ -375,9 +372,6 @@ def position_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: int 
         n = len(s)
         before = [colour_outcome(h, t, p) for h, t, p in zip(s["held_o"], s["target_o"], s["partner"])]
         after = [colour_outcome(h, t, p) for h, t, p in zip(s["held_s"], s["target_s"], s["partner"])]
-        counts = np.zeros((len(PLACE_OUTCOMES), len(PLACE_OUTCOMES)), dtype=int)  # (any n, 0 included)
-        for o, o2 in zip(before, after):
-            counts[PLACE_OUTCOMES.index(o), PLACE_OUTCOMES.index(o2)] += 1
         entry = {"scenes": int(len(g)), "swapped": n, "no_swap": int(len(g) - n),
                  "original": {o: wilson_rate(before.count(o), n) for o in PLACE_OUTCOMES},
                  "swap": {o: wilson_rate(after.count(o), n) for o in PLACE_OUTCOMES}}
@@ -385,7 +379,7 @@ def position_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: int 
             x, y = np.array([o == outcome for o in before], bool), np.array([o == outcome for o in after], bool)
             entry[f"{metric}_original"] = wilson_rate(int(x.sum()), n)
             entry[f"{metric}_swapped"] = wilson_rate(int(y.sum()), n)
-            entry[f"{metric}_change"] = _paired_change(x, y, resamples)
+            entry[f"{metric}_change"] = paired_change(x, y, resamples)
         # Where the gripper ends (the instructed object vs the partner), for policies whose grasp can miss.
         ends = [ends_near(s[[f"{c}_{v}" for c in ("tcp_x", "tcp_y", "layout")]].set_axis(
             ["tcp_x", "tcp_y", "layout"], axis=1), s["target_o"], s["partner"]) for v in "os"]
@@ -396,9 +390,8 @@ def position_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: int 
             x, y = ends[0][i], ends[1][i]
             entry[f"{metric}_original"] = wilson_rate(int(x.sum()), n)
             entry[f"{metric}_swapped"] = wilson_rate(int(y.sum()), n)
-            entry[f"{metric}_change"] = _paired_change(x, y, resamples)
-        entry["transitions"] = {"rows": list(PLACE_OUTCOMES), "columns": list(PLACE_OUTCOMES),
-                                "counts": counts.tolist()}
+            entry[f"{metric}_change"] = paired_change(x, y, resamples)
+        entry["transitions"] = transitions(before, after, PLACE_OUTCOMES)
         entry["pairs"] = {f"{a}/{b}": int(c) for (a, b), c in s.groupby(["target_s", "partner"]).size().items()}
         out[key] = entry
     return out
