@@ -32,7 +32,7 @@ import json
 import sys
 from collections import Counter
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from pathlib import Path
 from typing import Annotated
 
@@ -185,7 +185,7 @@ class Checker:
         self.summary["layouts"] = {"checked": len(self.layouts), "mismatched": bad}
 
     def frames(self) -> None:
-        data = self._data([])
+        data = self._frames
         lengths = self._episodes_meta().set_index("episode_index")["length"].to_dict()
         recorded = dict(zip(self.prov["episode_index"], self.prov["num_frames"])) if len(self.prov) else {}
         for ep, g in data.groupby("episode_index"):
@@ -207,7 +207,7 @@ class Checker:
         self.summary["frames"] = {"total": int(len(data)), "per_episode": per_episode}
 
     def actions(self) -> None:
-        data = self._data([ACTION_KEY, STATE_KEY])
+        data = self._frames
         action = np.stack(data[ACTION_KEY].to_numpy()) if len(data) else np.zeros((0, 7))
         state = np.stack(data[STATE_KEY].to_numpy()) if len(data) else np.zeros((0, 15))
         outside = ~np.isfinite(action) | (np.abs(action) > 1 + ACTION_TOLERANCE)
@@ -280,7 +280,7 @@ class Checker:
         except ValueError as e:  # e.g. recorded with YCB meshes that this machine lacks: cannot say, no violation
             out["note"] = f"not replayed: {e}"
             return
-        data = self._data([ACTION_KEY, STATE_KEY])
+        data = self._frames
         episodes = {int(ep): g.sort_values("frame_index") for ep, g in data.groupby("episode_index")}
         try:
             for row in rows.itertuples(index=False):
@@ -326,9 +326,11 @@ class Checker:
         meta = self._episodes_meta()
         return {int(e): list(t) for e, t in zip(meta["episode_index"], meta["tasks"])}
 
-    def _data(self, keys: list[str]) -> pd.DataFrame:
+    @cached_property
+    def _frames(self) -> pd.DataFrame:
+        """Every frame's indices, action and state, read once for the checks that need them."""
         paths = sorted((self.root / "data").glob("*/*.parquet"))
-        cols = ["episode_index", "frame_index", *keys]
+        cols = ["episode_index", "frame_index", ACTION_KEY, STATE_KEY]
         if not paths:
             return pd.DataFrame(columns=cols)
         return pd.concat([pd.read_parquet(p, columns=cols) for p in paths], ignore_index=True)
