@@ -61,3 +61,28 @@ def make_run(out: Path, policy: str, conditions: list[tuple[str, str, int]], kin
                                       "episodes_per_condition": len(kinds), "conditions": summarize(df)})
     write_json(out / "config.json", {"policy": policy, "first_seed": seed, "episodes": len(kinds)})
     return out
+
+
+CHROMIUM = "/usr/bin/chromium"
+
+
+def first_table_row(page: Path, table_text: str) -> tuple[list[int], dict[str, str]]:
+    """Open `page` in headless Chromium (Debian's, as scripts/setup.sh installs it): the natural widths of its
+    images once all have decoded, and the first data row of the first table containing `table_text`, as
+    {header: cell}."""
+    from playwright.sync_api import sync_playwright
+
+    assert Path(CHROMIUM).exists(), "Debian's chromium is missing: scripts/setup.sh installs it"
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--headless", "--no-sandbox", "--disable-gpu"])
+        try:
+            tab = browser.new_page(viewport={"width": 1200, "height": 900})
+            tab.goto(f"file://{page}")
+            tab.wait_for_function("[...document.images].every(i => i.complete)", timeout=30000)
+            widths = tab.evaluate("[...document.images].map(i => i.naturalWidth)")
+            head, row = tab.evaluate("(text) => { const t = [...document.querySelectorAll('table')].find(t => "
+                                     "t.innerText.includes(text)); return [t.rows[0].innerText, "
+                                     "t.rows[1].innerText]; }", table_text)
+        finally:
+            browser.close()
+    return widths, dict(zip(head.split("\t"), row.split("\t")))

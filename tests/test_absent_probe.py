@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
+from report_fixtures import first_table_row
 
 from vla_ladder.cli import main
 from vla_ladder.conditions import Condition, ConditionGrid
@@ -258,22 +259,7 @@ def test_absent_object_calibration_layout_prior_and_nearest(tmp_path):
     assert build_report([load_run(root / "present")], tmp_path / "r.html", placements=False).read_text().count(
         "Grounding probes") == 1
     # The probe's own page, in a real browser: its figures decode, and its table shows the shortcut.
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path="/usr/bin/chromium",
-                                     args=["--headless", "--no-sandbox", "--disable-gpu"])
-        try:
-            tab = browser.new_page(viewport={"width": 1200, "height": 900})
-            tab.goto(f"file://{root / 'report.html'}")
-            tab.wait_for_function("[...document.images].every(i => i.complete)", timeout=30000)
-            widths = tab.evaluate("[...document.images].map(i => i.naturalWidth)")
-            head, row = tab.evaluate("(() => { const t = [...document.querySelectorAll('table')].find(t => "
-                                     "t.innerText.includes('shortcut reach')); return [t.rows[0].innerText, "
-                                     "t.rows[1].innerText]; })()")
-        finally:
-            browser.close()
+    widths, cells = first_table_row(root / "report.html", "shortcut reach")
     assert len(widths) >= 2 and min(widths) > 300
-    cells = dict(zip(head.split("\t"), row.split("\t")))
     assert cells["condition"] == "small_jitter/canonical/3", cells
     assert next(v for k, v in cells.items() if k.startswith("shortcut reach")).startswith("100"), cells

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
+from report_fixtures import first_table_row
 
 from vla_ladder.cli import main
 from vla_ladder.conditions import Condition
@@ -199,23 +200,8 @@ def test_position_swap_calibration_layout_prior_and_scripted(tmp_path):
     assert "position-swap: layout-prior" in page and "follows place" in page and "held: original" in page
     assert (root / "position-swap.png").stat().st_size > 5000
     # The probe's own page, in a real browser: its figures decode, and its table shows the shortcut.
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path="/usr/bin/chromium",
-                                     args=["--headless", "--no-sandbox", "--disable-gpu"])
-        try:
-            tab = browser.new_page(viewport={"width": 1200, "height": 900})
-            tab.goto(f"file://{root / 'report.html'}")
-            tab.wait_for_function("[...document.images].every(i => i.complete)", timeout=30000)
-            widths = tab.evaluate("[...document.images].map(i => i.naturalWidth)")
-            head, row = tab.evaluate("(() => { const t = [...document.querySelectorAll('table')].find(t => "
-                                     "t.innerText.includes('follows place')); return [t.rows[0].innerText, "
-                                     "t.rows[1].innerText]; })()")
-        finally:
-            browser.close()
+    widths, cells = first_table_row(root / "report.html", "follows place")
     assert len(widths) >= 2 and min(widths) > 300
-    cells = dict(zip(head.split("\t"), row.split("\t")))
     assert cells["condition"] == "small_jitter/canonical/5", cells
     assert cells["swapped scenes"] == "8 of 8", cells
     assert next(v for k, v in cells.items() if k.startswith("gripper ends at the place")).split("→")[1].strip(
