@@ -104,6 +104,16 @@ def test_mixed_precision_as_lerobot_eval_runs_it(smolvla_run):
         parse_arg(f"{smolvla_run}?use_amp=maybe")
 
 
+def test_loading_leaves_nothing_in_the_temp_directory(smolvla_run, tmp_path, monkeypatch):
+    """LeRobot's config loader writes a temp file it never removes; two loads here leave the directory empty."""
+    import tempfile
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    for _ in range(2):
+        load_policy(f"lerobot:{smolvla_run}?n_action_steps=2", device="cpu")
+    assert list(tmp_path.iterdir()) == []
+    assert tempfile.gettempdir() == str(tmp_path)  # the caller's setting is back
+
+
 def test_checkpoint_paths_resolve(smolvla_run):
     ckpt = smolvla_run / "checkpoints" / "last" / "pretrained_model"
     assert resolve_checkpoint(smolvla_run) == ckpt

@@ -32,6 +32,23 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             os.unlink(tmp)
 
 
+@contextmanager
+def own_tempdir() -> Iterator[Path]:
+    """Point `tempfile`'s default directory at a fresh one for the block, and remove it with whatever was left.
+
+    For library calls that leave files behind: LeRobot's `PreTrainedConfig.from_pretrained` writes the config
+    it parses to a `NamedTemporaryFile(delete=False)` and never removes it, one file in /tmp per policy load,
+    thousands over a study. The setting is process-wide, so use it around loading, not around threaded work.
+    """
+    previous = tempfile.tempdir
+    with tempfile.TemporaryDirectory(prefix="vla-ladder-") as own:
+        tempfile.tempdir = own
+        try:
+            yield Path(own)
+        finally:
+            tempfile.tempdir = previous
+
+
 def write_json(path: str | os.PathLike, data: Any) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=_default) + "\n")

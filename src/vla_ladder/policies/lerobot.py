@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from vla_ladder.contract import ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IMAGE_SHAPE, STATE_DIM, STATE_KEY
+from vla_ladder.files import own_tempdir
 from vla_ladder.policies import Policy
 
 ENV_IMAGE_SHAPE = (IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1])  # CHW, as LeRobot declares visual features
@@ -155,7 +156,8 @@ class LeRobotPolicy(Policy):
         if use_amp is not None:
             overrides.append(f"--use_amp={str(bool(use_amp)).lower()}")
         try:
-            cfg = PreTrainedConfig.from_pretrained(self.path, cli_overrides=overrides)
+            with own_tempdir():  # LeRobot leaves a copy of the config in the temp directory otherwise
+                cfg = PreTrainedConfig.from_pretrained(self.path, cli_overrides=overrides)
         except Exception as e:  # draccus wraps the config's own checks (e.g. n_action_steps > chunk_size)
             raise ValueError(f"cannot use the checkpoint {str(self.path)!r} with {overrides}: {e}") from e
         rename_map = _saved_rename_map(self.path)

@@ -205,7 +205,8 @@ class TrainConfig:
         if self.pretrained:
             cfg = draccus.parse(TrainPipelineConfig, args=self.pipeline_flags() + extra_other)
             try:
-                cfg.policy = PreTrainedConfig.from_pretrained(self.pretrained, cli_overrides=policy_flags)
+                with files.own_tempdir():  # LeRobot leaves a copy of the config in the temp directory otherwise
+                    cfg.policy = PreTrainedConfig.from_pretrained(self.pretrained, cli_overrides=policy_flags)
             except Exception as e:  # hub errors come in many types; all mean the same here
                 raise ValueError(f"cannot load the pretrained config {self.pretrained!r} ({e}); offline, pass "
                                  "a local checkpoint directory or --pretrained none") from e
