@@ -74,6 +74,26 @@ def test_plots_write_pngs(runs, tmp_path):
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
 
 
+def test_study_probe_table_names_the_model_and_explains_its_probes():
+    """A study keys each probe by its directory, "<model>-<probe>"; the table's model column is the model alone,
+    and the page explains the probes it shows, not others."""
+    from vla_ladder.report.study import probe_rows, probes_html
+    m = {"value": 0.55, "ci95": [0.34, 0.74], "n": 20}
+    probes = {"SmolVLA-scratch-sj-position-swap": {"probe": "position-swap",
+                                                   "conditions": {"small_jitter/canonical/5": {"follows_object": m,
+                                                                                               "no_swap": 0}}},
+              "SmolVLA-scratch-sj-absent-object": {"probe": "absent-object",
+                                                   "conditions": {"small_jitter/canonical/4": {"grasp_absent": m}}}}
+    rows = probe_rows(probes)
+    assert rows == [["SmolVLA-scratch-sj", "position-swap", "small_jitter/canonical/5", "follows object",
+                     "55 [34, 74]", "20"],
+                    ["SmolVLA-scratch-sj", "absent-object", "small_jitter/canonical/4", "grasp absent",
+                     "55 [34, 74]", "20"]]
+    page = probes_html(probes)
+    assert "<b>position-swap</b>" in page and "<b>absent-object</b>" in page
+    assert "<b>instruction-swap</b>" not in page
+
+
 def test_experiment_configs_and_policy_entries():
     assert set(available()) >= {"ladder", "pairings", "data_scaling", "object_count"}
     assert [c.regime for c in ExperimentConfig.load("ladder").conditions] == \

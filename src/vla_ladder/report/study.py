@@ -13,6 +13,7 @@ from pathlib import Path
 from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.contract import METRICS
 from vla_ladder.files import atomic_path
+from vla_ladder.report.probes import EXPLAIN
 from vla_ladder.report.tables import METRIC_NAMES, REGIME_NAMES, SPLIT_NAMES, tex_escape
 
 SHORT = {"success": "S", "grasp_any": "G", "reach": "R"}
@@ -167,23 +168,21 @@ def plot_curves(curves: dict[str, list[dict]], path: str | Path, xlabel: str = "
     return Path(path)
 
 
-PROBE_METRICS = {"instruction-swap": ("instruction_sensitivity", "grounded_accuracy", "nmi"),
-                 "paraphrase": None, "appearance-swap": None}
-
-
 def _metric(m: dict) -> str:
     lo, hi = m["ci95"]
     return f"{_pct(m['value'])} [{_pct(lo)}, {_pct(hi)}]"
 
 
 def probe_rows(probes: dict[str, dict]) -> list[list[str]]:
-    """probes: model label -> probe.json data (or a unit's {probe, conditions}); one row per metric."""
+    """probes: the probe's directory name (model label, "-", probe) -> probe.json data (or a unit's {probe,
+    conditions}); one row per metric."""
     rows = []
-    for model, data in probes.items():
+    for name, data in probes.items():
+        model = name.removesuffix(f"-{data['probe']}")
         for cond, metrics in data["conditions"].items():
-            for name, m in metrics.items():
+            for metric, m in metrics.items():
                 if isinstance(m, dict) and "value" in m and "ci95" in m:
-                    rows.append([model, data["probe"], cond, name.replace("_", " "), _metric(m), str(m.get("n", ""))])
+                    rows.append([model, data["probe"], cond, metric.replace("_", " "), _metric(m), str(m.get("n", ""))])
     return rows
 
 
@@ -197,7 +196,7 @@ def probes_markdown(probes: dict[str, dict]) -> str:
 
 def probes_html(probes: dict[str, dict]) -> str:
     rows = "".join("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in r) + "</tr>" for r in probe_rows(probes))
+    kinds = [k for k in EXPLAIN if any(d["probe"] == k for d in probes.values())]
+    notes = "".join(f"<p class=note><b>{k}</b>. {EXPLAIN[k]}</p>" for k in kinds)
     return ("<table><tr><th>model</th><th>probe</th><th>condition</th><th>metric</th><th>value [95% CI]</th>"
-            f"<th>n</th></tr>{rows}</table><p class=note>Rates in %. Instruction sensitivity: share of scenes whose "
-            "grasped object changes with the instruction; grounded accuracy: P(grasped = instructed | something "
-            "grasped); NMI: mutual information of instruction and grasped object, normalised.</p>")
+            f"<th>n</th></tr>{rows}</table><p class=note>Rates in %.</p>{notes}")
