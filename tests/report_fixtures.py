@@ -7,7 +7,9 @@ writes them (episodes.parquet, summary.json, config.json, videos/*.mp4).
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any, Iterator
 
 import numpy as np
 import pandas as pd
@@ -66,23 +68,37 @@ def make_run(out: Path, policy: str, conditions: list[tuple[str, str, int]], kin
 CHROMIUM = "/usr/bin/chromium"
 
 
-def first_table_row(page: Path, table_text: str) -> tuple[list[int], dict[str, str]]:
-    """Open `page` in headless Chromium (Debian's, as scripts/setup.sh installs it): the natural widths of its
-    images once all have decoded, and the first data row of the first table containing `table_text`, as
-    {header: cell}."""
+@contextmanager
+def chromium_page(path: Path) -> Iterator[tuple[Any, list[str]]]:
+    """`path` opened in headless Chromium (Debian's, as scripts/setup.sh installs it), kept off the network, once
+    every image has decoded: yields the playwright page and the URLs of the requests that failed so far."""
     from playwright.sync_api import sync_playwright
 
     assert Path(CHROMIUM).exists(), "Debian's chromium is missing: scripts/setup.sh installs it"
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--headless", "--no-sandbox", "--disable-gpu"])
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=[
+            "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+            "--disable-component-update", "--disable-sync"])
         try:
             tab = browser.new_page(viewport={"width": 1200, "height": 900})
-            tab.goto(f"file://{page}")
+            failed: list[str] = []
+            tab.on("requestfailed", lambda r: failed.append(r.url[:80]))
+            tab.goto(f"file://{path}")
             tab.wait_for_function("[...document.images].every(i => i.complete)", timeout=30000)
-            widths = tab.evaluate("[...document.images].map(i => i.naturalWidth)")
-            head, row = tab.evaluate("(text) => { const t = [...document.querySelectorAll('table')].find(t => "
-                                     "t.innerText.includes(text)); return [t.rows[0].innerText, "
-                                     "t.rows[1].innerText]; }", table_text)
+            yield tab, failed
         finally:
             browser.close()
-    return widths, dict(zip(head.split("\t"), row.split("\t")))
+
+
+def table_row(tab: Any, table_text: str, row: int = 1) -> dict[str, str]:
+    """Row `row` of the first table containing `table_text`, as {header: cell}."""
+    head, cells = tab.evaluate("([text, k]) => { const t = [...document.querySelectorAll('table')].find(t => "
+                               "t.innerText.includes(text)); return [t.rows[0].innerText, t.rows[k].innerText]; }",
+                               [table_text, row])
+    return dict(zip(head.split("\t"), cells.split("\t")))
+
+
+def first_table_row(page: Path, table_text: str) -> tuple[list[int], dict[str, str]]:
+    """The natural widths of `page`'s images, and the first data row of its first table containing `table_text`."""
+    with chromium_page(page) as (tab, _):
+        return tab.evaluate("[...document.images].map(i => i.naturalWidth)"), table_row(tab, table_text)

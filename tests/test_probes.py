@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from report_fixtures import make_run
+from report_fixtures import chromium_page, make_run, table_row
 
 from vla_ladder.cli import main
 from vla_ladder.conditions import Condition, ConditionGrid
@@ -20,8 +20,6 @@ from vla_ladder.files import write_json
 from vla_ladder.report import probes as probe_report
 from vla_ladder.report.html import build_report
 from vla_ladder.task.layouts import sample_layout
-
-CHROMIUM = "/usr/bin/chromium"
 
 
 def plays(choose, regime="small_jitter", k=5, scenes=12) -> pd.DataFrame:
@@ -242,25 +240,15 @@ def test_paraphrase_and_appearance_probes_in_the_simulator(tmp_path):
 
 @pytest.mark.slow
 def test_probe_report_renders_in_chromium(tmp_path):
-    assert Path(CHROMIUM).exists(), "Debian's chromium is missing: scripts/setup.sh installs it"
-    from playwright.sync_api import sync_playwright
-
     probe = make_probe(tmp_path / "probe")
     out = build_report([load_run(probe / "instruct-0"), load_run(probe / "instruct-1")], tmp_path / "r.html",
                        placements=False)
     moved = shutil.copy(out, tmp_path / "elsewhere.html")
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--headless", "--no-sandbox", "--disable-gpu"])
-        try:
-            page = browser.new_page(viewport={"width": 1200, "height": 900})
-            page.goto(f"file://{moved}")
-            page.wait_for_function("[...document.images].every(i => i.complete)", timeout=30000)
-            images = dict(page.evaluate("[...document.images].map(i => [i.alt, i.naturalWidth])"))
-            text = page.inner_text("body")
-            cells = page.evaluate("[...document.querySelectorAll('table')].find(t => t.innerText.includes("
-                                  "'instruction sensitivity')).rows[1].innerText")
-        finally:
-            browser.close()
+    with chromium_page(moved) as (page, failed):
+        images = dict(page.evaluate("[...document.images].map(i => [i.alt, i.naturalWidth])"))
+        text = page.inner_text("body")
+        cells = list(table_row(page, "instruction sensitivity").values())
+    assert not failed
     assert images["probe_0"] > 300 and images["probe_0_matrix"] > 300
     assert "Grounding probes" in text and "instruction-swap: nearest" in text
-    assert cells.split("\t")[:2] == ["small_jitter/canonical/2", "3"]
+    assert cells[:2] == ["small_jitter/canonical/2", "3"]

@@ -2,11 +2,10 @@
 
 import json
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
-from report_fixtures import make_run
+from report_fixtures import chromium_page, make_run
 
 from vla_ladder.cli import main
 from vla_ladder.evaluation.metrics import OUTCOMES
@@ -15,7 +14,6 @@ from vla_ladder.report import plots, tables
 from vla_ladder.experiments.experiment import ExperimentConfig, PolicyEntry, available, plan
 from vla_ladder.report.html import build_report
 
-CHROMIUM = "/usr/bin/chromium"
 LADDER = [(r, "canonical", 5) for r in ("small_jitter", "medium_jitter", "large_jitter", "full_random")]
 PAIRINGS = [("small_jitter", "pairings_id", 5), ("small_jitter", "pairings_ood", 5)]
 COUNTS = [("full_random", "canonical", k) for k in (1, 2, 3, 4, 5)]
@@ -115,34 +113,20 @@ def test_experiment_configs_and_policy_entries():
 
 @pytest.mark.slow
 def test_report_is_self_contained_and_renders_in_chromium(runs, tmp_path):
-    assert Path(CHROMIUM).exists(), "Debian's chromium is missing: scripts/setup.sh installs it"
-    from playwright.sync_api import sync_playwright
-
     out = build_report(runs, tmp_path / "report.html", samples=1)
     page_html = out.read_text()
     assert "http://" not in page_html and "https://" not in page_html and "<script" not in page_html
     # Move it away from the run dirs: nothing may be loaded from disk either.
     moved = shutil.copy(out, tmp_path / "elsewhere.html")
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=[
-            "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-            "--disable-component-update", "--disable-sync"])
-        try:
-            page = browser.new_page(viewport={"width": 1200, "height": 900})
-            failed = []
-            page.on("requestfailed", lambda r: failed.append(r.url[:80]))
-            page.goto(f"file://{moved}")
-            page.wait_for_function("[...document.images].every(i => i.complete)", timeout=30000)
-            images = page.evaluate("[...document.images].map(i => [i.alt, i.naturalWidth])")
-            # Videos: wait until every one has decoded its first frame (or failed).
-            page.wait_for_function("[...document.querySelectorAll('video')].every(v => v.readyState >= 2 || v.error)",
-                                   timeout=30000)
-            videos = page.evaluate("[...document.querySelectorAll('video')].map(v => [v.readyState, !!v.error, "
-                                   "v.videoWidth])")
-            text = page.inner_text("body")
-            shot = page.screenshot(full_page=False)
-        finally:
-            browser.close()
+    with chromium_page(moved) as (page, failed):
+        images = page.evaluate("[...document.images].map(i => [i.alt, i.naturalWidth])")
+        # Videos: wait until every one has decoded its first frame (or failed).
+        page.wait_for_function("[...document.querySelectorAll('video')].every(v => v.readyState >= 2 || v.error)",
+                               timeout=30000)
+        videos = page.evaluate("[...document.querySelectorAll('video')].map(v => [v.readyState, !!v.error, "
+                               "v.videoWidth])")
+        text = page.inner_text("body")
+        shot = page.screenshot(full_page=False)
     assert not failed
     plots_ = [i for i in images if not i[0].startswith("t=")]
     frames = [i for i in images if i[0].startswith("t=")]
