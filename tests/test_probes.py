@@ -161,11 +161,12 @@ def test_run_directories_from_before_the_presentation_fields_still_resume(tmp_pa
         open_run_dir(EvalConfig("nearest", out=tmp_path / "run", episodes=2, instructions="paraphrase-heldout"))
 
 
-def make_probe(root: Path) -> Path:
-    """A probe directory of constructed instruction-swap variants (report_fixtures' run directories)."""
+def make_probe(root: Path, videos: int = 0) -> Path:
+    """A probe directory of constructed instruction-swap variants (report_fixtures' run directories); the first
+    `videos` scenes of each variant filmed."""
     kinds = {0: ["success", "success", "wrong_object"], 1: ["wrong_object", "success", "grasp_lost"]}
     for r, k in kinds.items():
-        make_run(root / f"instruct-{r}", "nearest", [("small_jitter", "canonical", 2)], k)
+        make_run(root / f"instruct-{r}", "nearest", [("small_jitter", "canonical", 2)], k, videos=videos)
     df = pd.concat([load_run(root / f"instruct-{r}").episodes.assign(instruct=r) for r in kinds])
     write_json(root / "probe.json", {"probe": "instruction-swap", "policy": {"spec": "nearest"}, "complete": True,
                                      "conditions": grounding.instruction_swap(df, 300)})
@@ -179,6 +180,7 @@ def test_the_report_shows_a_probe_found_next_to_its_variant_runs(tmp_path):
     page = build_report(runs, tmp_path / "r.html", placements=False).read_text()
     assert "Grounding probes" in page and "instruction sensitivity" in page and "Counts" in page
     assert 'alt="probe_0"' in page and 'alt="probe_0_matrix"' in page
+    assert "No scene was filmed in every variant" in page  # made without videos
     plain = build_report([load_run(make_run(tmp_path / "plain", "nearest", [("small_jitter", "canonical", 2)],
                                             ["success"]))], tmp_path / "p.html", placements=False).read_text()
     assert "Grounding probes" not in plain
@@ -240,7 +242,7 @@ def test_paraphrase_and_appearance_probes_in_the_simulator(tmp_path):
 
 @pytest.mark.slow
 def test_probe_report_renders_in_chromium(tmp_path):
-    probe = make_probe(tmp_path / "probe")
+    probe = make_probe(tmp_path / "probe", videos=2)
     out = build_report([load_run(probe / "instruct-0"), load_run(probe / "instruct-1")], tmp_path / "r.html",
                        placements=False)
     moved = shutil.copy(out, tmp_path / "elsewhere.html")
@@ -248,7 +250,19 @@ def test_probe_report_renders_in_chromium(tmp_path):
         images = dict(page.evaluate("[...document.images].map(i => [i.alt, i.naturalWidth])"))
         text = page.inner_text("body")
         cells = list(table_row(page, "instruction sensitivity").values())
+        # The paired plays: between the probe's heading and the next section, each filmed scene once per variant.
+        page.wait_for_function("[...document.querySelectorAll('video')].every(v => v.readyState >= 2 || v.error)",
+                               timeout=30000)
+        paired = page.evaluate("""() => { const h = [...document.querySelectorAll('h4')].find(h =>
+            h.innerText.startsWith('The same scenes')); const out = []; let e = h.nextElementSibling;
+            while (e && e.tagName !== 'H2' && e.tagName !== 'H3') { if (e.classList.contains('episode'))
+            out.push([e.querySelector('.cap').innerText, e.querySelector('video').readyState]);
+            e = e.nextElementSibling; } return out; }""")
     assert not failed
+    assert [cap.split(":")[0] for cap, _ in paired] == ["instruct-0", "instruct-1"] * 2
+    assert all(state >= 2 for _, state in paired)
+    # Scene 0 is "success" under instruct-0 and "wrong_object" under instruct-1: the captions say so.
+    assert "success 1" in paired[0][0] and "success 0" in paired[1][0]
     assert images["probe_0"] > 300 and images["probe_0_matrix"] > 300
     assert "Grounding probes" in text and "instruction-swap: nearest" in text
     assert cells[:2] == ["small_jitter/canonical/2", "3"]

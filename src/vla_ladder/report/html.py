@@ -23,7 +23,7 @@ import numpy as np
 from vla_ladder.contract import CONTROL_HZ, METRICS
 from vla_ladder.evaluation.metrics import OUTCOME_TEXT, OUTCOMES, outcomes
 from vla_ladder.checks import check_output_file
-from vla_ladder.evaluation.rundir import Run, load_runs
+from vla_ladder.evaluation.rundir import EPISODE_KEY, Run, load_runs
 from vla_ladder.files import write_text
 from vla_ladder.report import plots, tables
 from vla_ladder.report import probes as probe_report
@@ -268,14 +268,34 @@ def _signatures() -> str:
         f"<p>Each episode ends in one of these outcomes:</p><ul>{kinds}</ul>")
 
 
-def _probe_sections(runs: list[Run], tmp: Path) -> str:
+def _paired_plays(variants: list[Run], samples: int, with_video: bool) -> str:
+    """The first `samples` scenes filmed in every variant of a probe, each shown once per variant, one above the
+    other: the frame strips line up in time, so what the probe changed between the plays shows."""
+    filmed = [set(r.episodes.loc[r.episodes["video"].astype(str) != "", list(EPISODE_KEY)]
+                  .itertuples(index=False, name=None)) for r in variants]
+    scenes = sorted(set.intersection(*filmed))[:samples] if len(variants) > 1 else []
+    if not scenes:
+        return ("<p class=note>No scene was filmed in every variant (run the probe with --videos N to see the same "
+                "scenes played side by side here).</p>") if len(variants) > 1 else ""
+    parts = [f"<h4>The same scenes in each variant <span class=ci>(first {len(scenes)} filmed)</span></h4>"]
+    for key in scenes:
+        parts.append(f"<p class=note><b>{html.escape('/'.join(map(str, key[:3])))}, scene {key[3]}</b></p>")
+        for run in variants:
+            row = run.episodes.set_index(list(EPISODE_KEY)).loc[key]
+            card = _episode_card(run, {**row.to_dict(), **dict(zip(EPISODE_KEY, key))}, with_video)
+            parts.append(card.replace("<div class=cap>", f"<div class=cap>{html.escape(run.path.name)}: ", 1))
+    return "".join(parts)
+
+
+def _probe_sections(runs: list[Run], tmp: Path, samples: int = 2, with_video: bool = True) -> str:
     """A section per grounding probe whose variants are among the runs (`vla-ladder probe` writes its variants as
     run directories next to probe.json, so `vla-ladder report PROBE_DIR/*/` shows the probe)."""
     parts = []
     for i, path in enumerate(probe_report.probe_dirs([r.path for r in runs])):
         data = probe_report.load_probe(path)
         figures = [_png(p) for p in probe_report.plot_probe(data, tmp / f"probe_{i}.png")]
-        parts.append(probe_report.section(data, figures, str(path)))
+        variants = [r for r in runs if r.path.resolve().parent == path]
+        parts.append(probe_report.section(data, figures, str(path)) + _paired_plays(variants, samples, with_video))
     return "<h2>Grounding probes</h2>" + "".join(parts) if parts else ""
 
 
@@ -320,7 +340,7 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
             body += [_md_table_html(t) for _, t in paper]
         body.append("<h2>Figures</h2>")
         body += [f"<figure>{img}<figcaption class=note>{html.escape(cap)}</figcaption></figure>" for cap, img in figs]
-        body.append(_probe_sections(runs, Path(tmp)))
+        body.append(_probe_sections(runs, Path(tmp), samples, with_video))
         body += ["<h2>Success by instructed object</h2>", _per_object_table(results),
                  "<h2>Rollouts</h2>", f"<p class=note>Up to {samples} recorded episodes of each outcome per run; "
                  f"frames every {STRIP_EVERY * 1000 // CONTROL_HZ} ms.</p>",
