@@ -2,12 +2,14 @@
 
 import json
 
+import numpy as np
 import pandas as pd
 import pytest
 from report_fixtures import make_run
 
 from vla_ladder.cli import main
 from vla_ladder.evaluation.compare import compare_runs, mcnemar_exact, two_proportion_z
+from vla_ladder.stats import detectable_difference, mcnemar_power
 from vla_ladder.evaluation.metrics import confusion, outcomes, summarize
 from vla_ladder.stats import wilson
 from vla_ladder.evaluation.rundir import load_run
@@ -81,10 +83,38 @@ def test_compare_pairs_episodes_and_tests_each_metric(tmp_path, capsys):
     assert row["mcnemar_p"] == pytest.approx(2 / 2**7)
     assert len(result["rows"]) == 2 * 3
 
+    # Pooled success 65% over 10 scenes: only a difference of ~0.6 or more is found 80% of the time.
+    assert row["detectable_diff"] == pytest.approx(detectable_difference(0.65, 10), abs=1e-9)
+    assert 0.5 < row["detectable_diff"] < 0.75
+
     assert main(["compare", str(a), str(b), "--json", str(tmp_path / "cmp.json")]) == 0
     out = capsys.readouterr().out
-    assert "McNemar" in out and "full_random/canonical/5" in out
+    assert "McNemar" in out and "full_random/canonical/5" in out and "MDD" in out
     assert json.loads((tmp_path / "cmp.json").read_text())["rows"][0]["metric"] == "success"
+
+
+def test_detectable_difference_is_what_mcnemar_finds_80_percent_of_the_time():
+    """Simulated pairs of independent runs at the two rates detectable_difference returns: McNemar's exact test
+    (compare's own) rejects in ~80% of them, and in far fewer at half that difference."""
+    rng = np.random.default_rng(0)
+
+    def rejections(p1: float, p2: float, n: int, trials: int = 1500) -> float:
+        a, b = rng.random((trials, n)) < p1, rng.random((trials, n)) < p2
+        only_a, only_b = (a & ~b).sum(1), (~a & b).sum(1)
+        return float(np.mean([mcnemar_exact(int(x), int(y)) < 0.05 for x, y in zip(only_a, only_b)]))
+
+    d = detectable_difference(0.5, 100)
+    assert 0.19 < d < 0.22  # the textbook ~20 points at 50% with 100 scenes
+    assert abs(rejections(0.5 - d / 2, 0.5 + d / 2, 100) - 0.8) < 0.04
+    assert rejections(0.5 - d / 4, 0.5 + d / 4, 100) < 0.4
+    assert mcnemar_power(0.5 - d / 2, 0.5 + d / 2, 100) == pytest.approx(0.8, abs=0.01)
+    # At 0%: the other run must reach ~8%, 6 of 6+ discordant scenes being the fewest McNemar can call.
+    low = detectable_difference(0.0, 100)
+    assert 0.06 < low < 0.1 and abs(rejections(0.0, low, 100) - 0.8) < 0.04
+    assert detectable_difference(0.5, 400) < d / 1.8  # four times the scenes, about half the difference
+    assert np.isnan(detectable_difference(0.5, 5))  # 5 scenes cannot reach p < 0.05 (2 / 2**5 = 0.0625)
+    with pytest.raises(ValueError, match="n >= 1"):
+        detectable_difference(0.5, 0)
 
 
 def test_compare_rejects_mismatched_runs_and_non_run_dirs(tmp_path, capsys):
