@@ -15,6 +15,7 @@ from vla_ladder.evaluation import grounding
 from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.experiments.probes import SWITCH_STEPS, ProbeConfig, ProbeGrid, run_probe
+from vla_ladder.report.study import probe_rows
 from vla_ladder.task.instructions import instruction_text, parse_instruction
 from vla_ladder.task.layouts import layout_from_dict, sample_layout
 from vla_ladder.task.objects import object_index
@@ -53,6 +54,8 @@ def test_switched_layout_keeps_the_scene_and_names_a_seed_chosen_distractor_from
         sample_layout(Condition("small_jitter", num_objects=1), 0).switched(5)
     with pytest.raises(ValueError, match="control step >= 1, got 0"):
         canonical.switched(0)
+    with pytest.raises(ValueError, match="instruct names the first instruction of seed 3, which already switches"):
+        canonical.instructed(1)
     with pytest.raises(ValueError, match="cannot switch the instruction in seed 1: the instructed object"):
         sample_layout(Condition("small_jitter", num_objects=3), 1).instructed_absent(0).switched(5)
 
@@ -81,8 +84,14 @@ def test_switch_metrics_tell_rereading_committing_and_ignoring_policies_apart():
     def rereads(lay, step):  # re-reads its instruction, and has grasped by step 15
         return lay.final_target if step is None or step < 15 else lay.target
 
-    r = grounding.instruction_switch(*switch_plays(rereads), 300)[key]
+    top = grounding.instruction_switch(*switch_plays(rereads), 300)[key]
+    assert top["scenes"] == 12 and top["switch_steps"] == [5, 25]
+    r = top["by_step"]
     assert list(r) == ["5", "25"] and r["5"]["scenes"] == 12 and r["5"]["switch_step"] == 5
+    # The switched play's headline rates also sit at the condition's top, as every probe's flat metrics do.
+    assert top["follows_new_at_5"] == r["5"]["follows_new_switched"] and top["stays_old_at_25"]["value"] == 1
+    rows = probe_rows({"model": {"probe": "instruction-switch", "conditions": {key: top}}})
+    assert [row[3] for row in rows] == ["follows new at 5", "stays old at 5", "follows new at 25", "stays old at 25"]
     assert r["5"]["follows_new_original"]["value"] == 0 and r["5"]["follows_new_switched"]["value"] == 1
     assert r["5"]["stays_old_original"]["value"] == 1 and r["5"]["stays_old_switched"]["value"] == 0
     assert r["5"]["follows_new_change"]["value"] == 1
@@ -93,10 +102,10 @@ def test_switch_metrics_tell_rereading_committing_and_ignoring_policies_apart():
     assert r["25"]["follows_new_switched"]["value"] == 0 and r["25"]["stays_old_change"]["value"] == 0
     assert r["25"]["transitions"]["counts"][1] == [0, 12, 0, 0]
     assert sum(r["5"]["pairs"].values()) == 12
-    c = grounding.instruction_switch(*switch_plays(lambda lay, step: lay.target), 300)[key]  # commits to A
+    c = grounding.instruction_switch(*switch_plays(lambda lay, step: lay.target), 300)[key]["by_step"]  # commits
     assert all(c[s]["stays_old_switched"]["value"] == 1 and c[s]["follows_new_switched"]["value"] == 0 for s in c)
     # Ignores the instruction: the same grasp in both plays, whatever either names.
-    b = grounding.instruction_switch(*switch_plays(lambda lay, step: sorted(lay.objects)[0]), 300)[key]
+    b = grounding.instruction_switch(*switch_plays(lambda lay, step: sorted(lay.objects)[0]), 300)[key]["by_step"]
     for s in b.values():
         assert s["follows_new_change"]["value"] == 0 and s["stays_old_change"]["value"] == 0
         assert s["follows_new_original"] == s["follows_new_switched"]
@@ -195,7 +204,7 @@ def probe(tmp_path, policy, scenes, **kw) -> dict:
 @pytest.mark.slow
 def test_switch_calibration_rereading_layout_prior_and_blind_nearest(tmp_path):
     key = "small_jitter/canonical/5"
-    prior = probe(tmp_path, "layout-prior", 6, report=True)["conditions"][key]
+    prior = probe(tmp_path, "layout-prior", 6, report=True)["conditions"][key]["by_step"]
     # layout-prior reads its instruction at every step: early, it goes to the new object's place and grasps it;
     # late, it has grasped the old one and keeps it (its controller never lets go).
     assert prior["5"]["stays_old_original"]["value"] >= 0.8 and prior["5"]["follows_new_original"]["value"] == 0
@@ -204,7 +213,7 @@ def test_switch_calibration_rereading_layout_prior_and_blind_nearest(tmp_path):
     assert prior["25"]["stays_old_switched"]["value"] == prior["25"]["stays_old_original"]["value"]
     assert prior["25"]["follows_new_switched"]["value"] == 0
     # nearest never reads the instruction: the same grasp in both plays, at every step.
-    blind = probe(tmp_path, "nearest", 6, report=False)["conditions"][key]
+    blind = probe(tmp_path, "nearest", 6, report=False)["conditions"][key]["by_step"]
     for s in blind.values():
         counts = np.array(s["transitions"]["counts"])
         assert counts.trace() == counts.sum() == 6 and s["follows_new_change"]["value"] == 0

@@ -415,7 +415,9 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
     its "target" A). What is held at the end, as shares of SWITCH_OUTCOMES in each play (Wilson over scenes);
     follows_new (B held) and stays_old (A held) in both plays with their paired changes switched - original
     (bootstrap over scenes, McNemar's exact p); where the gripper ends, at B or at A (`ends_near`: within 5 cm
-    horizontally of the footprint, nearer it than the other); the transition table original -> switched."""
+    horizontally of the footprint, nearer it than the other); the transition table original -> switched. Each
+    condition holds them per K under "by_step", and at its top, like every probe's flat metrics (the study's probe
+    table lists those), the switched play's follows_new_at_K and stays_old_at_K."""
     keys = [*CONDITION_KEYS, "episode"]
     out: dict = {}
     for step, plays in sorted(switched.items()):
@@ -455,7 +457,11 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
                 entry[f"{metric}_change"] = paired_change(x, y, resamples)
             entry["transitions"] = transitions(before, after, SWITCH_OUTCOMES)
             entry["pairs"] = {f"{a}/{b}": int(c) for (a, b), c in s.groupby(["old", "new"]).size().items()}
-            out.setdefault(key, {})[str(step)] = entry
+            cond = out.setdefault(key, {"scenes": n, "switch_steps": [], "by_step": {}})
+            cond["switch_steps"].append(step)
+            cond[f"follows_new_at_{step}"] = entry["follows_new_switched"]
+            cond[f"stays_old_at_{step}"] = entry["stays_old_switched"]
+            cond["by_step"][str(step)] = entry
     return out
 
 

@@ -182,7 +182,7 @@ def table_html(data: dict) -> str:
                 + [f"{_cell(c['original'][o])} → {_cell(c['switched'][o])}" for o in ("other", "none")]
                 + ["n/a (no TCP recorded)" if c[f"{m}_original"] is None else
                    f"{_cell(c[f'{m}_original'])} → {_cell(c[f'{m}_switched'])}" for m in ("reaches_new", "reaches_old")]
-                for k, steps in conds.items() for c in steps.values()]
+                for k, cond in conds.items() for c in cond["by_step"].values()]
     else:
         head = ["condition", "swapped scenes", *(f"{COLOUR_NAMES[o]}: no swap → swap" for o in COLOUR_OUTCOMES),
                 "Δ follows shape"]
@@ -202,7 +202,8 @@ def matrices_html(data: dict) -> str:
         return ""
     parts = []
     tables = data["conditions"].items() if data["probe"] != "instruction-switch" else [
-        (f"{cond}, switch at step {k}", c) for cond, steps in data["conditions"].items() for k, c in steps.items()]
+        (f"{key}, switch at step {k}", c) for key, cond in data["conditions"].items()
+        for k, c in cond["by_step"].items()]
     for cond, c in tables:
         m = c[key]
         rows = [[f"<b>{html.escape(r)}</b>", *map(str, counts)] for r, counts in zip(m["rows"], m["counts"])]
@@ -310,7 +311,8 @@ def _plot_switch(data: dict, path: Path) -> Path:
     styles = {"follows_new": ("tab:green", "follows new (B held)"),
               "stays_old": ("tab:orange", "stays with old (A held)"),
               "reaches_new": ("tab:green", "gripper ends at B"), "reaches_old": ("tab:orange", "gripper ends at A")}
-    for ax, (key, steps) in zip(axes[0], conds.items()):
+    for ax, (key, cond) in zip(axes[0], conds.items()):
+        steps = cond["by_step"]
         ks = [int(k) for k in steps]
         first = next(iter(steps.values()))
         for metric, (colour, label) in styles.items():
@@ -384,7 +386,7 @@ def summary_lines(data: dict) -> list[str]:
                          f"follows_place {c['follows_place_original']['value']:.2f} -> "
                          f"{c['follows_place_swapped']['value']:.2f}")
         elif name == "instruction-switch":
-            for k, e in c.items():
+            for k, e in c["by_step"].items():
                 lines.append(f"{key} switch@{k}: scenes={e['scenes']} follows_new "
                              f"{e['follows_new_original']['value']:.2f} -> {e['follows_new_switched']['value']:.2f} "
                              f"stays_old {e['stays_old_original']['value']:.2f} -> "

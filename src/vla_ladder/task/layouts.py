@@ -109,6 +109,7 @@ class Layout:
         target, k the k-th distractor): objects, positions, yaw and colours are unchanged, only which object
         comes first (the target) and so the instruction differ. The counterfactual of the instruction-swap
         probe, unlike sample_layout(..., target=), which samples another scene."""
+        self._check_unswitched("instruct")
         if isinstance(obj, (int, np.integer)) and not isinstance(obj, bool):
             if not 0 <= obj < len(self.objects):
                 raise ValueError(f"instruct rank {obj} is not a present object of seed {self.seed}: "
@@ -130,6 +131,7 @@ class Layout:
         positions, yaw and colours are unchanged; `target`, `target_index` and the instruction name the absent
         object. The counterfactual of the absent-object probe. Separate from `instructed` on purpose: there a name
         that is not on the table is a mistake (a typo in a swap) and fails; here it is the point."""
+        self._check_unswitched("instruct_absent")
         absent = self.absent
         if isinstance(obj, (int, np.integer)) and not isinstance(obj, bool):
             if not 0 <= obj < len(absent):
@@ -178,6 +180,13 @@ class Layout:
                 self.regions[{0: k, k: 0}.get(i, i)] for i in range(len(self.regions)))
             return replace(self, xy=xy, regions=regions, position_swap=(self.objects[0], partner))
         return self
+
+    def _check_unswitched(self, what: str) -> None:
+        # The switch's B is drawn among the distractors of the instructed object: instructing another object
+        # afterwards could make B the target itself. The env applies instruct first and the switch last.
+        if self.switch is not None:
+            raise ValueError(f"{what} names the first instruction of seed {self.seed}, which already switches at "
+                             f"step {self.switch[0]}; instruct first, then switch")
 
     def switch_partner(self) -> str:
         """The distractor an instruction switch names: drawn from the seed on a random stream of its own (layouts
