@@ -20,6 +20,10 @@ on what the instruction says:
   What is held in each play (instructed, partner, other, none) over the scenes that had a swap: shares (Wilson),
   follows-object and follows-place in both plays and their paired changes (bootstrap over scenes, McNemar's exact
   p), the transition table original -> swapped.
+- instruction switch: the same scenes with the instruction switching mid-episode, at control step K, from the
+  instructed object A to a distractor B. What is held at the end (B: follows the new instruction, A: stays with
+  the old one, another, none) and where the gripper ends, per K, next to the unswitched play: shares (Wilson),
+  paired changes (bootstrap over scenes, McNemar's exact p), the transition table original -> switched.
 
 An object "held" is the one grasped at the final step ("none" when nothing is), as for success.
 """
@@ -395,3 +399,75 @@ def position_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: int 
         entry["pairs"] = {f"{a}/{b}": int(c) for (a, b), c in s.groupby(["target_s", "partner"]).size().items()}
         out[key] = entry
     return out
+
+
+# ---------------------------------------------------------------------- instruction switch
+SWITCH_OUTCOMES = ("new", "old", "other", "none")
+"""What is held at the end of an instruction-switch scene: B, the object the instruction switched to (follows the
+new instruction), A, the object it named first (stays with the old one), another object, nothing. In the original
+play, which never switches, B is a distractor like any other and holding it an ordinary wrong grasp."""
+
+
+def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame],
+                       resamples: int = RESAMPLES) -> dict:
+    """Per condition and switch step K: the same scenes played as they are (`original`) and with the instruction
+    switching at step K from A to B (`switched[K]`; its rows' target is B, their layout's "switch" says K and B,
+    its "target" A). What is held at the end, as shares of SWITCH_OUTCOMES in each play (Wilson over scenes);
+    follows_new (B held) and stays_old (A held) in both plays with their paired changes switched - original
+    (bootstrap over scenes, McNemar's exact p); where the gripper ends, at B or at A (`ends_near`: within 5 cm
+    horizontally of the footprint, nearer it than the other); the transition table original -> switched. Each
+    condition holds them per K under "by_step", and at its top, like every probe's flat metrics (the study's probe
+    table lists those), the switched play's follows_new_at_K and stays_old_at_K."""
+    keys = [*CONDITION_KEYS, "episode"]
+    out: dict = {}
+    for step, plays in sorted(switched.items()):
+        merged = original.merge(plays, on=keys, suffixes=("_o", "_s"))
+        switch = [json.loads(lay).get("switch") or {} for lay in merged["layout_s"]]
+        if (merged["seed_o"] != merged["seed_s"]).any():
+            raise ValueError("the variants played different seeds; a probe compares the same scenes")
+        if any(s.get("step") != step or s.get("target") != t for s, t in zip(switch, merged["target_s"])):
+            raise ValueError(f"the switch-{step} plays do not all switch at step {step} to their target; "
+                             "a probe compares the same scenes")
+        merged["new"] = merged["target_s"]
+        merged["old"] = [json.loads(lay)["target"] for lay in merged["layout_s"]]
+        if (merged["old"] != merged["target_o"]).any():
+            raise ValueError("the switched plays do not start with the original plays' instruction")
+        for key, s in _by_condition(merged):
+            n = len(s)
+            before = [_switch_outcome(h, a, b) for h, a, b in zip(s["held_o"], s["old"], s["new"])]
+            after = [_switch_outcome(h, a, b) for h, a, b in zip(s["held_s"], s["old"], s["new"])]
+            entry = {"scenes": n, "switch_step": step,
+                     "original": {o: wilson_rate(before.count(o), n) for o in SWITCH_OUTCOMES},
+                     "switched": {o: wilson_rate(after.count(o), n) for o in SWITCH_OUTCOMES}}
+            for metric, outcome in (("follows_new", "new"), ("stays_old", "old")):
+                x, y = np.array([o == outcome for o in before], bool), np.array([o == outcome for o in after], bool)
+                entry[f"{metric}_original"] = wilson_rate(int(x.sum()), n)
+                entry[f"{metric}_switched"] = wilson_rate(int(y.sum()), n)
+                entry[f"{metric}_change"] = paired_change(x, y, resamples)
+            # Where the gripper ends, at B or at A, whatever is held (nothing moves: one layout gives both places).
+            ends = [ends_near(s[[f"{c}_{v}" for c in ("tcp_x", "tcp_y", "layout")]].set_axis(
+                ["tcp_x", "tcp_y", "layout"], axis=1), s["new"], s["old"]) for v in "os"]
+            for i, metric in enumerate(("reaches_new", "reaches_old")):
+                if ends[0] is None or ends[1] is None:
+                    entry.update({f"{metric}_{p}": None for p in ("original", "switched", "change")})
+                    continue
+                x, y = ends[0][i], ends[1][i]
+                entry[f"{metric}_original"] = wilson_rate(int(x.sum()), n)
+                entry[f"{metric}_switched"] = wilson_rate(int(y.sum()), n)
+                entry[f"{metric}_change"] = paired_change(x, y, resamples)
+            entry["transitions"] = transitions(before, after, SWITCH_OUTCOMES)
+            entry["pairs"] = {f"{a}/{b}": int(c) for (a, b), c in s.groupby(["old", "new"]).size().items()}
+            cond = out.setdefault(key, {"scenes": n, "switch_steps": [], "by_step": {}})
+            cond["switch_steps"].append(step)
+            cond[f"follows_new_at_{step}"] = entry["follows_new_switched"]
+            cond[f"stays_old_at_{step}"] = entry["stays_old_switched"]
+            cond["by_step"][str(step)] = entry
+    return out
+
+
+def _switch_outcome(held: str, old: str, new: str) -> str:
+    if held == new:
+        return "new"
+    if held == old:
+        return "old"
+    return "none" if held == NONE else "other"

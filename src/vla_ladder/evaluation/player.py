@@ -25,9 +25,9 @@ from vla_ladder.machine import limit_threads
 
 PHASES = ("reset", "policy", "env", "film")
 """Where an episode's time goes: reset (env reset with its scene rebuild, the policy's reset, the layouts and
-instructions read back), policy (act: preprocessing, inference, the action back on the env's device), env
-(step: physics, the cameras the policy sees, observations out of the env processes), film (the frames of
-filmed episodes and their MP4s)."""
+instructions read back, and read again at an instruction switch), policy (act: preprocessing, inference, the action
+back on the env's device), env (step: physics, the cameras the policy sees, observations out of the env processes),
+film (the frames of filmed episodes and their MP4s)."""
 
 
 @dataclass(frozen=True)
@@ -138,6 +138,10 @@ class Player:
             self.policy.reset([j.seed for j in batch])
             instructions = u.instructions
             layouts, object_set = u.layouts, u.object_set  # one query each (CPUEnvs asks every env process)
+        # An instruction switch (reset option "switch_at") changes the instructions at its step: they are read
+        # again then, and only then (with CPUEnvs every read asks every env process).
+        switch = options.get("switch_at")
+        reread = {int(k) for k in (switch if isinstance(switch, (list, tuple)) else [switch]) if k is not None}
         filmed = [k for k, j in enumerate(jobs) if j.video]
         with watch("film"):
             frames = [camera_frames(env, obs, filmed)] if filmed else None
@@ -149,6 +153,9 @@ class Player:
             with watch("env"):
                 obs, _, _, truncated, info = env.step(action)
             steps += 1
+            if steps in reread:
+                with watch("reset"):
+                    instructions = u.instructions
             if frames is not None:
                 with watch("film"):
                     frames.append(camera_frames(env, obs, filmed))
@@ -167,7 +174,9 @@ class Player:
             held = int(info["held"][k])
             lay = layouts[k]
             rows.append(dict(
-                seed=job.seed, target=lay.target, instruction=instructions[k],
+                # After an instruction switch: the object and wording in force at the end, which success is
+                # judged against; the layout says what came first and when it switched.
+                seed=job.seed, target=lay.final_target, instruction=instructions[k],
                 held=OBJECT_NAMES[held] if held >= 0 else "none",
                 success=bool(info["success"][k]), grasp_any=bool(info["grasp_any"][k]),
                 reach=bool(info["reach"][k]), reach_dist=float(info["reach_dist"][k]),

@@ -23,6 +23,7 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import MAX_OBJECTS, Condition, ConditionGrid
+from vla_ladder.contract import EPISODE_STEPS
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
@@ -38,7 +39,7 @@ NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite")
 # Fields added after run directories existed, with the value a config.json without them meant; they become env
 # reset options of every episode when not at that value (the probes, experiments/probes.py, set them).
 PRESENTATION = {"instructions": "canonical", "appearance": "original", "instruct": 0, "instruct_absent": None,
-                "swap_positions": False}
+                "swap_positions": False, "switch_at": None}
 
 
 @dataclass
@@ -89,6 +90,11 @@ class EvalConfig:
     """the instructed object and one distractor (chosen from the seed) exchange places, everything else unchanged
     (the position-swap probe; task/layouts.py Layout.positions_swapped; needs 2+ objects): scenes where no
     distractor fits collision-free play unswapped and say so (no position_swap in their layout)"""
+    switch_at: int | None = None
+    """switch the instruction at this control step (1-49) from the instructed object to a distractor chosen from
+    the seed, which success is then judged against (the instruction-switch probe; task/layouts.py Layout.switched;
+    needs 2+ objects): episodes.parquet's target and instruction are the new ones, the layout's "switch" says
+    when and what came first; None: the instruction never changes"""
 
     def __post_init__(self):
         self.out = None if self.out is None else Path(self.out)
@@ -146,6 +152,16 @@ class EvalConfig:
             if self.instruct_absent is not None:
                 raise ValueError("swap_positions moves the instructed object and instruct_absent names one that is "
                                  "not on the table; give one")
+        if self.switch_at is not None:
+            if isinstance(self.switch_at, bool) or not 1 <= self.switch_at < EPISODE_STEPS:
+                raise ValueError(f"switch_at must be a control step from 1 to {EPISODE_STEPS - 1} (the episode has "
+                                 f"{EPISODE_STEPS}), got {self.switch_at!r}")
+            if min(self.grid.num_objects) < 2:
+                raise ValueError(f"switch_at needs at least two objects on the table; got --num-objects "
+                                 f"{' '.join(map(str, self.grid.num_objects))} (allowed: 2-5)")
+            if self.instruct_absent is not None:
+                raise ValueError("switch_at switches from the instructed object to another present one and "
+                                 "instruct_absent names one that is not on the table; give one")
 
     @property
     def conditions(self) -> list[Condition]:

@@ -21,6 +21,10 @@ DIR/probe.json (metrics with 95% intervals, evaluation/grounding.py), DIR/<probe
 - position-swap: each scene as it is (original) and with the instructed object and one distractor exchanging
   places (swapped; everything else identical). A policy that follows the named object goes to its new place; a
   location shortcut grasps the partner, which now stands where the instructed object stood.
+- instruction-switch: each scene as it is (original) and once per switch step K (switch-K): the episode starts
+  instructing its target A and at control step K the instruction (and the target success is judged against)
+  switches to a distractor B drawn from the seed. A policy that keeps reading its instruction goes to B when the
+  switch comes early; one that commits to its first reading goes on to A; one that ignores it plays the same.
 
 Rerunning the same command resumes every variant; another request into DIR is refused unless --overwrite.
 """
@@ -38,6 +42,7 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import MAX_OBJECTS, ConditionGrid
+from vla_ladder.contract import EPISODE_STEPS
 from vla_ladder.evaluation import grounding
 from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
@@ -45,7 +50,8 @@ from vla_ladder.policies import POLICY_KINDS, Policy, parse_spec
 from vla_ladder.task.appearance import SWAPS, SWAPS_VERSION
 from vla_ladder.task.instructions import INSTRUCTION_SETS, paraphrase_version
 
-PROBES = ("instruction-swap", "paraphrase", "appearance-swap", "absent-object", "position-swap")
+PROBES = ("instruction-swap", "paraphrase", "appearance-swap", "absent-object", "position-swap",
+          "instruction-switch")
 PROBE_OBJECTS = {"absent-object": 3}
 """Objects on the table when --num-objects is not given, where a probe's differ from five: absent-object needs
 objects off the table (with three, two are absent in every scene)."""
@@ -55,6 +61,11 @@ PROBE_FILE = "probe.json"
 CONFIG_FILE = "probe_config.json"
 FORMAT_VERSION = 1
 NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite", "report", "resamples")
+SWITCH_STEPS = (5, 25)
+"""The instruction switch's default control steps (of 50 at 20 Hz): 5 (0.25 s) comes before the scripted expert
+closes its gripper in every scene measured (it closes at step 8-14, rarely later, docs/probes.md), so a policy that
+re-reads its instruction can still go to the new object; 25 (1.25 s) comes after it has closed and lifted in almost
+every scene, so even a re-reading expert has committed: the contrast separates reading from committing."""
 
 
 @dataclass(frozen=True)
@@ -75,7 +86,7 @@ class ProbeConfig:
     """Probe instruction grounding on the same seeded scenes (`vla-ladder probe NAME --policy SPEC --out DIR`)."""
 
     name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
-    """the probe: instruction-swap, paraphrase, appearance-swap, absent-object or position-swap"""
+    """the probe: instruction-swap, paraphrase, appearance-swap, absent-object, position-swap or instruction-switch"""
     policy: str | None = None
     """policy spec: scripted, ppo:PATH, lerobot:DIR, nearest, layout-prior, random (required on the command line)"""
     out: Path | None = None
@@ -106,6 +117,8 @@ class ProbeConfig:
     """write report.html (the variants' results and the probe's section)"""
     overwrite: bool = False
     """replace a probe directory that holds another request (the same request is always resumed)"""
+    switch_steps: tuple[int, ...] = SWITCH_STEPS
+    """instruction-switch only: the control steps (1-49) at which the instruction switches, one variant each"""
 
     def __post_init__(self):
         if self.name not in PROBES:
@@ -120,12 +133,20 @@ class ProbeConfig:
         if self.resamples < 100:
             raise ValueError(f"--resamples must be >= 100, got {self.resamples}")
         counts = self.grid.num_objects
-        if self.name in ("instruction-swap", "appearance-swap", "position-swap") and min(counts) < 2:
+        if self.name in ("instruction-swap", "appearance-swap", "position-swap", "instruction-switch") \
+                and min(counts) < 2:
             raise ValueError(f"{self.name} needs at least two objects on the table; got --num-objects "
                              f"{' '.join(map(str, counts))} (allowed: 2-5)")
         if self.name == "absent-object" and max(counts) == MAX_OBJECTS:
             raise ValueError(f"absent-object needs an object off the table; got --num-objects "
                              f"{' '.join(map(str, counts))} (allowed: 1-4)")
+        self.switch_steps = tuple(self.switch_steps)
+        if self.name == "instruction-switch" and (
+                not self.switch_steps or len(set(self.switch_steps)) != len(self.switch_steps)
+                or any(isinstance(k, bool) or not isinstance(k, int) or not 1 <= k < EPISODE_STEPS
+                       for k in self.switch_steps)):
+            raise ValueError(f"--switch-steps must be distinct control steps from 1 to {EPISODE_STEPS - 1} (the "
+                             f"episode has {EPISODE_STEPS}), got {' '.join(map(str, self.switch_steps)) or 'none'}")
         if self.name in ONE_ENV_PROBES and self.num_envs != 1:
             raise ValueError(f"appearance-swap paints each scene's objects and needs --num-envs 1, got {self.num_envs}")
         self.variants()  # every evaluation is configured, and so checked, before a simulator starts
@@ -144,6 +165,9 @@ class ProbeConfig:
                 for k in range(MAX_OBJECTS - min(g.num_objects))})
         elif self.name == "position-swap":  # scenes without a collision-free swap play unswapped (left out)
             plays = {"original": dict(grid=g), "swapped": dict(grid=g, swap_positions=True)}
+        elif self.name == "instruction-switch":  # original: exactly `vla-ladder eval`
+            plays = {"original": dict(grid=g)}
+            plays.update({f"switch-{k}": dict(grid=g, switch_at=k) for k in sorted(self.switch_steps)})
         elif self.name == "paraphrase":  # with the distractor-free control: one object on the table
             control = ConditionGrid(g.regimes, g.splits, tuple(sorted({*g.num_objects, 1}, reverse=True)))
             plays = {s: dict(grid=control, instructions=s) for s in INSTRUCTION_SETS}
@@ -156,8 +180,10 @@ class ProbeConfig:
                                  **kw) for name, kw in plays.items()}
 
     def request(self) -> dict:
+        # switch_steps is part of the instruction switch's request only: other probes' directories, written
+        # before it existed, still resume.
         return {k: v for k, v in json.loads(json.dumps(asdict(self), default=files._default)).items()
-                if k not in NOT_THE_REQUEST}
+                if k not in NOT_THE_REQUEST and (k != "switch_steps" or self.name == "instruction-switch")}
 
 
 def open_probe_dir(cfg: ProbeConfig) -> None:
@@ -165,8 +191,8 @@ def open_probe_dir(cfg: ProbeConfig) -> None:
     out, saved = cfg.out, cfg.out / CONFIG_FILE
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {str(out)!r} is a file; give a directory")
-    previous = ({k: v for k, v in json.loads(saved.read_text()).items() if k not in NOT_THE_REQUEST}
-                if saved.is_file() else None)
+    previous = ({k: v for k, v in json.loads(saved.read_text()).items() if k not in NOT_THE_REQUEST
+                 and (k != "switch_steps" or cfg.name == "instruction-switch")} if saved.is_file() else None)
     if out.is_dir() and any(out.iterdir()) and previous != cfg.request():
         if not cfg.overwrite:
             what = "another probe request" if previous else "files that are not a probe directory"
@@ -188,6 +214,10 @@ def probe_results(probe: str, runs: dict[str, Run], resamples: int) -> dict:
         return grounding.absent_object(runs["present"].episodes, absent, resamples)
     if probe == "position-swap":
         return grounding.position_swap(runs["original"].episodes, runs["swapped"].episodes, resamples)
+    if probe == "instruction-switch":
+        return grounding.instruction_switch(runs["original"].episodes, {int(name.rsplit("-", 1)[1]): r.episodes
+                                                                        for name, r in runs.items()
+                                                                        if name != "original"}, resamples)
     if probe == "appearance-swap":
         return grounding.appearance_swap(runs["original"].episodes, runs["swap"].episodes, resamples)
     return grounding.paraphrase({name: r.episodes for name, r in runs.items()}, resamples)

@@ -136,7 +136,8 @@ class EvaluationSpec:
     probes: list[str] = field(default_factory=list)
     """grounding probes (vla-ladder probe) run on every instruction-reading model in its training condition:
     instruction-swap, paraphrase, appearance-swap, absent-object (with four objects where the training data have
-    five, so that one is off the table), position-swap; blind models are skipped: they cannot follow an instruction"""
+    five, so that one is off the table), position-swap, instruction-switch (these two and the instruction swap need
+    two objects or more); blind models are skipped: they cannot follow an instruction"""
     probe_episodes: int = 20
     """scenes per probe"""
 

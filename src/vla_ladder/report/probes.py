@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vla_ladder.contract import CONTROL_HZ
 from vla_ladder.report.plots import _plt, _save, plot_confusion
 
 PROBE_FILE = "probe.json"
@@ -25,6 +26,8 @@ COLOUR_NAMES = {"instructed": "instructed object (shape)", "partner": "colour pa
                 "other": "another object", "none": "nothing"}
 PLACE_NAMES = {"instructed": "instructed object (follows the object)",
                "partner": "swap partner (follows the place)", "other": "another object", "none": "nothing"}
+SWITCH_NAMES = {"new": "switched-to object B (follows the new instruction)",
+                "old": "first-named object A (stays with the old one)", "other": "another object", "none": "nothing"}
 WORDINGS = ("canonical", "paraphrase-train", "paraphrase-heldout")
 ABSENT_SERIES = {"grasp_present": "grasp, own target named", "grasp_absent": "grasp, absent object named",
                  "shortcut_reach": "ends at an empty usual place of the absent object",
@@ -66,6 +69,16 @@ EXPLAIN = {
     "within 5 cm (horizontally) of the instructed object's / the partner's footprint, nearer it than the other, "
     "whatever is held (a place-follower whose grasp does not fit the partner's shape still goes there). Scenes "
     "where no distractor fitted collision-free played unswapped and are left out.",
+    "instruction-switch": "The same scenes played as they are (original) and with the instruction switching "
+    "mid-episode: it names the scene's target A until control step K and, from K on, a distractor B chosen from "
+    "the seed, which success is then judged against (task/layouts.py Layout.switched; 50 steps at 20 Hz, so K = 5 "
+    "is 0.25 s). Shares of what is held at the end, original → switched: B (<b>follows new</b>: the policy kept "
+    "reading its instruction) or A (<b>stays with old</b>: it committed to its first reading); in the original play "
+    "holding B is an ordinary wrong grasp. Δ is the paired change (bootstrap over scenes) with McNemar's exact p. "
+    "<b>Gripper ends at B / A</b>: the TCP ends within 5 cm (horizontally) of that object's footprint, nearer it "
+    "than the other, whatever is held. A policy that re-reads its instruction follows the new one when K is early "
+    "and, having grasped, stays with the old one when K is late; one that commits from its first frames stays with "
+    "the old one at every K; one that ignores the instruction plays the same in both plays.",
 }
 
 
@@ -156,6 +169,20 @@ def table_html(data: dict) -> str:
                    f"{_cell(c[f'{m}_original'])} → {_cell(c[f'{m}_swapped'])}"
                    for m in ("reaches_object", "reaches_place")]
                 for k, c in conds.items()]
+    elif name == "instruction-switch":
+        head = ["condition", "switch at", "scenes", "follows new: original → switched", "Δ follows new",
+                "stays with old: original → switched", "Δ stays with old",
+                *(f"{SWITCH_NAMES[o]}: original → switched" for o in ("other", "none")),
+                "gripper ends at B: original → switched", "gripper ends at A: original → switched"]
+        rows = [[html.escape(k), f"step {c['switch_step']} ({c['switch_step'] / CONTROL_HZ:.2f} s)", str(c["scenes"]),
+                 f"{_cell(c['follows_new_original'])} → {_cell(c['follows_new_switched'])}",
+                 _delta(c["follows_new_change"]),
+                 f"{_cell(c['stays_old_original'])} → {_cell(c['stays_old_switched'])}",
+                 _delta(c["stays_old_change"])]
+                + [f"{_cell(c['original'][o])} → {_cell(c['switched'][o])}" for o in ("other", "none")]
+                + ["n/a (no TCP recorded)" if c[f"{m}_original"] is None else
+                   f"{_cell(c[f'{m}_original'])} → {_cell(c[f'{m}_switched'])}" for m in ("reaches_new", "reaches_old")]
+                for k, cond in conds.items() for c in cond["by_step"].values()]
     else:
         head = ["condition", "swapped scenes", *(f"{COLOUR_NAMES[o]}: no swap → swap" for o in COLOUR_OUTCOMES),
                 "Δ follows shape"]
@@ -163,23 +190,27 @@ def table_html(data: dict) -> str:
                 + [f"{_cell(c['original'][o])} → {_cell(c['swap'][o])}" for o in COLOUR_OUTCOMES]
                 + [_delta(c["shape_change"])] for k, c in conds.items()]
     unit = {"instruction-swap": " (NMI on [0, 1])", "absent-object": "; Δ in points",
-            "position-swap": "; Δ in points"}.get(name, "")
+            "position-swap": "; Δ in points", "instruction-switch": "; Δ in points"}.get(name, "")
     return _table(head, rows) + f"<p class=note>In %, 95% intervals in brackets{unit}.</p>"
 
 
 def matrices_html(data: dict) -> str:
     """The pooled instructed x held matrices (instruction swap) or transition tables (appearance swap)."""
     key = {"instruction-swap": "matrix", "appearance-swap": "transitions", "absent-object": "matrix",
-           "position-swap": "transitions"}.get(data["probe"])
+           "position-swap": "transitions", "instruction-switch": "transitions"}.get(data["probe"])
     if key is None:
         return ""
     parts = []
-    for cond, c in data["conditions"].items():
+    tables = data["conditions"].items() if data["probe"] != "instruction-switch" else [
+        (f"{key}, switch at step {k}", c) for key, cond in data["conditions"].items()
+        for k, c in cond["by_step"].items()]
+    for cond, c in tables:
         m = c[key]
         rows = [[f"<b>{html.escape(r)}</b>", *map(str, counts)] for r, counts in zip(m["rows"], m["counts"])]
         corner = {"instruction-swap": "instructed \\ held", "appearance-swap": "no swap \\ swap",
                   "absent-object": "named (absent) \\ held",
-                  "position-swap": "held: original \\ swapped"}[data["probe"]]
+                  "position-swap": "held: original \\ swapped",
+                  "instruction-switch": "held: original \\ switched"}[data["probe"]]
         parts.append(f"<p>{html.escape(cond)}</p>" + _table([corner, *map(html.escape, m["columns"])], rows))
     return "<details><summary>Counts</summary>" + "".join(parts) + "</details>"
 
@@ -198,7 +229,7 @@ def plot_probe(data: dict, path: str | Path) -> list[Path]:
     """The probe's figure at `path` (and, for the instruction swap, its matrices next to it)."""
     path = Path(path)
     draw = {"instruction-swap": _plot_swap, "paraphrase": _plot_paraphrase, "appearance-swap": _plot_appearance,
-            "absent-object": _plot_absent, "position-swap": _plot_position}
+            "absent-object": _plot_absent, "position-swap": _plot_position, "instruction-switch": _plot_switch}
     out = [draw[data["probe"]](data, path)]
     if data["probe"] in ("instruction-swap", "absent-object"):
         # (absent-object: the rows are the named objects, all absent, so every grasp counted is a substitute)
@@ -271,6 +302,45 @@ def _plot_position(data: dict, path: Path) -> Path:
     return _plot_outcomes(data, path, PLACE_NAMES, ("original", "swapped"))
 
 
+def _plot_switch(data: dict, path: Path) -> Path:
+    """Follows new and stays with old against the switch step, one panel per condition; at step 50 (no switch
+    within the episode) the original play's values, whose "follows new" is an ordinary wrong grasp of B."""
+    plt = _plt()
+    conds = data["conditions"]
+    fig, axes = plt.subplots(1, len(conds), figsize=(3.6 * max(len(conds), 1) + 0.4, 3.4), squeeze=False)
+    styles = {"follows_new": ("tab:green", "follows new (B held)"),
+              "stays_old": ("tab:orange", "stays with old (A held)"),
+              "reaches_new": ("tab:green", "gripper ends at B"), "reaches_old": ("tab:orange", "gripper ends at A")}
+    for ax, (key, cond) in zip(axes[0], conds.items()):
+        steps = cond["by_step"]
+        ks = [int(k) for k in steps]
+        first = next(iter(steps.values()))
+        for metric, (colour, label) in styles.items():
+            if first[f"{metric}_switched"] is None:
+                continue
+            entries = [c[f"{metric}_switched"] for c in steps.values()] + [first[f"{metric}_original"]]
+            v = np.array([e["value"] for e in entries], dtype=float) * 100
+            ci = np.array([e["ci95"] for e in entries], dtype=float).reshape(-1, 2) * 100
+            err = np.nan_to_num(np.abs(np.stack([v - ci[:, 0], ci[:, 1] - v])))
+            dashed = metric.startswith("reaches")
+            style = dict(color=colour, alpha=0.6 if dashed else 1.0, capsize=3)
+            ax.errorbar(ks, v[:-1], yerr=None if dashed else err[:, :-1].tolist(), marker="o",
+                        linestyle="--" if dashed else "-", label=label, **style)
+            # (the original play, not joined to the switched ones: it is no switch step)
+            ax.errorbar([50], v[-1:], yerr=None if dashed else err[:, -1:].tolist(), marker="s", mfc="none",
+                        linestyle="none", **style)
+        ax.set_xticks([*ks, 50], [*map(str, ks), "none"], fontsize=7)
+        ax.set_xlim(0, 52)
+        ax.set_ylim(-2, 105)
+        ax.set_xlabel("switch at control step (20 Hz)")
+        ax.set_title(key, fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("% of scenes, 95% Wilson interval")
+    axes[0][0].legend(fontsize=6, loc="center left")
+    fig.suptitle(f"Instruction switch: {data['policy'].get('spec', '')}", fontsize=9)
+    return _save(fig, path)
+
+
 def _plot_outcomes(data: dict, path: Path, names: dict[str, str], plays: tuple[str, str]) -> Path:
     """Stacked shares of what is held, one bar per condition and play (without and with the swap)."""
     plt = _plt()
@@ -315,6 +385,12 @@ def summary_lines(data: dict) -> list[str]:
                          f"{c['follows_object_original']['value']:.2f} -> {c['follows_object_swapped']['value']:.2f} "
                          f"follows_place {c['follows_place_original']['value']:.2f} -> "
                          f"{c['follows_place_swapped']['value']:.2f}")
+        elif name == "instruction-switch":
+            for k, e in c["by_step"].items():
+                lines.append(f"{key} switch@{k}: scenes={e['scenes']} follows_new "
+                             f"{e['follows_new_original']['value']:.2f} -> {e['follows_new_switched']['value']:.2f} "
+                             f"stays_old {e['stays_old_original']['value']:.2f} -> "
+                             f"{e['stays_old_switched']['value']:.2f}")
         else:
             lines.append(f"{key}: swapped={c['swapped']} follows_shape={c['follows_shape']['value']:.2f} "
                          f"(no swap {c['original']['instructed']['value']:.2f}) "

@@ -107,6 +107,12 @@ class GraspObjectEnv(BaseEnv):
     "swap_positions" (True, or a list of bools, one per reset env) exchanges the places of the instructed object
     and one distractor chosen from the seed (`Layout.positions_swapped`: collision-free, each keeps its yaw), the
     rest of the scene unchanged (the position-swap probe); a scene where no distractor fits plays unswapped.
+    "switch_at" (a control step K from 1 to 49, or a list with one per reset env, None for none) switches the
+    instruction mid-episode (the instruction-switch probe, `Layout.switched`): the episode starts instructing its
+    target A, and from step K on `target_idx` (so success, reach, the state observation's target) and
+    `instructions` name B, a present distractor drawn from the seed; the scene itself never changes. The switch
+    is applied as step K starts: the action of step K was chosen under A, the observation and info step K returns
+    already refer to B, so a policy has acted K times on A's instruction and acts on B's from then on.
 
     Success: the instructed object is grasped (both fingers push on it) at the final step. Episodes
     always run 50 steps (2.5 s at 20 Hz, physics at 100 Hz) and never terminate early. `info` also holds
@@ -231,6 +237,9 @@ class GraspObjectEnv(BaseEnv):
         self._grasp_local = torch.tensor(geo["grasp_point"], dtype=torch.float32, device=self.device)
         n = self.num_envs
         self.target_idx = torch.zeros(n, dtype=torch.long, device=self.device)
+        # The instruction switch of each env: the control step it happens at (0: none) and the new target.
+        self._switch_step = torch.zeros(n, dtype=torch.long, device=self.device)
+        self._switch_idx = torch.zeros(n, dtype=torch.long, device=self.device)
         self.present = torch.zeros(n, NUM_OBJECTS, dtype=torch.bool, device=self.device)
         self._grasp_any = torch.zeros(n, dtype=torch.bool, device=self.device)
         self.layouts = [None] * n
@@ -246,7 +255,8 @@ class GraspObjectEnv(BaseEnv):
         options["appearance"] override the env's own for these episodes; options["instruct"] (an object name or
         present-object rank, or a list with one per reset env) instructs another object of the same scene,
         options["instruct_absent"] (a name or rank among the absent objects, or a list) an object not on it, and
-        options["swap_positions"] (a bool, or a list) exchanges the instructed object's place with a distractor's."""
+        options["swap_positions"] (a bool, or a list) exchanges the instructed object's place with a distractor's,
+        and options["switch_at"] (a control step 1-49, or a list) switches the instruction to a distractor there."""
         options = dict(options or {})
         env_idx = options.get("env_idx")
         idx = np.arange(self.num_envs) if env_idx is None else np.asarray(
@@ -273,7 +283,7 @@ class GraspObjectEnv(BaseEnv):
             check_instruction_set(options["instructions"])
         if options.get("appearance") is not None and check_appearance(options["appearance"]) != "original":
             self._check_paintable()
-        for name in ("instruct", "instruct_absent", "swap_positions"):
+        for name in ("instruct", "instruct_absent", "swap_positions", "switch_at"):
             value = options.get(name)
             if isinstance(value, (list, tuple)) and len(value) != len(idx):
                 raise ValueError(f"got {len(value)} {name} values for {len(idx)} envs being reset")
@@ -288,6 +298,14 @@ class GraspObjectEnv(BaseEnv):
         if any(s and a is not None for s, a in zip(swap, both[1])):
             raise ValueError("swap_positions moves the instructed object, and instruct_absent names one that is not "
                              "on the table; give one per env")
+        switch = _per_env(options.get("switch_at"), len(idx))
+        if any(k is not None and (isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer))
+                                  or not 1 <= k < EPISODE_STEPS) for k in switch):
+            raise ValueError(f"switch_at must be a control step from 1 to {EPISODE_STEPS - 1} (or None, or a list with "
+                             f"one per env), got {options['switch_at']!r}")
+        if any(k is not None and a is not None for k, a in zip(switch, both[1])):
+            raise ValueError("switch_at switches from the instructed object to another present one, and "
+                             "instruct_absent names one that is not on the table; give one per env")
         return super().reset(seed=None if seed is None else [int(s) for s in seeds] if env_idx is None
                              else None, options=options)
 
@@ -309,6 +327,9 @@ class GraspObjectEnv(BaseEnv):
         instruct = _per_env(options.get("instruct"), b)
         instruct_absent = _per_env(options.get("instruct_absent"), b)
         swap_positions = _per_env(options.get("swap_positions"), b)
+        switch_at = _per_env(options.get("switch_at"), b)
+        switch_step = np.zeros(b, dtype=np.int64)  # 0: no switch
+        switch_tgt = np.zeros(b, dtype=np.int64)
         centers = self._center.cpu().numpy()  # once, not per object and env: on CUDA each .cpu() waits on the GPU
         for row, i in enumerate(ids):
             seed = int(self._layout_seeds[i])
@@ -321,6 +342,10 @@ class GraspObjectEnv(BaseEnv):
             if swap_positions[row]:
                 # After "instruct": the object the instruction names is the one that moves.
                 lay = lay.positions_swapped()
+            if switch_at[row] is not None:
+                # Last: the switch names a distractor of the scene as played (after instruct and the swap).
+                lay = lay.switched(int(switch_at[row]))
+                switch_step[row], switch_tgt[row] = lay.switch[0], object_index(lay.switch[1])
             # A rebuilt scene has fresh materials (layouts[i] is None); a kept one may still wear the last swap.
             worn = self.layouts[i] is not None and self.layouts[i].colour_swap is not None
             if self._looks is not None and (lay.colour_swap is not None or worn):
@@ -343,19 +368,31 @@ class GraspObjectEnv(BaseEnv):
             self.agent.reset(torch.from_numpy(qpos))
             self.agent.robot.set_pose(Pose.create_from_pq(torch.tensor([ROBOT_BASE] * b)))
             self.target_idx[env_idx] = torch.from_numpy(tgt).to(self.device)
+            self._switch_step[env_idx] = torch.from_numpy(switch_step).to(self.device)
+            self._switch_idx[env_idx] = torch.from_numpy(switch_tgt).to(self.device)
             self.present[env_idx] = torch.from_numpy(present).to(self.device)
             self._grasp_any[env_idx] = False
 
     @property
     def instructions(self) -> list[str]:
-        """The instruction of each parallel env's current episode."""
-        return [lay.instruction for lay in self.layouts]
+        """The instruction of each parallel env's current episode, as it stands now: after an instruction switch
+        (reset option "switch_at") the new one. Read it again after the switch step; nothing else changes it."""
+        if all(lay is None or lay.switch is None for lay in self.layouts):
+            return [lay.instruction for lay in self.layouts]
+        steps = self.elapsed_steps.tolist()  # (one device sync: a switch is read once an episode)
+        return [lay.instruction_at(int(k)) for lay, k in zip(self.layouts, steps)]
 
     @property
     def episode_seeds(self) -> list[int]:
         return [int(s) for s in self._layout_seeds]
 
     def step(self, action):
+        # An instruction switch due at this step takes effect before it, so that the info (success, reach) and the
+        # observation (target_onehot, target_site) this step returns, which the policy's next action reads,
+        # already name the new target, as `instructions` does from now on. Physics never reads target_idx: the
+        # action being applied, chosen under the old instruction, plays out unchanged. No branch, no device sync.
+        due = self._switch_step == self.elapsed_steps + 1
+        self.target_idx.copy_(torch.where(due, self._switch_idx, self.target_idx))
         obs, reward, terminated, truncated, info = super().step(action)
         # Success is judged at the final step, so grasping early must not end the episode.
         return obs, reward, torch.zeros_like(terminated), truncated, info

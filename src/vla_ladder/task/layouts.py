@@ -41,6 +41,7 @@ HELD_OUT_REGIONS: tuple[frozenset[int], ...] = tuple(
 MIN_GAP = 0.01  # free space kept between object footprints
 MAX_TRIES = 2000
 _POSITION_STREAM = 0x5A4B0  # the random stream of a position swap's partner order (Layout.position_partners)
+_SWITCH_STREAM = 0x5A4B1  # the random stream of an instruction switch's new target (Layout.switch_partner)
 
 
 @dataclass(frozen=True)
@@ -67,9 +68,13 @@ class Layout:
     position_swap: tuple[str, str] | None = None
     """(instructed object, distractor) whose positions were exchanged (the position-swap probe,
     `positions_swapped`); None: every object stands where the seed put it"""
+    switch: tuple[int, str] | None = None
+    """(control step K, present distractor B): from step K on the instruction names B and success is judged
+    against B (the instruction-switch probe, `switched`); None: the instruction never changes"""
 
     @property
     def target(self) -> str:
+        """The object the episode's first instruction names (for a switched episode, see `final_target`)."""
         return self.objects[0] if self.absent_target is None else self.absent_target
 
     @property
@@ -79,6 +84,19 @@ class Layout:
     @property
     def instruction(self) -> str:
         return instruction_text(self.target, self.seed, self.instructions)
+
+    @property
+    def final_target(self) -> str:
+        """The object named at the final step, which success is judged against: `target`, or the switch's B."""
+        return self.target if self.switch is None else self.switch[1]
+
+    def instruction_at(self, step: int) -> str:
+        """The instruction in force once `step` control steps have been taken (0: at reset): the switch's wording
+        from its step on. B's wording is drawn from the seed as A's is (the same instruction set), so a canonical
+        switch reads "grasp the <B>"."""
+        if self.switch is None or step < self.switch[0]:
+            return self.instruction
+        return instruction_text(self.switch[1], self.seed, self.instructions)
 
     @property
     def absent(self) -> tuple[str, ...]:
@@ -91,6 +109,7 @@ class Layout:
         target, k the k-th distractor): objects, positions, yaw and colours are unchanged, only which object
         comes first (the target) and so the instruction differ. The counterfactual of the instruction-swap
         probe, unlike sample_layout(..., target=), which samples another scene."""
+        self._check_unswitched("instruct")
         if isinstance(obj, (int, np.integer)) and not isinstance(obj, bool):
             if not 0 <= obj < len(self.objects):
                 raise ValueError(f"instruct rank {obj} is not a present object of seed {self.seed}: "
@@ -112,6 +131,7 @@ class Layout:
         positions, yaw and colours are unchanged; `target`, `target_index` and the instruction name the absent
         object. The counterfactual of the absent-object probe. Separate from `instructed` on purpose: there a name
         that is not on the table is a mistake (a typo in a swap) and fails; here it is the point."""
+        self._check_unswitched("instruct_absent")
         absent = self.absent
         if isinstance(obj, (int, np.integer)) and not isinstance(obj, bool):
             if not 0 <= obj < len(absent):
@@ -161,6 +181,35 @@ class Layout:
             return replace(self, xy=xy, regions=regions, position_swap=(self.objects[0], partner))
         return self
 
+    def _check_unswitched(self, what: str) -> None:
+        # The switch's B is drawn among the distractors of the instructed object: instructing another object
+        # afterwards could make B the target itself. The env applies instruct first and the switch last.
+        if self.switch is not None:
+            raise ValueError(f"{what} names the first instruction of seed {self.seed}, which already switches at "
+                             f"step {self.switch[0]}; instruct first, then switch")
+
+    def switch_partner(self) -> str:
+        """The distractor an instruction switch names: drawn from the seed on a random stream of its own (layouts
+        are unchanged), uniformly among the present distractors. Any present object will do (nothing moves), so
+        unlike a position swap there is no fallback."""
+        if len(self.objects) < 2:
+            raise ValueError(f"cannot switch the instruction in seed {self.seed} of {self.condition}: it holds only "
+                             f"{self.objects[0]} (a switch names another object on the table; allowed: 2-5 objects)")
+        rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFFFFFFFFFF, _SWITCH_STREAM])
+        return self.objects[1 + int(rng.integers(len(self.objects) - 1))]
+
+    def switched(self, step: int) -> "Layout":
+        """The same scene whose instruction switches at control step `step` (>= 1) from the instructed object A
+        to the seed's `switch_partner` B: the counterfactual of the instruction-switch probe. Objects, places,
+        colours and the robot start are unchanged; `target` and `instruction` stay A's (what the episode starts
+        with), `final_target` and `instruction_at(step)` give B's from the switch on."""
+        if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or step < 1:
+            raise ValueError(f"an instruction switch happens at a control step >= 1, got {step!r}")
+        if self.absent_target is not None:
+            raise ValueError(f"cannot switch the instruction in seed {self.seed}: the instructed object "
+                             f"{self.absent_target!r} is not on the table")
+        return replace(self, switch=(int(step), self.switch_partner()))
+
     def to_dict(self) -> dict:
         out = {
             "seed": self.seed, "regime": self.condition.regime, "split": self.condition.split, "target": self.target,
@@ -178,6 +227,9 @@ class Layout:
             out["absent_target"] = True
         if self.position_swap is not None:  # "positions" and "regions" are where the objects stand after it
             out["position_swap"] = list(self.position_swap)
+        if self.switch is not None:  # "target" and "instruction" are the first ones; these from step K on
+            out["switch"] = {"step": self.switch[0], "target": self.switch[1],
+                             "instruction": self.instruction_at(self.switch[0])}
         return out
 
 
@@ -310,10 +362,13 @@ def sample_layouts(condition: Condition, seeds=(0,), target: str | None = None, 
 
 def layout_from_dict(data: dict) -> Layout:
     """The layout that the seed of a recorded `Layout.to_dict()` gives, sampled again (dataset checks compare
-    the two): condition, object count, instruction set, appearance and position swap as the dict says."""
+    the two): condition, object count, instruction set, appearance, position swap and instruction switch as the
+    dict says."""
     condition = Condition(data["regime"], data["split"], len(data["positions"]))
     lay = sample_layout(condition, int(data["seed"]), instructions=data.get("instructions", CANONICAL),
                         appearance="swap" if data.get("colour_swap") else "original")
     if data.get("position_swap"):
         lay = lay.positions_swapped()
+    if data.get("switch"):
+        lay = lay.switched(int(data["switch"]["step"]))
     return lay.instructed_absent(data["target"]) if data.get("absent_target") else lay
