@@ -98,7 +98,7 @@ def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
     assert evals["eval-SmolVLA-scratch-blind-sj"]["policy"].endswith("?n_action_steps=4&instruction=grasp the object")
     assert evals["eval-SmolVLA-scratch-pid"]["grid"]["splits"] == ["pairings_id", "pairings_ood"]
     # Blind models are not probed: they cannot follow an instruction.
-    probes = ("instruction-swap", "position-swap", "absent-object")
+    probes = ("instruction-swap", "position-swap", "absent-object", "instruction-switch")
     assert [u.id for u in study.probe_units(chosen)] == [f"probe-SmolVLA-scratch-{d}-{probe}"
                                                          for d in ("sj", "pid", "fr") for probe in probes]
     assert {(u.config["workers"], u.config.get("num_envs", 1)) for u in study.probe_units(chosen)} == {(0, 1)}

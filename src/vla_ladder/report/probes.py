@@ -336,7 +336,9 @@ def _plot_switch(data: dict, path: Path) -> Path:
         ax.set_title(key, fontsize=8)
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("% of scenes, 95% Wilson interval")
-    axes[0][0].legend(fontsize=6, loc="center left")
+    # Below the panels: inside one, the legend covers the points it explains (bbox_inches="tight" keeps it).
+    fig.legend(*axes[0][0].get_legend_handles_labels(), loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=2,
+               fontsize=7, frameon=False)
     fig.suptitle(f"Instruction switch: {data['policy'].get('spec', '')}", fontsize=9)
     return _save(fig, path)
 
