@@ -51,6 +51,7 @@ NEGATIVE_SEEDS = {
     "eval": (["eval", "--policy", "scripted", "--out", "{tmp}/e"], "--first-seed"),
     "experiment": (["experiment", "ladder", "--policy", "scripted", "--out", "{tmp}/x"], "--first-seed"),
     "probe": (["probe", "instruction-swap", "--policy", "scripted", "--out", "{tmp}/p"], "--first-seed"),
+    "diagnose": (["diagnose", "--policy", "scripted", "--out", "{tmp}/d"], "--first-seed"),
     "grid train": (["grid", "--out", "{tmp}/g", "--train.policy-type", "act", "--train.dataset", "{tmp}/data"],
                    "--train.train-seed"),
     "grid eval": (["grid", "--out", "{tmp}/g", "--train.policy-type", "act", "--train.dataset", "{tmp}/data"],

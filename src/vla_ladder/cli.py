@@ -30,12 +30,15 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "experiment": ("vla_ladder.experiments.experiment:ExperimentCommand", "run one of the paper's experiments"),
     "report": ("vla_ladder.report.html:ReportConfig", "write a self-contained HTML report of runs"),
     "probe": ("vla_ladder.experiments.probes:ProbeConfig",
-              "probe instruction grounding: instruction swap, paraphrases, appearance swap, absent object"),
+              "probe instruction grounding: instruction swap, paraphrases, appearance swap, absent object, "
+              "position swap, instruction switch"),
     "rebuild-provenance": ("vla_ladder.recording.provenance:RebuildProvenanceConfig",
                            "give a dataset made by lerobot-edit-dataset its vla-ladder provenance back"),
     "check-dataset": ("vla_ladder.training.check_dataset:CheckDatasetConfig",
                       "check a recorded dataset: balance, coverage, leakage, seeds, frames, actions"),
     "study": ("vla_ladder.experiments.study:StudyCommand", "record, train, evaluate and report a learned policy"),
+    "diagnose": ("vla_ladder.experiments.diagnose:DiagnoseConfig",
+                 "the ladder and four grounding probes of one policy, beside the reference policies, one page"),
 }
 # Commands that pass everything after `--` to lerobot-train.
 LEROBOT_FLAGS_AFTER_DASHES = ("train", "grid")

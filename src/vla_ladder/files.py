@@ -49,6 +49,24 @@ def own_tempdir() -> Iterator[Path]:
             tempfile.tempdir = previous
 
 
+def claim_dir(out: Path, previous: dict | None, request: dict, overwrite: bool, kind: str, dir_kind: str) -> None:
+    """Make directory `out` ready for `request` (what decides a command's results): resumed when `previous`, what
+    it was last asked (None: nothing saved), is the same; another request, or files of something else, refused in
+    one line unless `overwrite`, which starts afresh. `kind` names the request in the error ("probe"), `dir_kind`
+    the directory ("a probe directory")."""
+    import shutil
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {str(out)!r} is a file; give a directory")
+    if out.is_dir() and any(out.iterdir()) and previous != request:
+        if not overwrite:
+            what = f"another {kind} request" if previous is not None else f"files that are not {dir_kind}"
+            raise ValueError(f"{out} holds {what}; rerun the same command to resume it, pick a new --out, "
+                             "or pass --overwrite")
+        shutil.rmtree(out)
+
+
 def write_json(path: str | os.PathLike, data: Any) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=_default) + "\n")

@@ -22,7 +22,8 @@ def wilson(k: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float
     if n == 0:
         return float("nan"), float("nan")
     lo, hi = proportion_confint(int(k), int(n), alpha=1 - confidence, method="wilson")
-    return float(lo), float(hi)
+    # At k = 0 statsmodels' lower bound comes out a rounding error above 0 (5.6e-17 for n = 3): keep the rate inside.
+    return min(float(lo), k / n), max(float(hi), k / n)
 
 
 def mcnemar_power(p1: float, p2: float, n: int, alpha: float = 0.05) -> float:

@@ -12,7 +12,6 @@ missing episodes are played); a different request into the same directory is ref
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -190,19 +189,10 @@ def video_name(condition: Condition, episode: int, seed: int) -> str:
 def open_run_dir(cfg: EvalConfig) -> list[dict]:
     """Make cfg.out ready and return the rows it already holds for this request (resume). A directory that
     holds another request, or is not a run directory, is refused unless cfg.overwrite."""
-    out = cfg.out
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {str(out)!r} is a file; give a directory")
-    saved = out / "config.json"
-    if out.is_dir() and any(out.iterdir()):
-        same = saved.is_file() and {k: v for k, v in {**PRESENTATION, **json.loads(saved.read_text())}.items()
-                                    if k not in NOT_THE_REQUEST} == cfg.request()
-        if not same and not cfg.overwrite:
-            what = "another evaluation request" if saved.is_file() else "files that are not a run directory"
-            raise ValueError(f"{out} holds {what}; rerun the same command to resume it, pick a new --out, "
-                             "or pass --overwrite")
-        if not same:
-            shutil.rmtree(out)
+    out, saved = cfg.out, cfg.out / "config.json"
+    previous = ({k: v for k, v in {**PRESENTATION, **json.loads(saved.read_text())}.items()
+                 if k not in NOT_THE_REQUEST} if saved.is_file() else None)
+    files.claim_dir(out, previous, cfg.request(), cfg.overwrite, "evaluation", "a run directory")
     files.write_json(saved, asdict(cfg))
     path = out / "episodes.parquet"
     if not path.is_file():

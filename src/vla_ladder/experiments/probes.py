@@ -32,7 +32,6 @@ Rerunning the same command resumes every variant; another request into DIR is re
 from __future__ import annotations
 
 import json
-import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -188,17 +187,10 @@ class ProbeConfig:
 
 def open_probe_dir(cfg: ProbeConfig) -> None:
     """Make cfg.out ready: resume the same request, refuse another unless --overwrite (then start afresh)."""
-    out, saved = cfg.out, cfg.out / CONFIG_FILE
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {str(out)!r} is a file; give a directory")
+    saved = cfg.out / CONFIG_FILE
     previous = ({k: v for k, v in json.loads(saved.read_text()).items() if k not in NOT_THE_REQUEST
                  and (k != "switch_steps" or cfg.name == "instruction-switch")} if saved.is_file() else None)
-    if out.is_dir() and any(out.iterdir()) and previous != cfg.request():
-        if not cfg.overwrite:
-            what = "another probe request" if previous else "files that are not a probe directory"
-            raise ValueError(f"{out} holds {what}; rerun the same command to resume it, pick a new --out, "
-                             "or pass --overwrite")
-        shutil.rmtree(out)
+    files.claim_dir(cfg.out, previous, cfg.request(), cfg.overwrite, "probe", "a probe directory")
     files.write_json(saved, asdict(cfg))
 
 

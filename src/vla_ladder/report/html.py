@@ -314,9 +314,11 @@ pre{background:#f7f7f7;padding:.5em;overflow-x:auto}
 
 def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder evaluation report", samples: int = 2,
                  with_video: bool = True, placements: bool = True, labels: list[str] | None = None,
-                 sections: list[tuple[str, str]] | None = None) -> Path:
+                 sections: list[tuple[str, str]] | None = None, probe_runs: list[Run] | None = None) -> Path:
     """Write the HTML page for `runs` to `out` and return its path; `labels` name the runs' policies
-    (default: their policy specs); `sections` ((title, HTML) pairs, e.g. a study's tables) come first."""
+    (default: their policy specs); `sections` ((title, HTML) pairs, e.g. a study's tables) come first;
+    `probe_runs`, variants of grounding probes, appear in their probes' sections only (not in the tables,
+    figures and rollouts of `runs`)."""
     labels = labels or [r.label for r in runs]
     if len(labels) != len(runs):
         raise ValueError(f"got {len(labels)} labels for {len(runs)} runs")
@@ -340,7 +342,7 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
             body += [_md_table_html(t) for _, t in paper]
         body.append("<h2>Figures</h2>")
         body += [f"<figure>{img}<figcaption class=note>{html.escape(cap)}</figcaption></figure>" for cap, img in figs]
-        body.append(_probe_sections(runs, Path(tmp), samples, with_video))
+        body.append(_probe_sections([*runs, *(probe_runs or ())], Path(tmp), samples, with_video))
         body += ["<h2>Success by instructed object</h2>", _per_object_table(results),
                  "<h2>Rollouts</h2>", f"<p class=note>Up to {samples} recorded episodes of each outcome per run; "
                  f"frames every {STRIP_EVERY * 1000 // CONTROL_HZ} ms.</p>",

@@ -1,0 +1,268 @@
+"""`vla-ladder diagnose --policy SPEC --out DIR`: one policy through the ladder and four grounding probes, beside
+the reference policies on the same seeded scenes, and one page of answers.
+
+The questions, each answered by one rate with its 95% interval (or, for the first, a difference of two rates):
+
+1. Does it hold up as the objects move? Success in the ladder's farthest regime minus success in the policy's own
+   (the ladder of its training condition's split and object count).
+2. Does it read the instruction? The instruction swap's sensitivity: the share of scenes whose held object changes
+   when another present object is named.
+3. Does it follow the named object, or the place where it usually stands? The position swap: the share of swapped
+   scenes in which the gripper ends at the named object, now standing in a distractor's place.
+4. Told to grasp an object that is not there, does it go to that object's usual place? The absent object's
+   shortcut reach.
+5. Does it keep reading the instruction? The instruction switch at step 5 (0.25 s): the share of scenes in which
+   the gripper ends at the object the instruction switched to.
+
+The reference policies answer the same questions on the same scenes (state only, so they cost little):
+`scripted` reads its target from the state every step (grounded by construction), `layout-prior` goes to where the
+named object stands in training (the location shortcut), `nearest` grasps whatever is nearest and ignores the words.
+"Resembles" names the reference whose answer is nearest the policy's: which known behaviour that answer is closest
+to, not a claim that the policy works the same way. Every part is an ordinary run or probe directory
+(DIR/policy/..., DIR/references/<name>/...), so a rerun resumes and `vla-ladder compare`/`report` read them.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from vla_ladder import files
+from vla_ladder.conditions import MAX_OBJECTS, REGIMES, Condition, ConditionGrid
+from vla_ladder.evaluation.rundir import load_run
+from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
+from vla_ladder.experiments.probes import ProbeConfig, run_probe
+from vla_ladder.policies import check_spec
+
+REFERENCES = ("scripted", "layout-prior", "nearest")
+"""The reference profiles: grounded (reads its target), location shortcut, ignores the instruction."""
+PROBES = ("instruction-swap", "position-swap", "absent-object", "instruction-switch")
+SWITCH_STEP = 5
+"""The instruction switch's step for question 5: before the scripted expert closes its gripper in every scene
+measured (docs/probes.md), so a policy that re-reads its instruction can still turn."""
+CONFIG_FILE = "diagnose_config.json"
+NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite")
+
+
+@dataclass
+class DiagnoseConfig:
+    """Diagnose a policy: the ladder and four grounding probes on the same seeded scenes, beside the reference
+    policies, with one page of answers (`vla-ladder diagnose --policy SPEC --out DIR`)."""
+
+    policy: str | None = None
+    """policy spec: lerobot:DIR[?n_action_steps=H], ppo:PATH, scripted, nearest, layout-prior, random (required)"""
+    out: Path | None = None
+    """diagnosis directory: policy/, references/, diagnosis.json, report.html (required)"""
+    condition: str = "small_jitter/canonical/5"
+    """the condition the policy was trained in (regime/split/objects, 2-5 objects): the probes play it and the
+    ladder moves its objects through every regime"""
+    episodes: int = 50
+    """episodes per ladder regime"""
+    probe_episodes: int = 50
+    """scenes per probe"""
+    references: Annotated[tuple[str, ...], tyro.conf.arg(help_behavior_hint=f"(default: {' '.join(REFERENCES)})")] \
+        = REFERENCES
+    """reference policies played on the same scenes, from scripted, layout-prior, nearest, random (none: no
+    comparison, and no "resembles")"""
+    first_seed: int = 0
+    """episode j of every condition and probe plays seed first_seed + j"""
+    videos: int = 2
+    """filmed episodes of the policy per ladder regime and probe variant (the references are never filmed)"""
+    workers: int = 0
+    """worker processes (0: one per core, capped by memory); any number plays the same episodes"""
+    num_envs: int = 1
+    """episodes one copy of the policy acts on at once (batched inference; see `vla-ladder eval --num-envs`)"""
+    overwrite: bool = False
+    """replace a diagnosis directory that holds another request (the same request is always resumed)"""
+
+    def __post_init__(self):
+        if self.policy is None:
+            raise ValueError("--policy SPEC is required, e.g. lerobot:runs/smolvla/checkpoints/last/pretrained_model")
+        if self.out is None:
+            raise ValueError("--out DIR is required: the diagnosis directory to write")
+        self.out = Path(self.out)
+        check_spec(self.policy)
+        cond = Condition.parse(self.condition)
+        if cond.num_objects < 2:
+            raise ValueError(f"--condition {self.condition}: the probes need at least two objects on the table "
+                             "(allowed: 2-5)")
+        self.condition = cond.key
+        allowed = (*REFERENCES, "random")
+        if any(r not in allowed for r in self.references) or len(set(self.references)) != len(self.references):
+            raise ValueError(f"--references must be distinct names (allowed: {', '.join(allowed)}); got "
+                             f"{' '.join(self.references) or 'none'}")
+        self.references = tuple(self.references)
+        self.plan()  # every run is configured, and so checked, before any simulator starts
+
+    def plan(self) -> list[tuple[str, EvalConfig, dict[str, ProbeConfig]]]:
+        """(who, the ladder, the probes) for the policy, then for each reference."""
+        return [self._runs("policy", self.policy, self.out / "policy", self.videos),
+                *(self._runs(r, r, self.out / "references" / r, 0) for r in self.references)]
+
+    def _runs(self, who: str, spec: str, root: Path, videos: int) -> tuple[str, EvalConfig, dict[str, ProbeConfig]]:
+        cond = Condition.parse(self.condition)
+        players = dict(workers=self.workers, num_envs=self.num_envs) if who == "policy" else dict(workers=self.workers)
+        ladder = EvalConfig(policy=spec, out=root / "ladder", episodes=self.episodes, first_seed=self.first_seed,
+                            grid=ConditionGrid(("all",), (cond.split,), (cond.num_objects,)), videos=videos,
+                            overwrite=self.overwrite, **players)
+        probes = {}
+        for name in PROBES:
+            # absent-object needs an object off the table: five-object policies are probed with four, as a study does
+            n = min(cond.num_objects, MAX_OBJECTS - 1) if name == "absent-object" else cond.num_objects
+            probes[name] = ProbeConfig(name, policy=spec, out=root / "probes" / name,
+                                       grid=ConditionGrid((cond.regime,), (cond.split,), (n,)),
+                                       episodes=self.probe_episodes, first_seed=self.first_seed, videos=videos,
+                                       overwrite=self.overwrite, report=False, **players)
+        return who, ladder, probes
+
+    def request(self) -> dict:
+        return {k: v for k, v in json.loads(json.dumps(asdict(self), default=files._default)).items()
+                if k not in NOT_THE_REQUEST}
+
+
+def open_diagnosis_dir(cfg: DiagnoseConfig) -> None:
+    """Resume the same request, refuse another unless --overwrite (then start afresh)."""
+    saved = cfg.out / CONFIG_FILE
+    previous = ({k: v for k, v in json.loads(saved.read_text()).items() if k not in NOT_THE_REQUEST}
+                if saved.is_file() else None)
+    files.claim_dir(cfg.out, previous, cfg.request(), cfg.overwrite, "diagnosis", "a diagnosis directory")
+    files.write_json(saved, cfg.request())
+
+
+# ---------------------------------------------------------------------- the answers
+def _rate(entry: dict | None) -> dict | None:
+    return None if entry is None else {"value": entry["value"], "ci95": list(entry["ci95"]), "n": entry.get("n")}
+
+
+def ladder_drop(conditions: dict, condition: str) -> dict:
+    """Success in the ladder's farthest regime minus success in `condition`'s own, with Newcombe's interval for
+    the difference of two independent rates (statsmodels)."""
+    from statsmodels.stats.proportion import confint_proportions_2indep
+
+    own = conditions[condition]
+    far_key = max(conditions, key=lambda k: list(REGIMES).index(Condition.parse(k).regime))  # the farthest there
+    far = conditions[far_key]
+    k1, n1, k2, n2 = round(far["success"] * far["n"]), far["n"], round(own["success"] * own["n"]), own["n"]
+    lo, hi = confint_proportions_2indep(k1, n1, k2, n2, method="newcomb", compare="diff")
+    diff = k1 / n1 - k2 / n2  # (at 0, Newcombe's bounds can miss it by a rounding error)
+    return {"value": diff, "ci95": [min(float(lo), diff), max(float(hi), diff)], "n": n1 + n2, "from": condition,
+            "to": far_key, "success_from": own["success"], "success_to": far["success"]}
+
+
+QUESTIONS = (
+    ("holds_up", "Does it hold up as the objects move?",
+     "success in the ladder's farthest regime minus its own (points)"),
+    ("reads", "Does it read the instruction?",
+     "instruction swap: scenes whose held object changes with the named object"),
+    ("follows_object", "Does it follow the named object, or its usual place?",
+     "position swap: gripper ends at the named object after it exchanged places with a distractor"),
+    ("empty_place", "Named an object that is not there, does it go to that object's usual place?",
+     "absent object: gripper ends at the named object's (empty) usual place"),
+    ("keeps_reading", f"Does it keep reading the instruction? (switched at step {SWITCH_STEP}, 0.25 s)",
+     "instruction switch: gripper ends at the object the instruction switched to"),
+)
+
+
+def answers(root: Path, condition: str) -> dict[str, dict | None]:
+    """The five answers of the runs under `root` (policy/ or references/<name>/)."""
+    ladder = load_run(root / "ladder").summary["conditions"]
+
+    def probe(name: str) -> dict:
+        return next(iter(json.loads((root / "probes" / name / "probe.json").read_text())["conditions"].values()))
+
+    switch = probe("instruction-switch")["by_step"][str(SWITCH_STEP)]
+    return {"holds_up": ladder_drop(ladder, condition),
+            "reads": _rate(probe("instruction-swap")["instruction_sensitivity"]),
+            "follows_object": _rate(probe("position-swap")["reaches_object_swapped"]),
+            "empty_place": _rate(probe("absent-object")["shortcut_reach"]),
+            "keeps_reading": _rate(switch["reaches_new_switched"])}
+
+
+def diagnosis(cfg: DiagnoseConfig) -> dict:
+    mine = answers(cfg.out / "policy", cfg.condition)
+    refs = {r: answers(cfg.out / "references" / r, cfg.condition) for r in cfg.references}
+    rows = []
+    for key, question, measure in QUESTIONS:
+        value = mine[key]
+        theirs = {r: (None if a[key] is None else a[key]["value"]) for r, a in refs.items()}
+        known = {r: abs(v - value["value"]) for r, v in theirs.items() if v is not None and value is not None}
+        # Every reference at the nearest distance (scripted and layout-prior both read the words, for one); with
+        # fewer than two references there is nothing to choose between.
+        resembles = (" / ".join(r for r, d in known.items() if d <= min(known.values()) + 1e-9)
+                     if len(known) > 1 else None)
+        rows.append({"id": key, "question": question, "measure": measure, "policy": value, "references": theirs,
+                     "resembles": resembles})
+    return {"policy": cfg.policy, "condition": cfg.condition, "episodes": cfg.episodes,
+            "probe_episodes": cfg.probe_episodes, "first_seed": cfg.first_seed, "references": list(cfg.references),
+            "questions": rows, "provenance": files.provenance()}
+
+
+def _pct(x: float | None, signed: bool = False) -> str:
+    return "–" if x is None or x != x else (f"{100 * x:+.0f}" if signed else f"{100 * x:.0f}")
+
+
+def answer_lines(data: dict) -> list[str]:
+    lines = []
+    for q in data["questions"]:
+        v, signed = q["policy"], q["id"] == "holds_up"
+        value = "n/a" if v is None else (f"{_pct(v['value'], signed)} [{_pct(v['ci95'][0], signed)}, "
+                                         f"{_pct(v['ci95'][1], signed)}]")
+        refs = ", ".join(f"{r} {_pct(x, signed)}" for r, x in q["references"].items())
+        like = f"; resembles {q['resembles']}" if q["resembles"] else ""
+        lines.append(f"{q['question']} {value} ({q['measure']}){'; ' + refs if refs else ''}{like}")
+    return lines
+
+
+def diagnosis_html(data: dict) -> str:
+    import html
+    refs = data["references"]
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in ("question", "measure", "this policy [95% CI]",
+                                                          *refs, "resembles"))
+    rows = []
+    for q in data["questions"]:
+        v, signed = q["policy"], q["id"] == "holds_up"
+        value = "n/a" if v is None else (f"{_pct(v['value'], signed)} <span class=ci>[{_pct(v['ci95'][0], signed)}, "
+                                         f"{_pct(v['ci95'][1], signed)}]</span>")
+        cells = [html.escape(q["question"]), html.escape(q["measure"]), value,
+                 *(_pct(q["references"][r], signed) for r in refs), html.escape(q["resembles"] or "–")]
+        rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    note = ("<p class=note>Rates in %, on the same seeded scenes for every policy. The references: "
+            "<b>scripted</b> reads its target every step (grounded by construction), <b>layout-prior</b> goes where "
+            "the named object stands in training (the location shortcut), <b>nearest</b> grasps whatever is nearest "
+            "and ignores the words. <i>Resembles</i>: the reference whose answer is nearest this policy's; read it "
+            "with the interval, and the probes' sections below for what lies behind each number.</p>")
+    return f"<table><tr>{head}</tr>{''.join(rows)}</table>{note}"
+
+
+def run_diagnosis(cfg: DiagnoseConfig, progress: bool = True) -> dict:
+    open_diagnosis_dir(cfg)
+    plan = cfg.plan()
+    for who, ladder, probes in plan:
+        print(f"[diagnose] {who}: the ladder -> {ladder.out}", flush=True)
+        run_evaluation(ladder, progress=progress)
+        for name, probe in probes.items():
+            print(f"[diagnose] {who}: {name} -> {probe.out}", flush=True)
+            run_probe(probe, progress=progress)
+    data = diagnosis(cfg)
+    files.write_json(cfg.out / "diagnosis.json", data)
+    from vla_ladder.report.html import build_report
+    _, ladder, probes = plan[0]
+    ladders = [load_run(lad.out) for _, lad, _ in plan]
+    variants = [load_run(p.out / v) for p in probes.values() for v in p.variants()]
+    build_report(ladders, cfg.out / "report.html", title=f"vla-ladder diagnose: {cfg.policy}",
+                 labels=[cfg.policy, *(f"{r} (reference)" for r in cfg.references)],
+                 sections=[("Diagnosis", diagnosis_html(data))],
+                 probe_runs=variants)
+    return data
+
+
+def run(cfg: DiagnoseConfig) -> int:
+    data = run_diagnosis(cfg)
+    for line in answer_lines(data):
+        print(line)
+    print((cfg.out / "report.html").resolve())
+    return 0

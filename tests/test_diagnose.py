@@ -1,0 +1,84 @@
+"""`vla-ladder diagnose`: one policy through the ladder and four probes beside the references, on the real
+simulator (state-only reference policies, a few scenes)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from report_fixtures import chromium_page, table_row
+
+from vla_ladder.cli import main
+from vla_ladder.experiments.diagnose import QUESTIONS
+
+SMALL = ["--episodes", "3", "--probe-episodes", "3", "--workers", "1", "--videos", "1"]
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+def test_bad_input_is_refused_in_one_line_before_any_work(tmp_path, capsys):
+    out = tmp_path / "d"
+    cases = [(["--condition", "small_jitter/canonical/1"], "at least two objects"),
+             (["--condition", "tiny/canonical/5"], "regime"),
+             (["--references", "scripted", "oracle"], "allowed: scripted, layout-prior, nearest, random)"),
+             (["--references", "nearest", "nearest"], "distinct"),
+             (["--episodes", "0"], "positive integer")]
+    for extra, words in cases:
+        assert main(["diagnose", "--policy", "layout-prior", "--out", str(out), *extra]) == 2
+        assert words in _one_line(capsys)
+    assert main(["diagnose", "--out", str(out)]) == 2 and "--policy SPEC is required" in _one_line(capsys)
+    assert main(["diagnose", "--policy", f"lerobot:{tmp_path}/missing", "--out", str(out)]) == 2
+    _one_line(capsys)
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_a_policy_diagnosed_beside_itself_resembles_itself(tmp_path, capsys):
+    """layout-prior is deterministic: played as the policy and as a reference on the same seeds, it answers every
+    question exactly as its reference twin, so "resembles" names it on all five; the expert answers otherwise where
+    the shortcut shows (it follows the moved object, it does not go to an empty place)."""
+    out = tmp_path / "diag"
+    argv = ["diagnose", "--policy", "layout-prior", "--out", str(out), "--references", "scripted", "layout-prior",
+            *SMALL]
+    assert main(argv) == 0
+    data = json.loads((out / "diagnosis.json").read_text())
+    rows = {q["id"]: q for q in data["questions"]}
+    assert [q["id"] for q in data["questions"]] == [k for k, _, _ in QUESTIONS]
+    for q in rows.values():
+        assert q["policy"]["value"] == pytest.approx(q["references"]["layout-prior"]), q
+        assert "layout-prior" in q["resembles"].split(" / "), q
+        lo, hi = q["policy"]["ci95"]
+        assert lo <= q["policy"]["value"] <= hi
+    assert rows["follows_object"]["references"]["scripted"] == 1.0 and rows["follows_object"]["policy"]["value"] == 0
+    assert rows["empty_place"]["policy"]["value"] == 1.0 and rows["empty_place"]["references"]["scripted"] == 0
+    assert rows["holds_up"]["policy"]["value"] < 0 and rows["holds_up"]["policy"]["to"] == "full_random/canonical/5"
+    printed = capsys.readouterr().out
+    assert "Does it keep reading the instruction?" in printed and "resembles layout-prior" in printed
+    # The policy's filmed scenes, and no reference's.
+    assert list((out / "policy" / "ladder" / "videos").glob("*.mp4"))
+    assert not (out / "references" / "scripted" / "ladder" / "videos").exists()
+
+    # The page: the diagnosis first, the ladder of all three, the policy's probe sections.
+    with chromium_page(out / "report.html") as (page, failed):
+        row = table_row(page, "this policy")
+        text = page.inner_text("body")
+    assert not failed
+    assert row["question"] == "Does it hold up as the objects move?" and "layout-prior" in row["resembles"]
+    assert text.index("Diagnosis") < text.index("Grounding probes")
+    for probe in ("instruction-swap: layout-prior", "position-swap: layout-prior", "absent-object: layout-prior",
+                  "instruction-switch: layout-prior"):
+        assert probe in text
+
+    # The same command resumes (nothing is played again); another request is refused in one line.
+    videos = sorted(out.glob("policy/**/*.mp4"))  # a replayed episode would write its video again
+    before = [v.stat().st_mtime_ns for v in videos]
+    assert main(argv) == 0
+    assert [v.stat().st_mtime_ns for v in videos] == before and len(videos) >= 5
+    assert json.loads((out / "diagnosis.json").read_text())["questions"] == data["questions"]
+    capsys.readouterr()
+    assert main([*argv[:-len(SMALL)], *SMALL[:-2], "--videos", "0", "--first-seed", "5"]) == 2
+    assert "holds another diagnosis request" in _one_line(capsys)
