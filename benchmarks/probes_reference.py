@@ -10,7 +10,7 @@ Runs `vla-ladder probe` (CPU, state only, five objects, small jitter and full ra
 - absent-object: scripted, nearest, layout-prior, random, with three objects, canonical and pairings_id (small
   jitter; full random has no pairing split),
 - position-swap: scripted, nearest, layout-prior, random,
-- instruction-switch: scripted, nearest, layout-prior, random (at --switch-steps),
+- instruction-switch: scripted, committed, nearest, layout-prior, random (at --switch-steps),
 and writes every probe's per-condition results to benchmarks/results/probes_reference.json; with --probes, only
 those probes, to probes_reference_<probe>[+<probe>...].json beside it (the full file stays as it was measured).
 With --out the probe directories are kept there and a second run resumes them (only probe.json is recomputed).
@@ -38,7 +38,7 @@ PLAN = {"instruction-swap": ("scripted", "nearest", "layout-prior", "random"),
         "appearance-swap": ("scripted", "layout-prior"),
         "absent-object": ("scripted", "nearest", "layout-prior", "random"),
         "position-swap": ("scripted", "nearest", "layout-prior", "random"),
-        "instruction-switch": ("scripted", "nearest", "layout-prior", "random")}
+        "instruction-switch": ("scripted", "committed", "nearest", "layout-prior", "random")}
 REGIMES = ("small_jitter", "full_random")
 ABSENT_GRID = ProbeGrid(REGIMES, ("canonical", "pairings_id"), (3,))
 

@@ -24,7 +24,7 @@ def test_bad_input_is_refused_in_one_line_before_any_work(tmp_path, capsys):
     out = tmp_path / "d"
     cases = [(["--condition", "small_jitter/canonical/1"], "at least two objects"),
              (["--condition", "tiny/canonical/5"], "regime"),
-             (["--references", "scripted", "oracle"], "allowed: scripted, layout-prior, nearest, random)"),
+             (["--references", "scripted", "oracle"], "allowed: scripted, committed, layout-prior, nearest, random)"),
              (["--references", "nearest", "nearest"], "distinct"),
              (["--episodes", "0"], "positive integer")]
     for extra, words in cases:

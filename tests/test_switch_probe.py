@@ -238,3 +238,21 @@ def test_switch_calibration_rereading_layout_prior_and_blind_nearest(tmp_path):
     assert cells["follows new: original → switched"].startswith("0"), cells
     page = (root / "report.html").read_text()
     assert "instruction-switch: layout-prior" in page and "held: original \\ switched" in page
+
+
+@pytest.mark.slow
+def test_the_committed_expert_is_the_expert_until_the_instruction_switches(tmp_path):
+    """`committed` reads its target once: with no switch it plays exactly as `scripted` (same final distances to
+    the bit); switched at step 5, where the expert follows the new object, it keeps the first one."""
+    expert = probe(tmp_path, "scripted", 4, report=False, switch_steps=(5,))
+    once = probe(tmp_path, "committed", 4, report=False, switch_steps=(5,))
+    cols = ["seed", "held", "success", "reach_dist", "tcp_x", "tcp_y"]
+    plain = [load_run(tmp_path / p / "original").episodes.sort_values("episode")[cols].reset_index(drop=True)
+             for p in ("scripted", "committed")]
+    assert plain[0].equals(plain[1])
+    key = "small_jitter/canonical/5"
+    a, b = expert["conditions"][key]["by_step"]["5"], once["conditions"][key]["by_step"]["5"]
+    assert a["follows_new_switched"]["value"] >= 0.75 and a["stays_old_switched"]["value"] == 0
+    assert b["follows_new_switched"]["value"] == 0
+    assert b["stays_old_switched"]["value"] == b["stays_old_original"]["value"] == 1.0
+    assert b["reaches_old_switched"]["value"] == 1.0

@@ -15,8 +15,9 @@ The questions, each answered by one rate with its 95% interval (or, for the firs
    the gripper ends at the object the instruction switched to.
 
 The reference policies answer the same questions on the same scenes (state only, so they cost little):
-`scripted` reads its target from the state every step (grounded by construction), `layout-prior` goes to where the
-named object stands in training (the location shortcut), `nearest` grasps whatever is nearest and ignores the words.
+`scripted` reads its target from the state every step (grounded by construction), `committed` is the same expert
+reading its target once, at the first step, `layout-prior` goes to where the named object stands in training (the
+location shortcut), `nearest` grasps whatever is nearest and ignores the words.
 "Resembles" names the reference whose answer is nearest the policy's: which known behaviour that answer is closest
 to, not a claim that the policy works the same way. Every part is an ordinary run or probe directory
 (DIR/policy/..., DIR/references/<name>/...), so a rerun resumes and `vla-ladder compare`/`report` read them.
@@ -38,14 +39,17 @@ from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.experiments.probes import ProbeConfig, run_probe
 from vla_ladder.policies import check_spec
 
-REFERENCES = ("scripted", "layout-prior", "nearest")
-"""The reference profiles: grounded (reads its target), location shortcut, ignores the instruction."""
+REFERENCES = ("scripted", "committed", "layout-prior", "nearest")
+"""The reference profiles: grounded and re-reading its target, grounded but reading it once, the location
+shortcut, ignoring the instruction."""
 PROBES = ("instruction-swap", "position-swap", "absent-object", "instruction-switch")
 SWITCH_STEP = 5
 """The instruction switch's step for question 5: before the scripted expert closes its gripper in every scene
 measured (docs/probes.md), so a policy that re-reads its instruction can still turn."""
 CONFIG_FILE = "diagnose_config.json"
-NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite")
+NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite", "references")
+"""Fields that do not decide the policy's episodes: a reference added later is played into its own directory,
+beside those already there."""
 
 
 @dataclass
@@ -66,7 +70,7 @@ class DiagnoseConfig:
     """scenes per probe"""
     references: Annotated[tuple[str, ...], tyro.conf.arg(help_behavior_hint=f"(default: {' '.join(REFERENCES)})")] \
         = REFERENCES
-    """reference policies played on the same scenes, from scripted, layout-prior, nearest, random (none: no
+    """reference policies played on the same scenes, from scripted, committed, layout-prior, nearest, random (none: no
     comparison, and no "resembles")"""
     first_seed: int = 0
     """episode j of every condition and probe plays seed first_seed + j"""
@@ -231,7 +235,8 @@ def diagnosis_html(data: dict) -> str:
                  *(_pct(q["references"][r], signed) for r in refs), html.escape(q["resembles"] or "–")]
         rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
     note = ("<p class=note>Rates in %, on the same seeded scenes for every policy. The references: "
-            "<b>scripted</b> reads its target every step (grounded by construction), <b>layout-prior</b> goes where "
+            "<b>scripted</b> reads its target every step (grounded by construction), <b>committed</b> is that expert "
+            "reading its target once, at the first step, <b>layout-prior</b> goes where "
             "the named object stands in training (the location shortcut), <b>nearest</b> grasps whatever is nearest "
             "and ignores the words. <i>Resembles</i>: the reference whose answer is nearest this policy's; read it "
             "with the interval, and the probes' sections below for what lies behind each number.</p>")

@@ -15,7 +15,7 @@ from pathlib import Path
 from vla_ladder.conditions import Condition, ConditionGrid
 
 PRESETS_PACKAGE = "vla_ladder.configs.study"
-REFERENCE_POLICIES = ("scripted", "nearest", "layout-prior", "random")
+REFERENCE_POLICIES = ("scripted", "committed", "nearest", "layout-prior", "random")
 
 
 @dataclass

@@ -45,6 +45,7 @@ POLICY_KINDS: dict[str, str] = {
     "nearest": "vla_ladder.policies.reference:make_nearest",
     "layout-prior": "vla_ladder.policies.reference:make_layout_prior",
     "random": "vla_ladder.policies.reference:make_random",
+    "committed": "vla_ladder.policies.reference:make_committed",
 }
 NEEDS_ARG = {"ppo", "lerobot"}
 

@@ -5,6 +5,8 @@
 - `layout-prior`: ignores perception, grasps at the instructed object's canonical region centre (the
   location shortcut: strong under small jitter, collapsing under full random and held-out pairings).
 - `random`: uniform random actions, seeded per episode (the floor).
+- `committed`: the expert reading its target once, at the episode's first step, and keeping it: grounded in
+  the scene, but deaf to a later instruction (the profile an instruction switch tells apart from re-reading).
 
 nearest and layout-prior reuse the scripted expert's controller unchanged: they hand it an observation
 in which the "target" is a different object (nearest) or a made-up pose at the canonical location
@@ -88,6 +90,31 @@ class NearestObjectPolicy(Policy):
         return {"name": self.name, "controller": self.expert.describe()}
 
 
+class CommittedPolicy(NearestObjectPolicy):
+    """The scripted expert, reading its target once: the object the first observation names (`target_onehot`)
+    is kept for the whole episode and followed wherever it stands, so it behaves as `scripted` unless the
+    instruction changes mid-episode, which it never notices."""
+
+    name = "committed"
+
+    def act(self, obs: Any, instructions: Sequence[str] | None = None) -> torch.Tensor:
+        extra = obs["extra"]
+        now = extra["target_onehot"].to(self.device).argmax(dim=1)
+        self.choice = torch.where(self.choice < 0, now, self.choice)
+        if bool((self.choice == now).all()):  # nothing switched: the expert's own observation, to the bit
+            return self.expert.act(obs, instructions)
+        n = now.shape[0]
+        poses = extra["obj_pose"].to(self.device).reshape(n, NUM_OBJECTS, 7)
+        sites = poses[..., :3] + quaternion_apply(poses[..., 3:], self._site_local.expand(n, -1, -1))
+        moved = _retarget(obs, self.choice, sites[torch.arange(n, device=self.device), self.choice])
+        # Envs whose target did not switch keep the env's own target fields (the site computed here differs from
+        # the env's by float rounding, which would move the gripper by a fraction of a millimetre).
+        keep = (self.choice == now)[:, None]
+        for key in ("target_onehot", "target_site", "tcp_to_target"):
+            moved["extra"][key] = torch.where(keep, extra[key].to(moved["extra"][key].dtype), moved["extra"][key])
+        return self.expert.act(moved, instructions)
+
+
 class LayoutPriorPolicy(Policy):
     """Grasps at the instructed object's canonical training location (the centre of region i for
     object i, at its resting grasp height, unrotated); object poses are never read."""
@@ -154,6 +181,11 @@ def _no_arg(kind: str, arg: str | None) -> None:
 def make_nearest(arg: str | None = None, **kwargs) -> NearestObjectPolicy:
     _no_arg("nearest", arg)
     return NearestObjectPolicy(**kwargs)
+
+
+def make_committed(arg: str | None = None, **kwargs) -> CommittedPolicy:
+    _no_arg("committed", arg)
+    return CommittedPolicy(**kwargs)
 
 
 def make_layout_prior(arg: str | None = None, **kwargs) -> LayoutPriorPolicy:
