@@ -357,6 +357,36 @@ def ends_near(plays: pd.DataFrame, target: str, partner: str) -> tuple[np.ndarra
     return (at_obj <= REACH_THRESHOLD) & (at_obj <= at_partner), (at_partner <= REACH_THRESHOLD) & (at_partner < at_obj)
 
 
+def _two_plays(s: pd.DataFrame, before: list[str], after: list[str], outcomes: tuple[str, ...],
+               second: tuple[str, str], follows: dict[str, str], ends_at: dict[str, pd.Series],
+               resamples: int) -> dict:
+    """What a probe playing each scene twice (merged rows `s`: columns suffixed _o and _s) measures: the shares of
+    `outcomes` in each play ("original" and second[0], Wilson); for each `follows` metric (name -> outcome) and each
+    `ends_at` metric (name -> the object whose footprint the TCP ends at, ends_near: exactly two, the first nearer
+    than the second) its rate in each play (suffixes "original" and second[1]) and their paired change; the
+    transition table."""
+    n = len(s)
+    entry: dict = {"original": {o: wilson_rate(before.count(o), n) for o in outcomes},
+                   second[0]: {o: wilson_rate(after.count(o), n) for o in outcomes}}
+    pairs = {m: (np.array([o == want for o in before], bool), np.array([o == want for o in after], bool))
+             for m, want in follows.items()}
+    (a, objects_a), (b, objects_b) = ends_at.items()
+    ends = [ends_near(s[[f"{c}_{v}" for c in ("tcp_x", "tcp_y", "layout")]].set_axis(
+        ["tcp_x", "tcp_y", "layout"], axis=1), objects_a, objects_b) for v in "os"]
+    for i, metric in enumerate((a, b)):
+        pairs[metric] = None if ends[0] is None or ends[1] is None else (ends[0][i], ends[1][i])
+    for metric, xy in pairs.items():
+        if xy is None:  # runs written before the TCP was kept
+            entry.update({f"{metric}_{p}": None for p in ("original", second[1], "change")})
+            continue
+        x, y = xy
+        entry[f"{metric}_original"] = wilson_rate(int(x.sum()), n)
+        entry[f"{metric}_{second[1]}"] = wilson_rate(int(y.sum()), n)
+        entry[f"{metric}_change"] = paired_change(x, y, resamples)
+    entry["transitions"] = transitions(before, after, outcomes)
+    return entry
+
+
 def position_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
     """Per condition, on the scenes where the instructed object exchanged places with a partner (the swapped play's
     layout names it in "position_swap"; scenes where no distractor fitted played unswapped and are counted, not
@@ -377,25 +407,10 @@ def position_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: int 
         before = [colour_outcome(h, t, p) for h, t, p in zip(s["held_o"], s["target_o"], s["partner"])]
         after = [colour_outcome(h, t, p) for h, t, p in zip(s["held_s"], s["target_s"], s["partner"])]
         entry = {"scenes": int(len(g)), "swapped": n, "no_swap": int(len(g) - n),
-                 "original": {o: wilson_rate(before.count(o), n) for o in PLACE_OUTCOMES},
-                 "swap": {o: wilson_rate(after.count(o), n) for o in PLACE_OUTCOMES}}
-        for metric, outcome in (("follows_object", "instructed"), ("follows_place", "partner")):
-            x, y = np.array([o == outcome for o in before], bool), np.array([o == outcome for o in after], bool)
-            entry[f"{metric}_original"] = wilson_rate(int(x.sum()), n)
-            entry[f"{metric}_swapped"] = wilson_rate(int(y.sum()), n)
-            entry[f"{metric}_change"] = paired_change(x, y, resamples)
-        # Where the gripper ends (the instructed object vs the partner), for policies whose grasp can miss.
-        ends = [ends_near(s[[f"{c}_{v}" for c in ("tcp_x", "tcp_y", "layout")]].set_axis(
-            ["tcp_x", "tcp_y", "layout"], axis=1), s["target_o"], s["partner"]) for v in "os"]
-        for i, metric in enumerate(("reaches_object", "reaches_place")):
-            if ends[0] is None or ends[1] is None:
-                entry.update({f"{metric}_{p}": None for p in ("original", "swapped", "change")})
-                continue
-            x, y = ends[0][i], ends[1][i]
-            entry[f"{metric}_original"] = wilson_rate(int(x.sum()), n)
-            entry[f"{metric}_swapped"] = wilson_rate(int(y.sum()), n)
-            entry[f"{metric}_change"] = paired_change(x, y, resamples)
-        entry["transitions"] = transitions(before, after, PLACE_OUTCOMES)
+                 **_two_plays(s, before, after, PLACE_OUTCOMES, ("swap", "swapped"),
+                              {"follows_object": "instructed", "follows_place": "partner"},
+                              # where the gripper ends, for policies whose grasp can miss
+                              {"reaches_object": s["target_o"], "reaches_place": s["partner"]}, resamples)}
         entry["pairs"] = {f"{a}/{b}": int(c) for (a, b), c in s.groupby(["target_s", "partner"]).size().items()}
         out[key] = entry
     return out
@@ -437,25 +452,10 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
             before = [_switch_outcome(h, a, b) for h, a, b in zip(s["held_o"], s["old"], s["new"])]
             after = [_switch_outcome(h, a, b) for h, a, b in zip(s["held_s"], s["old"], s["new"])]
             entry = {"scenes": n, "switch_step": step,
-                     "original": {o: wilson_rate(before.count(o), n) for o in SWITCH_OUTCOMES},
-                     "switched": {o: wilson_rate(after.count(o), n) for o in SWITCH_OUTCOMES}}
-            for metric, outcome in (("follows_new", "new"), ("stays_old", "old")):
-                x, y = np.array([o == outcome for o in before], bool), np.array([o == outcome for o in after], bool)
-                entry[f"{metric}_original"] = wilson_rate(int(x.sum()), n)
-                entry[f"{metric}_switched"] = wilson_rate(int(y.sum()), n)
-                entry[f"{metric}_change"] = paired_change(x, y, resamples)
-            # Where the gripper ends, at B or at A, whatever is held (nothing moves: one layout gives both places).
-            ends = [ends_near(s[[f"{c}_{v}" for c in ("tcp_x", "tcp_y", "layout")]].set_axis(
-                ["tcp_x", "tcp_y", "layout"], axis=1), s["new"], s["old"]) for v in "os"]
-            for i, metric in enumerate(("reaches_new", "reaches_old")):
-                if ends[0] is None or ends[1] is None:
-                    entry.update({f"{metric}_{p}": None for p in ("original", "switched", "change")})
-                    continue
-                x, y = ends[0][i], ends[1][i]
-                entry[f"{metric}_original"] = wilson_rate(int(x.sum()), n)
-                entry[f"{metric}_switched"] = wilson_rate(int(y.sum()), n)
-                entry[f"{metric}_change"] = paired_change(x, y, resamples)
-            entry["transitions"] = transitions(before, after, SWITCH_OUTCOMES)
+                     **_two_plays(s, before, after, SWITCH_OUTCOMES, ("switched", "switched"),
+                                  {"follows_new": "new", "stays_old": "old"},
+                                  # where the gripper ends, at B or at A (nothing moves: one layout, both places)
+                                  {"reaches_new": s["new"], "reaches_old": s["old"]}, resamples)}
             entry["pairs"] = {f"{a}/{b}": int(c) for (a, b), c in s.groupby(["old", "new"]).size().items()}
             cond = out.setdefault(key, {"scenes": n, "switch_steps": [], "by_step": {}})
             cond["switch_steps"].append(step)

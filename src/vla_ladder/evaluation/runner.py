@@ -144,23 +144,19 @@ class EvalConfig:
             if self.instruct != 0:
                 raise ValueError(f"instruct {self.instruct} and instruct_absent {self.instruct_absent} each name the "
                                  "instructed object; give one")
-        if self.swap_positions:
-            if min(self.grid.num_objects) < 2:
-                raise ValueError(f"swap_positions needs at least two objects on the table; got --num-objects "
+        if self.switch_at is not None and (isinstance(self.switch_at, bool)
+                                           or not 1 <= self.switch_at < EPISODE_STEPS):
+            raise ValueError(f"switch_at must be a control step from 1 to {EPISODE_STEPS - 1} (the episode has "
+                             f"{EPISODE_STEPS}), got {self.switch_at!r}")
+        # Both act on a present distractor beside the instructed object, which must itself be on the table.
+        for name, active, does in (("swap_positions", self.swap_positions, "moves the instructed object"),
+                                   ("switch_at", self.switch_at is not None,
+                                    "switches from the instructed object to another present one")):
+            if active and min(self.grid.num_objects) < 2:
+                raise ValueError(f"{name} needs at least two objects on the table; got --num-objects "
                                  f"{' '.join(map(str, self.grid.num_objects))} (allowed: 2-5)")
-            if self.instruct_absent is not None:
-                raise ValueError("swap_positions moves the instructed object and instruct_absent names one that is "
-                                 "not on the table; give one")
-        if self.switch_at is not None:
-            if isinstance(self.switch_at, bool) or not 1 <= self.switch_at < EPISODE_STEPS:
-                raise ValueError(f"switch_at must be a control step from 1 to {EPISODE_STEPS - 1} (the episode has "
-                                 f"{EPISODE_STEPS}), got {self.switch_at!r}")
-            if min(self.grid.num_objects) < 2:
-                raise ValueError(f"switch_at needs at least two objects on the table; got --num-objects "
-                                 f"{' '.join(map(str, self.grid.num_objects))} (allowed: 2-5)")
-            if self.instruct_absent is not None:
-                raise ValueError("switch_at switches from the instructed object to another present one and "
-                                 "instruct_absent names one that is not on the table; give one")
+            if active and self.instruct_absent is not None:
+                raise ValueError(f"{name} {does} and instruct_absent names one that is not on the table; give one")
 
     @property
     def conditions(self) -> list[Condition]:

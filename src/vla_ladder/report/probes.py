@@ -128,6 +128,19 @@ def _table(head: list[str], rows: list[list[str]]) -> str:
             + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows) + "</table>")
 
 
+def _two_play_cells(c: dict, follows: tuple[str, ...], second: tuple[str, str], ends: tuple[str, ...]) -> list[str]:
+    """The cells of a probe playing each scene twice (evaluation/grounding.py _two_plays): each `follows` metric
+    original → second play and its Δ, the other/none shares, where the gripper ends; `second` is the second play's
+    share key and metric suffix."""
+    shares, suffix = second
+    cells = []
+    for m in follows:
+        cells += [f"{_cell(c[f'{m}_original'])} → {_cell(c[f'{m}_{suffix}'])}", _delta(c[f"{m}_change"])]
+    cells += [f"{_cell(c['original'][o])} → {_cell(c[shares][o])}" for o in ("other", "none")]
+    return cells + ["n/a (no TCP recorded)" if c[f"{m}_original"] is None else
+                    f"{_cell(c[f'{m}_original'])} → {_cell(c[f'{m}_{suffix}'])}" for m in ends]
+
+
 def table_html(data: dict) -> str:
     """The probe's table: one row per condition (and wording for the paraphrase probe)."""
     conds, name = data["conditions"], data["probe"]
@@ -160,28 +173,16 @@ def table_html(data: dict) -> str:
                 *(f"{PLACE_NAMES[o]}: original → swapped" for o in ("other", "none")),
                 "gripper ends at the object: original → swapped", "gripper ends at the place: original → swapped"]
         rows = [[html.escape(k), f"{c['swapped']} of {c['scenes']}",
-                 f"{_cell(c['follows_object_original'])} → {_cell(c['follows_object_swapped'])}",
-                 _delta(c["follows_object_change"]),
-                 f"{_cell(c['follows_place_original'])} → {_cell(c['follows_place_swapped'])}",
-                 _delta(c["follows_place_change"])]
-                + [f"{_cell(c['original'][o])} → {_cell(c['swap'][o])}" for o in ("other", "none")]
-                + ["n/a (no TCP recorded)" if c[f"{m}_original"] is None else
-                   f"{_cell(c[f'{m}_original'])} → {_cell(c[f'{m}_swapped'])}"
-                   for m in ("reaches_object", "reaches_place")]
-                for k, c in conds.items()]
+                 *_two_play_cells(c, ("follows_object", "follows_place"), ("swap", "swapped"),
+                                  ("reaches_object", "reaches_place"))] for k, c in conds.items()]
     elif name == "instruction-switch":
         head = ["condition", "switch at", "scenes", "follows new: original → switched", "Δ follows new",
                 "stays with old: original → switched", "Δ stays with old",
                 *(f"{SWITCH_NAMES[o]}: original → switched" for o in ("other", "none")),
                 "gripper ends at B: original → switched", "gripper ends at A: original → switched"]
         rows = [[html.escape(k), f"step {c['switch_step']} ({c['switch_step'] / CONTROL_HZ:.2f} s)", str(c["scenes"]),
-                 f"{_cell(c['follows_new_original'])} → {_cell(c['follows_new_switched'])}",
-                 _delta(c["follows_new_change"]),
-                 f"{_cell(c['stays_old_original'])} → {_cell(c['stays_old_switched'])}",
-                 _delta(c["stays_old_change"])]
-                + [f"{_cell(c['original'][o])} → {_cell(c['switched'][o])}" for o in ("other", "none")]
-                + ["n/a (no TCP recorded)" if c[f"{m}_original"] is None else
-                   f"{_cell(c[f'{m}_original'])} → {_cell(c[f'{m}_switched'])}" for m in ("reaches_new", "reaches_old")]
+                 *_two_play_cells(c, ("follows_new", "stays_old"), ("switched", "switched"),
+                                  ("reaches_new", "reaches_old"))]
                 for k, cond in conds.items() for c in cond["by_step"].values()]
     else:
         head = ["condition", "swapped scenes", *(f"{COLOUR_NAMES[o]}: no swap → swap" for o in COLOUR_OUTCOMES),
