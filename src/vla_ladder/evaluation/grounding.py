@@ -51,7 +51,7 @@ COLOUR_OUTCOMES = ("instructed", "partner", "other", "none")
 """What is held under an appearance swap: the instructed object (follows its shape and the words), the
 partner that wears the instructed object's usual colour (follows colour), another object, nothing."""
 PLACE_OUTCOMES = COLOUR_OUTCOMES
-"""What is held in a position-swap scene, by the same rule (colour_outcome): the instructed object (follows the
+"""What is held in a position-swap scene, by the same rule (held_outcome): the instructed object (follows the
 object), its partner, which in the swapped play stands where the instructed object stood (follows the place),
 another object, nothing."""
 
@@ -234,12 +234,14 @@ def paraphrase(variants: dict[str, pd.DataFrame], resamples: int = RESAMPLES) ->
 
 
 # ---------------------------------------------------------------------- appearance swap
-def colour_outcome(held: str, target: str, partner: str) -> str:
-    if held == target:
-        return "instructed"
-    if held == partner:
-        return "partner"
-    return "none" if held == NONE else "other"
+def held_outcome(held: str, first: str, second: str, names: tuple[str, ...] = COLOUR_OUTCOMES) -> str:
+    """What is held, as one of `names` (first object, second object, another, nothing): the appearance and position
+    swaps' (instructed, partner, other, none) and the instruction switch's (new, old, other, none)."""
+    if held == first:
+        return names[0]
+    if held == second:
+        return names[1]
+    return names[3] if held == NONE else names[2]
 
 
 def appearance_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
@@ -252,8 +254,8 @@ def appearance_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: in
     out = {}
     for key, g in _by_condition(merged):
         s = g[g["partner"].notna()]
-        before = [colour_outcome(h, t, p) for h, t, p in zip(s["held_o"], s["target_o"], s["partner"])]
-        after = [colour_outcome(h, t, p) for h, t, p in zip(s["held_s"], s["target_s"], s["partner"])]
+        before = [held_outcome(h, t, p) for h, t, p in zip(s["held_o"], s["target_o"], s["partner"])]
+        after = [held_outcome(h, t, p) for h, t, p in zip(s["held_s"], s["target_s"], s["partner"])]
         n = len(s)
         x = np.array([o == "instructed" for o in before], bool)
         y = np.array([o == "instructed" for o in after], bool)
@@ -404,8 +406,8 @@ def position_swap(original: pd.DataFrame, swapped: pd.DataFrame, resamples: int 
     for key, g in _by_condition(merged):
         s = g[g["partner"].notna()]
         n = len(s)
-        before = [colour_outcome(h, t, p) for h, t, p in zip(s["held_o"], s["target_o"], s["partner"])]
-        after = [colour_outcome(h, t, p) for h, t, p in zip(s["held_s"], s["target_s"], s["partner"])]
+        before = [held_outcome(h, t, p) for h, t, p in zip(s["held_o"], s["target_o"], s["partner"])]
+        after = [held_outcome(h, t, p) for h, t, p in zip(s["held_s"], s["target_s"], s["partner"])]
         entry = {"scenes": int(len(g)), "swapped": n, "no_swap": int(len(g) - n),
                  **_two_plays(s, before, after, PLACE_OUTCOMES, ("swap", "swapped"),
                               {"follows_object": "instructed", "follows_place": "partner"},
@@ -449,8 +451,8 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
             raise ValueError("the switched plays do not start with the original plays' instruction")
         for key, s in _by_condition(merged):
             n = len(s)
-            before = [_switch_outcome(h, a, b) for h, a, b in zip(s["held_o"], s["old"], s["new"])]
-            after = [_switch_outcome(h, a, b) for h, a, b in zip(s["held_s"], s["old"], s["new"])]
+            before = [held_outcome(h, b, a, SWITCH_OUTCOMES) for h, a, b in zip(s["held_o"], s["old"], s["new"])]
+            after = [held_outcome(h, b, a, SWITCH_OUTCOMES) for h, a, b in zip(s["held_s"], s["old"], s["new"])]
             entry = {"scenes": n, "switch_step": step,
                      **_two_plays(s, before, after, SWITCH_OUTCOMES, ("switched", "switched"),
                                   {"follows_new": "new", "stays_old": "old"},
@@ -463,11 +465,3 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
             cond[f"stays_old_at_{step}"] = entry["stays_old_switched"]
             cond["by_step"][str(step)] = entry
     return out
-
-
-def _switch_outcome(held: str, old: str, new: str) -> str:
-    if held == new:
-        return "new"
-    if held == old:
-        return "old"
-    return "none" if held == NONE else "other"
