@@ -72,11 +72,16 @@ class NearestObjectPolicy(Policy):
         else:
             self.choice[torch.as_tensor(list(env_ids), dtype=torch.long, device=self.device)] = -1
 
+    def sites(self, extra: dict) -> torch.Tensor:
+        """Every object's grasp site in the world frame, (N, 5, 3), from the observed object poses."""
+        n = extra["tcp_pose"].shape[0]
+        poses = extra["obj_pose"].to(self.device).reshape(n, NUM_OBJECTS, 7)
+        return poses[..., :3] + quaternion_apply(poses[..., 3:], self._site_local.expand(n, -1, -1))
+
     def act(self, obs: Any, instructions: Sequence[str] | None = None) -> torch.Tensor:
         extra = obs["extra"]
         n = extra["tcp_pose"].shape[0]
-        poses = extra["obj_pose"].to(self.device).reshape(n, NUM_OBJECTS, 7)
-        sites = poses[..., :3] + quaternion_apply(poses[..., 3:], self._site_local.expand(n, -1, -1))
+        sites = self.sites(extra)
         tcp = extra["tcp_pose"].to(self.device)[:, :3]
         dist = torch.linalg.norm(sites[..., :2] - tcp[:, None, :2], dim=-1)
         dist = torch.where(extra["obj_present"].to(self.device) > 0.5, dist, torch.full_like(dist, torch.inf))
@@ -103,10 +108,8 @@ class CommittedPolicy(NearestObjectPolicy):
         self.choice = torch.where(self.choice < 0, now, self.choice)
         if bool((self.choice == now).all()):  # nothing switched: the expert's own observation, to the bit
             return self.expert.act(obs, instructions)
-        n = now.shape[0]
-        poses = extra["obj_pose"].to(self.device).reshape(n, NUM_OBJECTS, 7)
-        sites = poses[..., :3] + quaternion_apply(poses[..., 3:], self._site_local.expand(n, -1, -1))
-        moved = _retarget(obs, self.choice, sites[torch.arange(n, device=self.device), self.choice])
+        rows = torch.arange(now.shape[0], device=self.device)
+        moved = _retarget(obs, self.choice, self.sites(extra)[rows, self.choice])
         # Envs whose target did not switch keep the env's own target fields (the site computed here differs from
         # the env's by float rounding, which would move the gripper by a fraction of a millimetre).
         keep = (self.choice == now)[:, None]
