@@ -271,8 +271,8 @@ def _signatures() -> str:
 def _paired_plays(variants: list[Run], samples: int, with_video: bool) -> str:
     """The first `samples` scenes filmed in every variant of a probe, each shown once per variant, one above the
     other: the frame strips line up in time, so what the probe changed between the plays shows."""
-    filmed = [set(r.episodes.loc[r.episodes["video"].astype(str) != "", list(EPISODE_KEY)]
-                  .itertuples(index=False, name=None)) for r in variants]
+    indexed = [r.episodes.set_index(list(EPISODE_KEY)) for r in variants]
+    filmed = [set(e.index[e["video"].astype(str) != ""]) for e in indexed]
     scenes = sorted(set.intersection(*filmed))[:samples] if len(variants) > 1 else []
     if not scenes:
         return ("<p class=note>No scene was filmed in every variant (run the probe with --videos N to see the same "
@@ -280,9 +280,8 @@ def _paired_plays(variants: list[Run], samples: int, with_video: bool) -> str:
     parts = [f"<h4>The same scenes in each variant <span class=ci>(first {len(scenes)} filmed)</span></h4>"]
     for key in scenes:
         parts.append(f"<p class=note><b>{html.escape('/'.join(map(str, key[:3])))}, scene {key[3]}</b></p>")
-        for run in variants:
-            row = run.episodes.set_index(list(EPISODE_KEY)).loc[key]
-            card = _episode_card(run, {**row.to_dict(), **dict(zip(EPISODE_KEY, key))}, with_video)
+        for run, episodes in zip(variants, indexed):
+            card = _episode_card(run, {**episodes.loc[key].to_dict(), **dict(zip(EPISODE_KEY, key))}, with_video)
             parts.append(card.replace("<div class=cap>", f"<div class=cap>{html.escape(run.path.name)}: ", 1))
     return "".join(parts)
 
