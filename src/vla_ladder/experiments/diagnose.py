@@ -38,6 +38,7 @@ from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.experiments.probes import ProbeConfig, run_probe
 from vla_ladder.policies import check_spec
+from vla_ladder.report.diagnosis import answer_lines, diagnosis_html
 
 REFERENCES = ("scripted", "committed", "layout-prior", "nearest")
 """The reference profiles: grounded and re-reading its target, grounded but reading it once, the location
@@ -203,44 +204,6 @@ def diagnosis(cfg: DiagnoseConfig) -> dict:
     return {"policy": cfg.policy, "condition": cfg.condition, "episodes": cfg.episodes,
             "probe_episodes": cfg.probe_episodes, "first_seed": cfg.first_seed, "references": list(cfg.references),
             "questions": rows, "provenance": files.provenance()}
-
-
-def _pct(x: float | None, signed: bool = False) -> str:
-    return "–" if x is None or x != x else (f"{100 * x:+.0f}" if signed else f"{100 * x:.0f}")
-
-
-def answer_lines(data: dict) -> list[str]:
-    lines = []
-    for q in data["questions"]:
-        v, signed = q["policy"], q["id"] == "holds_up"
-        value = "n/a" if v is None else (f"{_pct(v['value'], signed)} [{_pct(v['ci95'][0], signed)}, "
-                                         f"{_pct(v['ci95'][1], signed)}]")
-        refs = ", ".join(f"{r} {_pct(x, signed)}" for r, x in q["references"].items())
-        like = f"; resembles {q['resembles']}" if q["resembles"] else ""
-        lines.append(f"{q['question']} {value} ({q['measure']}){'; ' + refs if refs else ''}{like}")
-    return lines
-
-
-def diagnosis_html(data: dict) -> str:
-    import html
-    refs = data["references"]
-    head = "".join(f"<th>{html.escape(h)}</th>" for h in ("question", "measure", "this policy [95% CI]",
-                                                          *refs, "resembles"))
-    rows = []
-    for q in data["questions"]:
-        v, signed = q["policy"], q["id"] == "holds_up"
-        value = "n/a" if v is None else (f"{_pct(v['value'], signed)} <span class=ci>[{_pct(v['ci95'][0], signed)}, "
-                                         f"{_pct(v['ci95'][1], signed)}]</span>")
-        cells = [html.escape(q["question"]), html.escape(q["measure"]), value,
-                 *(_pct(q["references"][r], signed) for r in refs), html.escape(q["resembles"] or "–")]
-        rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
-    note = ("<p class=note>Rates in %, on the same seeded scenes for every policy. The references: "
-            "<b>scripted</b> reads its target every step (grounded by construction), <b>committed</b> is that expert "
-            "reading its target once, at the first step, <b>layout-prior</b> goes where "
-            "the named object stands in training (the location shortcut), <b>nearest</b> grasps whatever is nearest "
-            "and ignores the words. <i>Resembles</i>: the reference whose answer is nearest this policy's; read it "
-            "with the interval, and the probes' sections below for what lies behind each number.</p>")
-    return f"<table><tr>{head}</tr>{''.join(rows)}</table>{note}"
 
 
 def run_diagnosis(cfg: DiagnoseConfig, progress: bool = True) -> dict:
