@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -54,8 +55,6 @@ def claim_dir(out: Path, previous: dict | None, request: dict, overwrite: bool, 
     it was last asked (None: nothing saved), is the same; another request, or files of something else, refused in
     one line unless `overwrite`, which starts afresh. `kind` names the request in the error ("probe"), `dir_kind`
     the directory ("a probe directory")."""
-    import shutil
-
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {str(out)!r} is a file; give a directory")
