@@ -179,17 +179,20 @@ class ProbeConfig:
                                  **kw) for name, kw in plays.items()}
 
     def request(self) -> dict:
-        # switch_steps is part of the instruction switch's request only: other probes' directories, written
-        # before it existed, still resume.
-        return {k: v for k, v in json.loads(json.dumps(asdict(self), default=files._default)).items()
-                if k not in NOT_THE_REQUEST and (k != "switch_steps" or self.name == "instruction-switch")}
+        return the_request(json.loads(json.dumps(asdict(self), default=files._default)), self.name)
+
+
+def the_request(config: dict, name: str) -> dict:
+    """What decides probe `name`'s episodes: its config without the fields that do not. switch_steps is part of the
+    instruction switch's request only: other probes' directories, written before it existed, still resume."""
+    return {k: v for k, v in config.items()
+            if k not in NOT_THE_REQUEST and (k != "switch_steps" or name == "instruction-switch")}
 
 
 def open_probe_dir(cfg: ProbeConfig) -> None:
     """Make cfg.out ready: resume the same request, refuse another unless --overwrite (then start afresh)."""
     saved = cfg.out / CONFIG_FILE
-    previous = ({k: v for k, v in json.loads(saved.read_text()).items() if k not in NOT_THE_REQUEST
-                 and (k != "switch_steps" or cfg.name == "instruction-switch")} if saved.is_file() else None)
+    previous = the_request(json.loads(saved.read_text()), cfg.name) if saved.is_file() else None
     files.claim_dir(cfg.out, previous, cfg.request(), cfg.overwrite, "probe", "a probe directory")
     files.write_json(saved, asdict(cfg))
 
