@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import ipaddress
 import os
 import socket
 import typing
@@ -113,6 +114,16 @@ def _read_only(path: Path) -> bool:
 
 
 # ----------------------------------------------------------------------------------------------- ports
+def is_loopback(host: str) -> bool:
+    """Whether `host` is this machine only (what a service may listen on without a secret)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 def check_port_free(host: str, port: int, flag: str = "--port") -> None:
     """ValueError when `host`:`port` cannot be listened on (in use, or not an address of this machine). Binds the
     way asyncio's server does (SO_REUSEADDR), so a port in TIME_WAIT is free. Port 0 (any free port) always is."""

@@ -37,6 +37,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "check-dataset": ("vla_ladder.training.check_dataset:CheckDatasetConfig",
                       "check a recorded dataset: balance, coverage, leakage, seeds, frames, actions"),
     "study": ("vla_ladder.experiments.study:StudyCommand", "record, train, evaluate and report a learned policy"),
+    "serve-policy": ("vla_ladder.policies.serving:ServePolicyConfig",
+                     "serve a LeRobot checkpoint over WebSockets (openpi's protocol), for eval --policy remote:URL"),
     "diagnose": ("vla_ladder.experiments.diagnose:DiagnoseConfig",
                  "the ladder and four grounding probes of one policy, beside the reference policies, one page"),
 }

@@ -45,7 +45,7 @@ from vla_ladder.contract import EPISODE_STEPS
 from vla_ladder.evaluation import grounding
 from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
-from vla_ladder.policies import POLICY_KINDS, Policy, parse_spec
+from vla_ladder.policies import POLICY_KINDS, Policy, check_spec, parse_spec
 from vla_ladder.task.appearance import SWAPS, SWAPS_VERSION
 from vla_ladder.task.instructions import INSTRUCTION_SETS, paraphrase_version
 
@@ -243,6 +243,8 @@ def run_probe(cfg: ProbeConfig, policy: Policy | None = None, progress: bool = T
         raise ValueError("--out DIR is required: the probe directory to write")
     if policy is None and not cfg.policy:
         raise ValueError("--policy SPEC is required; allowed: " + ", ".join(POLICY_KINDS))
+    if policy is None:
+        check_spec(cfg.policy)  # a missing checkpoint or server fails before the probe directory is written
     open_probe_dir(cfg)
     runs: dict[str, Run] = {}
     for name, ec in cfg.variants().items():

@@ -2,16 +2,18 @@
 
 The interface and the registry live here (the ground floor every stage may import); each kind lives in its
 own module of this package: scripted.py (the scripted expert), reference.py (nearest, layout-prior,
-random), ppo.py (the PPO expert's network, checkpoint format and policy), lerobot.py (any LeRobot
-checkpoint). Recording and evaluation never care which kind they run. `load_policy("kind[:arg]")` builds
-one from a command-line spec; a kind's module is imported only when that kind is asked for.
+random, committed), ppo.py (the PPO expert's network, checkpoint format and policy), lerobot.py (any LeRobot
+checkpoint), remote.py (a policy served by another process, in openpi's protocol; serving.py serves one).
+Recording and evaluation never care which kind they run. `load_policy("kind[:arg]")` builds one from a
+command-line spec; a kind's module is imported only when that kind is asked for.
 """
 
 from __future__ import annotations
 
 import importlib
 from abc import ABC, abstractmethod
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
+from urllib.parse import parse_qsl
 
 import torch
 
@@ -46,18 +48,36 @@ POLICY_KINDS: dict[str, str] = {
     "layout-prior": "vla_ladder.policies.reference:make_layout_prior",
     "random": "vla_ladder.policies.reference:make_random",
     "committed": "vla_ladder.policies.reference:make_committed",
+    "remote": "vla_ladder.policies.remote:make_policy",
 }
-NEEDS_ARG = {"ppo", "lerobot"}
+# Kinds that need an argument, and what it is.
+NEEDS_ARG = {"ppo": "PATH", "lerobot": "PATH", "remote": "URL"}
 
 
 def parse_spec(spec: str) -> tuple[str, str | None]:
     kind, _, arg = spec.partition(":")
     if kind not in POLICY_KINDS:
         raise ValueError(f"unknown policy {spec!r}; allowed: " + ", ".join(
-            f"{k}:PATH" if k in NEEDS_ARG else k for k in POLICY_KINDS))
+            f"{k}:{NEEDS_ARG[k]}" if k in NEEDS_ARG else k for k in POLICY_KINDS))
     if kind in NEEDS_ARG and not arg:
-        raise ValueError(f"policy {kind!r} needs a path: {kind}:PATH")
+        what = "a server" if kind == "remote" else "a path"
+        raise ValueError(f"policy {kind!r} needs {what}: {kind}:{NEEDS_ARG[kind]}")
     return kind, (arg or None)
+
+
+def parse_options(kind: str, arg: str, allowed: dict[str, Callable[[str], Any]]) -> tuple[str, dict]:
+    """"HEAD?key=value&..." -> (HEAD, {key: allowed[key](value)}): a spec's options, each parsed by its own function
+    (whose ValueError names what it expects); an option not in `allowed` names those that are."""
+    head, _, query = arg.partition("?")
+    options = {}
+    for key, value in parse_qsl(query, strict_parsing=bool(query)):
+        if key not in allowed:
+            raise ValueError(f"unknown option {key!r} in {kind}:{arg}; allowed: {', '.join(allowed)}")
+        try:
+            options[key] = allowed[key](value)
+        except ValueError as e:
+            raise ValueError(f"option {key}={value!r} in {kind}:{arg}: {e}") from None
+    return head, options
 
 
 def load_policy(spec: str, **kwargs) -> Policy:
@@ -67,9 +87,9 @@ def load_policy(spec: str, **kwargs) -> Policy:
 
 
 def check_spec(spec: str) -> tuple[str, str | None]:
-    """parse_spec, plus: a ppo:/lerobot: spec must name a checkpoint that is there. Commands call it before any
-    long work (a server would otherwise build its simulator and fail every request; an evaluation would write
-    its run directory and fail in its first worker)."""
+    """parse_spec, plus: a ppo:/lerobot: spec must name a checkpoint that is there, a remote: spec a server that
+    answers. Commands call it before any long work (a server would otherwise build its simulator and fail every
+    request; an evaluation would write its run directory and fail in its first worker)."""
     kind, arg = parse_spec(spec)
     if kind == "ppo":
         from vla_ladder.policies.ppo import checkpoint_dir
@@ -77,4 +97,7 @@ def check_spec(spec: str) -> tuple[str, str | None]:
     elif kind == "lerobot":
         from vla_ladder.policies.lerobot import check_checkpoint, parse_arg
         check_checkpoint(parse_arg(arg)[0])
+    elif kind == "remote":
+        from vla_ladder.policies.remote import check_server
+        check_server(arg)
     return kind, arg

@@ -24,14 +24,13 @@ import collections
 import contextlib
 from pathlib import Path
 from typing import Any, Sequence
-from urllib.parse import parse_qsl
 
 import numpy as np
 import torch
 
 from vla_ladder.contract import ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IMAGE_SHAPE, STATE_DIM, STATE_KEY
 from vla_ladder.files import own_tempdir
-from vla_ladder.policies import Policy
+from vla_ladder.policies import Policy, parse_options
 
 ENV_IMAGE_SHAPE = (IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1])  # CHW, as LeRobot declares visual features
 # Policies that resize every camera image to their own resolution (LeRobot's VLAs): a checkpoint trained on another
@@ -200,12 +199,15 @@ class LeRobotPolicy(Policy):
         generator seeded by episode i's seed and the chunk's index (None, LeRobot's own draw, without seeds)."""
         if len(self._seeds) != num_envs:
             return None
+        return torch.stack([self.episode_noise(seed, self._chunks) for seed in self._seeds]).to(self.device)
+
+    def episode_noise(self, seed: int, chunk: int) -> torch.Tensor:
+        """The noise of chunk `chunk` of the episode of seed `seed`, (chunk_size, max_action_dim), on the CPU: what
+        `act` draws for it in any batch, and what a policy server draws for one request (policies/serving.py)."""
         shape = (self.config.chunk_size, self.config.max_action_dim)
         extra = (self.noise_seed,) if self.noise_seed else ()  # stream 0 keeps the entropy it always had
-        rows = [torch.randn(shape, generator=torch.Generator().manual_seed(
-            int(np.random.SeedSequence((seed, self._chunks, *extra)).generate_state(1, np.uint64)[0])))
-            for seed in self._seeds]
-        return torch.stack(rows).to(self.device)
+        state = np.random.SeedSequence((int(seed), int(chunk), *extra)).generate_state(1, np.uint64)[0]
+        return torch.randn(shape, generator=torch.Generator().manual_seed(int(state)))
 
     def batch(self, obs: Any, instructions: Sequence[str]) -> dict[str, Any]:
         """Env observation -> LeRobot's raw observation dict (before the saved preprocessor)."""
@@ -254,16 +256,7 @@ class LeRobotPolicy(Policy):
 
 def parse_arg(arg: str) -> tuple[str, dict]:
     """"PATH?n_action_steps=8&device=cpu" -> (PATH, {"n_action_steps": 8, "device": "cpu"})."""
-    path, _, query = arg.partition("?")
-    kwargs = {}
-    for key, value in parse_qsl(query, strict_parsing=bool(query)):
-        if key not in QUERY_KEYS:
-            raise ValueError(f"unknown option {key!r} in lerobot:{arg}; allowed: {', '.join(QUERY_KEYS)}")
-        try:
-            kwargs[key] = QUERY_KEYS[key](value)
-        except ValueError as e:
-            raise ValueError(f"option {key}={value!r} in lerobot:{arg}: {e}") from None
-    return path, kwargs
+    return parse_options("lerobot", arg, QUERY_KEYS)
 
 
 def make_policy(arg: str | None, **kwargs) -> LeRobotPolicy:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
-import ipaddress
 import logging
 import os
 import queue
@@ -25,7 +24,7 @@ import numpy as np
 import tyro
 
 from vla_ladder import contract
-from vla_ladder.checks import check_port_free, check_seed
+from vla_ladder.checks import check_port_free, check_seed, is_loopback
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, CONTROL_HZ, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
 from vla_ladder.policies import check_spec
@@ -34,15 +33,6 @@ from vla_ladder.task.objects import OBJECT_NAMES
 
 log = logging.getLogger(__name__)
 TOKEN_ENV = "VLA_LADDER_TOKEN"
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 @dataclass

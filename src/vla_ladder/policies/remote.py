@@ -1,0 +1,283 @@
+"""A policy served by another process, over WebSockets: `--policy remote:ws://HOST:PORT[?n_action_steps=H]`.
+
+Many VLAs run in a stack of their own (openpi's JAX models, a fork of LeRobot, another venv, a GPU box) that
+cannot share a process with the simulator. vla-ladder evaluates them through openpi's policy-server protocol,
+which such servers already speak (openpi's `scripts/serve_policy.py`, `openpi_client.WebsocketClientPolicy`):
+
+- on connecting, the server sends one message: its metadata (a map, possibly empty);
+- then, for every request, the client sends one observation (a map) and the server answers one map holding
+  "actions", an action chunk (T, 7) (or one action, (7,)); the client runs its first `n_action_steps` actions
+  (the whole chunk by default, or the server's metadata "n_action_steps") before it asks again;
+- messages are msgpack, numpy arrays in openpi's msgpack-numpy layout ({"__ndarray__": True, "data", "dtype",
+  "shape"}); a server that fails answers a text message (its error) and closes.
+
+The observation of one episode holds both cameras under their LeRobot keys (contract.CAMERA_KEYS: uint8 HWC
+256x256x3), the 15-d state under contract.STATE_KEY (float32), the instruction as "prompt", and two extra keys
+that openpi's input transforms ignore: "vla_ladder/episode_seed" and "vla_ladder/chunk_index". vla-ladder's own
+server (`vla-ladder serve-policy`, policies/serving.py) draws a flow-matching policy's noise from them, so a
+remote episode plays exactly as the same checkpoint does in-process (`lerobot:`). A batch of envs
+(`eval --num-envs N`) sends one request per env whose chunk has run out.
+
+A server that wants a key gets $VLA_LADDER_API_KEY as openpi's client sends its api_key. Nothing received is
+unpickled: arrays are rebuilt with np.frombuffer, only for boolean, numeric and fixed-width string dtypes and
+only when their bytes match their shape, and every message is bounded (MAX_MESSAGE).
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import os
+import weakref
+from typing import Any, Sequence
+from urllib.parse import urlsplit
+
+import msgpack
+import numpy as np
+import torch
+
+from vla_ladder.contract import ACTION_DIM, CAMERAS, STATE_KEY
+from vla_ladder.policies import Policy, parse_options
+
+PROMPT_KEY = "prompt"
+SEED_KEY = "vla_ladder/episode_seed"
+CHUNK_KEY = "vla_ladder/chunk_index"
+ACTIONS_KEY = "actions"
+API_KEY_ENV = "VLA_LADDER_API_KEY"  # sent as openpi's client sends its api_key: `Authorization: Api-Key KEY`
+# An observation is ~0.4 MB (two 256x256 RGB images); a chunk a few KB; metadata small. Both directions are
+# bounded well above that and far below what a hostile peer could make us allocate.
+MAX_MESSAGE = 16 * 1024 * 1024
+CONNECT_TIMEOUT_S = 10.0
+REPLY_TIMEOUT_S = 600.0  # the first chunk of a large model on a CPU can take minutes
+_KINDS = frozenset("biufSU")  # bool, integers, floats, fixed-width strings: never objects, void or pointers
+
+
+_ALLOWED = "allowed: bool, integers, floats, fixed-width strings"
+
+
+class BadMessage(ValueError):
+    """A received message that is not one this protocol allows."""
+
+
+def _encode(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.kind not in _KINDS:
+            raise ValueError(f"cannot send an array of dtype {obj.dtype} ({_ALLOWED})")
+        return {b"__ndarray__": True, b"data": np.ascontiguousarray(obj).tobytes(), b"dtype": obj.dtype.str,
+                b"shape": list(obj.shape)}
+    if isinstance(obj, np.generic):
+        return {b"__npgeneric__": True, b"data": obj.item(), b"dtype": obj.dtype.str}
+    raise TypeError(f"cannot send a {type(obj).__name__}")
+
+
+def _dtype(spec: Any) -> np.dtype:
+    if not isinstance(spec, (str, bytes)):
+        raise BadMessage(f"array dtype {spec!r} is not a dtype string")
+    dtype = np.dtype(spec.decode() if isinstance(spec, bytes) else spec)
+    if dtype.kind not in _KINDS or dtype.fields is not None or dtype.subdtype is not None:
+        raise BadMessage(f"array dtype {dtype} is not allowed ({_ALLOWED})")
+    return dtype
+
+
+def _decode(obj: dict) -> Any:
+    if b"__ndarray__" in obj:
+        dtype = _dtype(obj.get(b"dtype"))
+        shape, data = obj.get(b"shape"), obj.get(b"data")
+        if not isinstance(shape, list) or not all(isinstance(n, int) and n >= 0 for n in shape):
+            raise BadMessage(f"array shape {shape!r} is not a list of sizes")
+        if not isinstance(data, bytes) or len(data) != math.prod(shape) * dtype.itemsize:
+            raise BadMessage(f"array of shape {shape} and dtype {dtype} does not match its "
+                             f"{len(data) if isinstance(data, bytes) else 'missing'} bytes")
+        return np.frombuffer(data, dtype).reshape(shape)
+    if b"__npgeneric__" in obj:
+        return _dtype(obj.get(b"dtype")).type(obj.get(b"data"))
+    return obj
+
+
+def _no_ext(code: int, data: bytes) -> Any:
+    raise BadMessage(f"msgpack extension type {code} is not allowed")
+
+
+def pack(obj: Any) -> bytes:
+    """One message: msgpack, numpy arrays in openpi's msgpack-numpy layout."""
+    return msgpack.packb(obj, default=_encode, use_bin_type=True)
+
+
+def unpack(data: bytes) -> Any:
+    """The inverse of `pack`, for untrusted bytes: ValueError on anything but plain msgpack and numeric arrays."""
+    if not isinstance(data, bytes):
+        raise BadMessage(f"expected a binary message, got {type(data).__name__}")
+    try:
+        return msgpack.unpackb(data, object_hook=_decode, ext_hook=_no_ext, strict_map_key=False)
+    except BadMessage:
+        raise
+    except Exception as e:  # msgpack's own errors (truncated data, extra bytes) and numpy's (a bad dtype string)
+        raise BadMessage(f"not a msgpack message ({type(e).__name__}: {e})") from None
+
+
+def check_url(url: str) -> str:
+    parts = urlsplit(url)
+    if parts.scheme not in ("ws", "wss") or not parts.hostname:
+        raise ValueError(f"a remote policy is a WebSocket URL, ws://HOST:PORT or wss://HOST:PORT; got {url!r}")
+    return url
+
+
+def connect(url: str, timeout_s: float = CONNECT_TIMEOUT_S):
+    """(connection, metadata) of the policy server at `url`; ValueError, in one line, when none answers there."""
+    from websockets.exceptions import InvalidStatus, WebSocketException
+    from websockets.sync.client import connect as ws_connect
+
+    check_url(url)
+    key = os.environ.get(API_KEY_ENV)
+    headers = {"Authorization": f"Api-Key {key}"} if key else None
+    try:
+        # Entered as a context manager, and closed by whoever holds it (websockets >= 17.1 warns otherwise).
+        ws = ws_connect(url, open_timeout=timeout_s, max_size=MAX_MESSAGE, compression=None,
+                        additional_headers=headers).__enter__()
+    except InvalidStatus as e:
+        if e.response.status_code == 401:
+            raise ValueError(f"the policy server at {url} refused the connection: it needs its --api-key in "
+                             f"${API_KEY_ENV}") from None
+        raise ValueError(f"{url} refused the WebSocket connection (HTTP {e.response.status_code}); is it a policy "
+                         "server?") from None
+    except (OSError, TimeoutError, WebSocketException) as e:
+        raise ValueError(f"no policy server answers at {url} ({e}); start one there (vla-ladder serve-policy "
+                         f"--policy lerobot:CHECKPOINT, or openpi's serve_policy.py) or fix the URL") from None
+    try:
+        metadata = unpack(ws.recv(timeout=timeout_s))
+    except (ValueError, TimeoutError, WebSocketException) as e:
+        ws.close()
+        raise ValueError(f"{url} is not a policy server: its first message is not its metadata ({e})") from None
+    if not isinstance(metadata, dict):
+        ws.close()
+        raise ValueError(f"{url} is not a policy server: its metadata is a {type(metadata).__name__}, not a map")
+    return ws, metadata
+
+
+def _positive_int(value: str) -> int:
+    n = int(value)
+    if n < 1:
+        raise ValueError(f"expected an integer >= 1, got {value!r}")
+    return n
+
+
+QUERY_KEYS = {"n_action_steps": _positive_int, "instruction": str}
+
+
+def parse_arg(arg: str) -> tuple[str, dict]:
+    """"ws://host:8000?n_action_steps=4" -> ("ws://host:8000", {"n_action_steps": 4})."""
+    url, options = parse_options("remote", arg, QUERY_KEYS)
+    return check_url(url), options
+
+
+class RemotePolicy(Policy):
+    """A policy behind a policy server (module docstring): one connection, per-env chunks run open-loop."""
+
+    obs_mode = "rgb"
+
+    def __init__(self, url: str, n_action_steps: int | None = None, instruction: str | None = None):
+        """`n_action_steps`: actions of each chunk run before the next request (default: the server's metadata
+        "n_action_steps", else the whole chunk). `instruction` replaces every episode's (a blind policy's
+        contract.BLIND_INSTRUCTION)."""
+        self.url = check_url(url)
+        self._ws, self.server = connect(url)
+        weakref.finalize(self, self._ws.close)
+        server_steps = self.server.get("n_action_steps")
+        self.n_action_steps = n_action_steps or (server_steps if isinstance(server_steps, int) and server_steps > 0
+                                                 else None)
+        self.instruction = instruction
+        self.name = "remote"
+        self._seeds: list[int | None] = []
+        self._chunks: list[int] = []
+        self._queues: list[collections.deque] = []
+
+    def _grow(self, n: int) -> None:
+        while len(self._queues) < n:
+            self._seeds.append(None)
+            self._chunks.append(0)
+            self._queues.append(collections.deque())
+
+    def reset(self, seeds: Sequence[int], env_ids: Sequence[int] | None = None) -> None:
+        ids = list(range(len(seeds))) if env_ids is None else [int(i) for i in env_ids]
+        self._grow(max(ids, default=-1) + 1)
+        for i, seed in zip(ids, seeds):
+            self._seeds[i], self._chunks[i] = int(seed), 0
+            self._queues[i].clear()
+
+    def observation(self, obs: Any, i: int, instruction: str) -> dict:
+        """The request for env i: what the module docstring lists."""
+        out: dict[str, Any] = {cam.key: np.asarray(obs["sensor_data"][cam.name]["rgb"][i].cpu(), np.uint8)
+                               for cam in CAMERAS}
+        out[STATE_KEY] = np.asarray(obs["extra"]["proprio"][i].cpu(), np.float32)
+        out[PROMPT_KEY] = self.instruction or str(instruction)
+        if self._seeds[i] is not None:
+            out[SEED_KEY], out[CHUNK_KEY] = self._seeds[i], self._chunks[i]
+        return out
+
+    def request(self, observation: dict) -> np.ndarray:
+        """One request: the chunk (T, 7) the server answers, checked."""
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            self._ws.send(pack(observation))
+            reply = self._ws.recv(timeout=REPLY_TIMEOUT_S)
+        except ConnectionClosed as e:
+            raise RuntimeError(f"the policy server at {self.url} closed the connection ({e})") from None
+        except TimeoutError:
+            raise RuntimeError(f"the policy server at {self.url} sent no action in {REPLY_TIMEOUT_S:.0f} s") from None
+        if isinstance(reply, str):  # openpi's servers (and ours) answer their error as text, then close
+            raise RuntimeError(f"the policy server at {self.url} failed: {reply.strip().splitlines()[-1][:500]}")
+        answer = unpack(reply)
+        actions = answer.get(ACTIONS_KEY) if isinstance(answer, dict) else None
+        if not isinstance(actions, np.ndarray) or actions.dtype.kind != "f" or actions.ndim not in (1, 2) \
+                or actions.shape[-1] != ACTION_DIM or actions.size == 0:
+            got = actions.shape if isinstance(actions, np.ndarray) else type(actions).__name__
+            raise RuntimeError(f"the policy server at {self.url} answered {got} under {ACTIONS_KEY!r}; expected a "
+                               f"float array of shape (T, {ACTION_DIM}) or ({ACTION_DIM},)")
+        return actions.reshape(-1, ACTION_DIM)
+
+    @torch.no_grad()
+    def act(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
+        proprio = torch.as_tensor(obs["extra"]["proprio"])
+        n = proprio.shape[0]
+        self._grow(n)
+        for i in range(n):
+            if not self._queues[i]:
+                chunk = self.request(self.observation(obs, i, instructions[i]))
+                self._chunks[i] += 1
+                self._queues[i].extend(torch.from_numpy(chunk[:self.n_action_steps].astype(np.float32)))
+        action = torch.stack([self._queues[i].popleft() for i in range(n)])
+        return action.to(proprio.device).clamp(-1, 1)
+
+    def describe(self) -> dict:
+        return {"name": self.name, "url": self.url, "n_action_steps": self.n_action_steps,
+                "instruction": self.instruction, "server": _jsonable(self.server)}
+
+
+def _jsonable(metadata: dict) -> Any:
+    """The server's metadata as run files can hold it (arrays and bytes named, not written out)."""
+    def plain(o):
+        if isinstance(o, dict):
+            return {str(k): plain(v) for k, v in o.items()}
+        if isinstance(o, (list, tuple)):
+            return [plain(v) for v in o]
+        return o if isinstance(o, (str, int, float, bool, type(None))) else f"<{type(o).__name__}>"
+    return plain(metadata)
+
+
+def check_server(arg: str) -> None:
+    """The spec's options parse and a policy server answers at its URL: checked before any long work."""
+    url, _ = parse_arg(arg)
+    ws, _ = connect(url)
+    ws.close()
+
+
+def make_policy(arg: str | None, **kwargs) -> RemotePolicy:
+    """Factory for `load_policy("remote:ws://HOST:PORT[?n_action_steps=H&instruction=TEXT]")`."""
+    if not arg:
+        raise ValueError("policy 'remote' needs a server: remote:ws://HOST:PORT[?n_action_steps=H]")
+    url, options = parse_arg(arg)
+    if kwargs.get("n_action_steps") is not None:
+        options["n_action_steps"] = int(kwargs["n_action_steps"])
+    return RemotePolicy(url, **options)
+

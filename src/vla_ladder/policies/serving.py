@@ -1,0 +1,222 @@
+"""`vla-ladder serve-policy`: serve a LeRobot checkpoint over WebSockets in openpi's policy-server protocol.
+
+The server side of policies/remote.py (whose docstring is the protocol): load the checkpoint once, send its
+metadata to every client that connects, answer every observation with a whole action chunk. Requests are
+independent (the client runs the chunk), so any number of clients (`eval --workers N` opens N) share one copy of
+the model; inference runs one request at a time, off the event loop. A request carrying
+"vla_ladder/episode_seed" and "vla_ladder/chunk_index" gets the flow-matching noise `lerobot:` draws for that
+chunk of that episode, so `eval --policy remote:URL` plays what `eval --policy lerobot:CHECKPOINT` plays.
+
+Use it to put the model on a GPU machine and the simulation elsewhere, to serve a checkpoint to openpi-style
+clients, or to check the remote path against the in-process one. It listens on 127.0.0.1 unless told otherwise;
+anywhere else needs --api-key, which clients send as openpi's does (`Authorization: Api-Key KEY`;
+remote.py reads it from $VLA_LADDER_API_KEY). Nothing received is unpickled and every message is bounded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import http
+import json
+import logging
+import os
+import signal
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from vla_ladder.checks import check_port_free, is_loopback
+from vla_ladder.contract import ACTION_DIM, CAMERAS, STATE_DIM, STATE_KEY
+from vla_ladder.policies import check_spec, parse_spec
+from vla_ladder.policies.remote import (API_KEY_ENV, CHUNK_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY, pack, unpack)
+
+log = logging.getLogger(__name__)
+MAX_PROMPT = 1000  # characters of an instruction
+# Policy types whose action chunk depends on the current observation only (and the noise): a request can be
+# answered without the client's history. Diffusion and VQ-BeT keep a queue of past observations; ACT with
+# temporal ensembling blends overlapping chunks step by step: neither splits into independent requests.
+SERVABLE = ("smolvla", "pi0", "pi05", "act")
+
+
+@dataclass
+class ServePolicyConfig:
+    """Serve a LeRobot checkpoint to remote clients (`vla-ladder serve-policy`; `eval --policy remote:URL`)."""
+
+    policy: str = ""
+    """lerobot:CHECKPOINT[?device=D&n_action_steps=H&use_amp=B&noise_seed=K]: the checkpoint to serve; its
+    n_action_steps is the default horizon clients run (they may ask for another)"""
+    host: str = "127.0.0.1"
+    """address to listen on; anything but loopback needs --api-key"""
+    port: int = 8000
+    """port; 0 picks a free one (the URL is printed once listening)"""
+    api_key: str | None = field(default_factory=lambda: os.environ.get(API_KEY_ENV))
+    """secret clients send as `Authorization: Api-Key KEY` (default: $VLA_LADDER_API_KEY); required off loopback"""
+
+    def __post_init__(self):
+        if not self.policy:
+            raise ValueError("--policy lerobot:CHECKPOINT is required (the checkpoint to serve)")
+        kind, arg = parse_spec(self.policy)
+        if kind != "lerobot":
+            raise ValueError(f"--policy {self.policy!r}: serve-policy serves LeRobot checkpoints, lerobot:CHECKPOINT "
+                             "(the reference and PPO experts read privileged state: evaluate them in-process)")
+        if not 0 <= self.port < 65536:
+            raise ValueError(f"port must be in 0..65535, got {self.port}")
+        if not self.api_key and not is_loopback(self.host):
+            raise ValueError(f"listening on {self.host!r} (not loopback) needs --api-key (or ${API_KEY_ENV}); "
+                             "allowed without one: 127.0.0.1, ::1, localhost")
+        check_spec(self.policy)
+        from vla_ladder.policies.lerobot import parse_arg, resolve_checkpoint
+        saved = json.loads((resolve_checkpoint(parse_arg(arg)[0]) / "config.json").read_text())
+        check_servable(saved.get("type"), saved.get("temporal_ensemble_coeff"))
+        check_port_free(self.host, self.port)  # before the model loads, not after
+
+
+def check_servable(policy_type: str | None, temporal_ensemble_coeff: float | None = None) -> None:
+    if policy_type not in SERVABLE:
+        raise ValueError(f"a {policy_type} checkpoint cannot be served chunk by chunk (its actions depend on past "
+                         f"observations); allowed types: {', '.join(SERVABLE)}. Evaluate it in-process with "
+                         "--policy lerobot:CHECKPOINT")
+    if temporal_ensemble_coeff is not None:
+        raise ValueError("an ACT checkpoint with temporal_ensemble_coeff blends chunks step by step and cannot be "
+                         "served chunk by chunk; evaluate it in-process with --policy lerobot:CHECKPOINT")
+
+
+def read_request(request: Any) -> tuple[dict, str, int | None, int | None]:
+    """(env-like observation batch of one, instruction, episode seed, chunk index) of a request; ValueError naming
+    what a request holds when it is not one."""
+    if not isinstance(request, dict):
+        raise ValueError(f"a request is a map of observations, got a {type(request).__name__}")
+    sensors = {}
+    for cam in CAMERAS:
+        image = request.get(cam.key)
+        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.shape != cam.shape:
+            got = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
+            raise ValueError(f"{cam.key} must be a uint8 array of shape {cam.shape} (HWC), got {got}")
+        sensors[cam.name] = {"rgb": torch.from_numpy(image.copy())[None]}
+    state = request.get(STATE_KEY)
+    if not isinstance(state, np.ndarray) or state.dtype.kind != "f" or state.shape != (STATE_DIM,):
+        got = f"{state.dtype} {state.shape}" if isinstance(state, np.ndarray) else type(state).__name__
+        raise ValueError(f"{STATE_KEY} must be a float array of shape ({STATE_DIM},), got {got}")
+    prompt = request.get(PROMPT_KEY)
+    if not isinstance(prompt, str) or not 0 < len(prompt) <= MAX_PROMPT:
+        raise ValueError(f"{PROMPT_KEY!r} must be the instruction, 1-{MAX_PROMPT} characters")
+    seed, chunk = request.get(SEED_KEY), request.get(CHUNK_KEY)
+    if (seed is None) != (chunk is None) or any(
+            v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0)
+            for v in (seed, chunk)):
+        raise ValueError(f"{SEED_KEY!r} and {CHUNK_KEY!r} come together, as integers >= 0, or not at all")
+    obs = {"sensor_data": sensors, "extra": {"proprio": torch.from_numpy(state.astype(np.float32))[None]}}
+    return obs, prompt, None if seed is None else int(seed), None if chunk is None else int(chunk)
+
+
+class PolicyServer:
+    """One loaded checkpoint, any number of connections, one inference at a time."""
+
+    def __init__(self, cfg: ServePolicyConfig, policy=None):
+        from vla_ladder.policies import load_policy
+
+        self.cfg = cfg
+        self.policy = policy if policy is not None else load_policy(cfg.policy)
+        self.metadata = {
+            "server": "vla-ladder", "policy": self.policy.describe(),
+            "n_action_steps": self.policy.n_action_steps, "action_dim": ACTION_DIM,
+            "observation": {"cameras": {c.key: list(c.shape) for c in CAMERAS}, "state": [STATE_KEY, STATE_DIM],
+                            "prompt": PROMPT_KEY, "episode_seed": SEED_KEY, "chunk_index": CHUNK_KEY},
+        }
+        self.requests = 0
+        self._lock = asyncio.Lock()
+
+    def infer(self, request: Any) -> np.ndarray:
+        """The whole action chunk (chunk_size, 7) for one request."""
+        return self.chunk(*read_request(request))
+
+    def chunk(self, obs: dict, prompt: str, seed: int | None, chunk: int | None) -> np.ndarray:
+        from vla_ladder.policies.lerobot import NOISE_PER_EPISODE
+
+        noise = None
+        if seed is not None and self.policy.config.type in NOISE_PER_EPISODE:
+            noise = self.policy.episode_noise(seed, chunk)[None].to(self.policy.device)
+        return self.policy.predict_chunk(obs, [prompt], noise=noise)[0].to(torch.float32).cpu().numpy()
+
+    def _authorised(self, connection, request):
+        if request.path == "/healthz":  # openpi's health check
+            return connection.respond(http.HTTPStatus.OK, "OK\n")
+        if self.cfg.api_key:
+            sent = request.headers.get("Authorization", "")
+            if not hmac.compare_digest(sent.encode(), f"Api-Key {self.cfg.api_key}".encode()):
+                return connection.respond(http.HTTPStatus.UNAUTHORIZED, "missing or wrong Api-Key\n")
+        return None
+
+    async def handle(self, ws) -> None:
+        from websockets.exceptions import ConnectionClosed
+
+        peer = ws.remote_address
+        log.info("client %s connected", peer)
+        try:
+            await ws.send(pack(self.metadata))
+            async for message in ws:
+                try:
+                    request = unpack(message)
+                    if isinstance(request, dict) and "__ctrl__" in request:  # openpi's episode markers: nothing to do
+                        await ws.send(pack({"__ack__": str(request["__ctrl__"])[:64]}))
+                        continue
+                    parsed = read_request(request)  # a bad request is the client's mistake: no inference
+                except ValueError as e:
+                    log.info("client %s sent a bad request: %s", peer, e)
+                    await ws.send(f"bad request: {e}")
+                    await ws.close(1008, "bad request")
+                    return
+                start = time.perf_counter()
+                try:
+                    async with self._lock:
+                        actions = await asyncio.to_thread(self.chunk, *parsed)
+                except Exception as e:
+                    log.exception("inference failed for client %s", peer)
+                    await ws.send(f"inference failed: {type(e).__name__}: {e}")
+                    await ws.close(1011, "inference failed")
+                    return
+                self.requests += 1
+                await ws.send(pack({"actions": actions,
+                                    "server_timing": {"infer_ms": (time.perf_counter() - start) * 1000}}))
+        except ConnectionClosed:
+            pass
+        log.info("client %s disconnected", peer)
+
+    async def serve(self, ready=None) -> None:
+        from websockets.asyncio.server import serve
+
+        async with serve(self.handle, self.cfg.host, self.cfg.port, max_size=MAX_MESSAGE, compression=None,
+                         process_request=self._authorised) as server:
+            port = server.sockets[0].getsockname()[1]
+            host = f"[{self.cfg.host}]" if ":" in self.cfg.host else self.cfg.host
+            if ready is not None:
+                ready(f"ws://{host}:{port}")
+            await server.serve_forever()
+
+
+def run(cfg: ServePolicyConfig) -> int:
+    if not log.handlers:  # LeRobot configures the root logger on import; this command's lines go to stderr as is
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("[serve-policy %(asctime)s] %(message)s", "%H:%M:%S"))
+        log.addHandler(handler)
+        log.propagate = False
+    log.setLevel(logging.INFO)
+    server = PolicyServer(cfg)
+
+    async def main() -> None:
+        task = asyncio.current_task()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, task.cancel)
+        await server.serve(lambda url: print(f"listening on {url}", flush=True))
+
+    try:
+        asyncio.run(main())
+    except asyncio.CancelledError:
+        pass
+    log.info("stopped after %d requests", server.requests)
+    return 0

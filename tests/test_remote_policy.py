@@ -1,0 +1,202 @@
+"""`--policy remote:URL` and `vla-ladder serve-policy`: openpi's policy-server protocol over a real loopback WebSocket,
+a real LeRobot checkpoint served by a real `vla-ladder serve-policy` process, episodes in the real simulator."""
+
+import os
+import pickle
+import re
+import subprocess
+import sys
+import urllib.error
+import urllib.request
+
+import msgpack
+import numpy as np
+import pandas as pd
+import pytest
+
+import lerobot_helpers as H
+from vla_ladder.cli import main
+from vla_ladder.contract import CAMERAS, STATE_KEY
+from vla_ladder.policies.remote import CHUNK_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY, pack, parse_arg, unpack
+from vla_ladder.policies.serving import check_servable, read_request
+
+KEY = "k3y"
+EVAL = ["--regimes", "small_jitter", "--num-objects", "2", "--episodes", "2", "--first-seed", "7", "--workers", "1"]
+
+
+# ---------------------------------------------------------------------- the wire format
+def _openpi_array(a: np.ndarray) -> dict:
+    """An array as openpi's msgpack_numpy packs it, written out by hand."""
+    return {b"__ndarray__": True, b"data": a.tobytes(), b"dtype": a.dtype.str, b"shape": list(a.shape)}
+
+
+def test_messages_read_openpi_layout_and_refuse_anything_but_plain_arrays():
+    chunk = np.arange(14, dtype=np.float32).reshape(2, 7)
+    openpi = msgpack.packb({"actions": _openpi_array(chunk), "n": 3}, use_bin_type=True)
+    got = unpack(openpi)
+    assert got["n"] == 3 and got["actions"].dtype == np.float32
+    np.testing.assert_array_equal(got["actions"], chunk)
+    obs = {"img": np.zeros((4, 4, 3), np.uint8), "s": np.ones(15, np.float32), "t": "grasp the mug",
+           "k": np.int64(5), "b": np.array([True, False]), "words": np.array(["a", "bc"])}
+    back = unpack(pack(obs))
+    for k, v in obs.items():
+        if isinstance(v, np.ndarray):
+            assert back[k].dtype == v.dtype and np.array_equal(back[k], v)
+        else:
+            assert back[k] == v and type(back[k]) is type(v)
+
+    def bad(message: dict) -> bytes:
+        return msgpack.packb(message, use_bin_type=True)
+
+    with pytest.raises(ValueError, match="dtype object is not allowed"):
+        unpack(bad({b"__ndarray__": True, b"data": b"\0" * 8, b"dtype": "|O", b"shape": [1]}))
+    with pytest.raises(ValueError, match="dtype .*V8.* is not allowed"):
+        unpack(bad({b"__ndarray__": True, b"data": b"\0" * 8, b"dtype": "|V8", b"shape": [1]}))
+    with pytest.raises(ValueError, match="does not match its 8 bytes"):
+        unpack(bad({b"__ndarray__": True, b"data": b"\0" * 8, b"dtype": "<f4", b"shape": [1000, 1000]}))
+    with pytest.raises(ValueError, match="extension type 3 is not allowed"):
+        unpack(msgpack.packb(msgpack.ExtType(3, b"x")))
+    with pytest.raises(ValueError, match="not a msgpack message"):
+        unpack(pack({"a": 1})[:-1])
+    with pytest.raises(ValueError, match="expected a binary message"):
+        unpack("text")
+    with pytest.raises(ValueError, match="cannot send an array of dtype object"):
+        pack({"a": np.array([object()])})
+
+
+def test_requests_are_checked_before_inference():
+    good = {c.key: np.zeros(c.shape, np.uint8) for c in CAMERAS}
+    good.update({STATE_KEY: np.zeros(15, np.float32), PROMPT_KEY: "grasp the mug", SEED_KEY: 3, CHUNK_KEY: 0})
+    obs, prompt, seed, chunk = read_request(good)
+    assert obs["sensor_data"][CAMERAS[0].name]["rgb"].shape == (1, *CAMERAS[0].shape)
+    assert obs["extra"]["proprio"].shape == (1, 15) and (prompt, seed, chunk) == ("grasp the mug", 3, 0)
+    cam = CAMERAS[0].key
+    for change, message in [({cam: np.zeros((224, 224, 3), np.uint8)}, f"{cam} must be a uint8 array of shape"),
+                            ({cam: np.zeros(CAMERAS[0].shape, np.float32)}, "got float32"),
+                            ({STATE_KEY: np.zeros(8, np.float32)}, r"must be a float array of shape \(15,\)"),
+                            ({PROMPT_KEY: ""}, "must be the instruction"),
+                            ({PROMPT_KEY: "x" * 1001}, "1-1000 characters"),
+                            ({SEED_KEY: -1}, "come together, as integers >= 0"),
+                            ({CHUNK_KEY: None}, "come together")]:
+        with pytest.raises(ValueError, match=message):
+            read_request({**good, **change})
+    with pytest.raises(ValueError, match="a request is a map"):
+        read_request([1, 2])
+    with pytest.raises(ValueError, match="allowed types: smolvla, pi0, pi05, act"):
+        check_servable("diffusion")
+    with pytest.raises(ValueError, match="temporal_ensemble_coeff"):
+        check_servable("act", 0.01)
+    check_servable("act")
+
+
+def test_bad_remote_specs_fail_in_one_line_before_work(tmp_path, capsys):
+    out = tmp_path / "run"
+    for spec, message in [("remote:ws://127.0.0.1:1", "no policy server answers at ws://127.0.0.1:1"),
+                          ("remote:http://127.0.0.1:8000", "a remote policy is a WebSocket URL"),
+                          ("remote:ws://127.0.0.1:1?horizon=3", "unknown option 'horizon' .*allowed: n_action_steps"),
+                          ("remote:ws://127.0.0.1:1?n_action_steps=0", "expected an integer >= 1"),
+                          ("remote:", "policy 'remote' needs a server: remote:URL")]:
+        assert main(["eval", "--policy", spec, *EVAL, "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and re.search(message, err), err
+        assert not out.exists()
+    assert main(["probe", "instruction-swap", "--policy", "remote:ws://127.0.0.1:1", "--episodes", "2",
+                 "--out", str(out)]) == 2
+    assert "no policy server answers" in capsys.readouterr().err and not out.exists()
+    for argv, message in [(["--policy", "scripted"], "serve-policy serves LeRobot checkpoints"),
+                          (["--policy", "lerobot:/nonexistent"], "no LeRobot checkpoint at '/nonexistent'"),
+                          ([], "--policy lerobot:CHECKPOINT is required"),
+                          (["--policy", "lerobot:/nonexistent", "--host", "0.0.0.0"], "needs --api-key"),
+                          (["--policy", "lerobot:/nonexistent", "--port", "70000"], "port must be in 0..65535")]:
+        assert main(["serve-policy", *argv]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and message in err, err
+    assert parse_arg("ws://h:1?n_action_steps=3&instruction=grasp the object") == (
+        "ws://h:1", {"n_action_steps": 3, "instruction": "grasp the object"})
+
+
+# ---------------------------------------------------------------------- a served checkpoint
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """A tiny SmolVLA trained here, served by `vla-ladder serve-policy` (horizon 2, an api key) on a free port."""
+    run = H.trained(tmp_path_factory, "smolvla")
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "VLA_LADDER_API_KEY": KEY}
+    proc = subprocess.Popen([sys.executable, "-m", "vla_ladder.cli", "serve-policy", "--policy",
+                             f"lerobot:{run}?n_action_steps=2", "--port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
+    lines = [proc.stdout.readline()]  # after what LeRobot prints while it loads the model
+    while lines[-1] and not lines[-1].startswith("listening on "):
+        lines.append(proc.stdout.readline())
+    line = lines[-1]
+    assert line.startswith("listening on ws://127.0.0.1:"), lines
+    yield run, line.split()[-1]
+    proc.kill()
+    proc.wait()
+
+
+@pytest.mark.slow
+def test_a_served_checkpoint_plays_what_it_plays_in_process(served, tmp_path, monkeypatch, capsys):
+    """Episode for episode, the remote policy ends where the in-process `lerobot:` one does (to the bit: the same
+    flow-matching noise, drawn from each episode's seed and chunk index), at the server's horizon by default."""
+    run, url = served
+    assert main(["eval", "--policy", f"remote:{url}", *EVAL, "--out", str(tmp_path / "nokey")]) == 2
+    assert "needs its --api-key in $VLA_LADDER_API_KEY" in capsys.readouterr().err
+    monkeypatch.setenv("VLA_LADDER_API_KEY", KEY)
+    runs = {"remote": [f"remote:{url}"], "local": [f"lerobot:{run}?n_action_steps=2"],
+            "remote4": [f"remote:{url}?n_action_steps=4"], "batched": [f"remote:{url}", "--num-envs", "2"]}
+    for name, (spec, *more) in runs.items():
+        assert main(["eval", "--policy", spec, *EVAL, *more, "--out", str(tmp_path / name)]) == 0
+    remote, local, remote4, batched = (
+        pd.read_parquet(tmp_path / n / "episodes.parquet").drop(columns="policy").sort_values("episode")
+        .reset_index(drop=True) for n in runs)
+    pd.testing.assert_frame_equal(remote, local)
+    pd.testing.assert_frame_equal(batched, local)  # two envs at once: one request each per chunk
+    assert not np.array_equal(remote4[["tcp_x", "tcp_y"]].to_numpy(), local[["tcp_x", "tcp_y"]].to_numpy())
+
+
+@pytest.mark.slow
+def test_the_server_answers_bad_requests_in_one_message_and_keeps_serving(served):
+    from websockets.exceptions import ConnectionClosed, InvalidStatus
+    from websockets.sync.client import connect
+
+    _, url = served
+    headers = {"Authorization": f"Api-Key {KEY}"}
+    with urllib.request.urlopen(url.replace("ws://", "http://") + "/healthz", timeout=10) as r:  # openpi's check
+        assert r.status == 200
+    with pytest.raises(InvalidStatus, match="401"):
+        connect(url, additional_headers={"Authorization": "Api-Key wrong"}, open_timeout=10)
+    good = {c.key: np.zeros(c.shape, np.uint8) for c in CAMERAS}
+    good.update({STATE_KEY: np.zeros(15, np.float32), PROMPT_KEY: "grasp the mug"})
+
+    def closes(*messages) -> tuple[str | None, int]:
+        text = None
+        with connect(url, additional_headers=headers, max_size=2 * MAX_MESSAGE, compression=None) as ws:
+            metadata = unpack(ws.recv(timeout=30))
+            assert metadata["server"] == "vla-ladder" and metadata["n_action_steps"] == 2
+            try:
+                for m in messages:
+                    ws.send(m)
+                while True:
+                    reply = ws.recv(timeout=60)
+                    if isinstance(reply, str):
+                        text = reply
+            except ConnectionClosed as e:
+                return text, e.rcvd.code
+        raise AssertionError("the server did not close")
+
+    text, code = closes(pack({**good, STATE_KEY: np.zeros(3, np.float32)}))
+    assert code == 1008 and text.startswith(f"bad request: {STATE_KEY} must be a float array"), text
+    text, code = closes(pickle.dumps({"a": 1}))  # never unpickled: not msgpack, refused
+    assert code == 1008 and text.startswith("bad request: not a msgpack message"), text
+    assert closes(b"\0" * (MAX_MESSAGE + 1))[1] == 1009  # too big: closed by websockets before it is read
+    with connect(url, additional_headers=headers, compression=None) as ws:  # still serving
+        unpack(ws.recv(timeout=30))
+        ws.send(pack({"__ctrl__": "episode_start"}))  # openpi's episode markers are acknowledged
+        assert unpack(ws.recv(timeout=30)) == {"__ack__": "episode_start"}
+        ws.send(pack({**good, SEED_KEY: 1, CHUNK_KEY: 0}))
+        chunk = unpack(ws.recv(timeout=120))["actions"]
+        assert chunk.dtype == np.float32 and chunk.shape == (4, 7)  # the whole chunk; the client runs 2
+        ws.send(pack({**good, SEED_KEY: 1, CHUNK_KEY: 0}))
+        np.testing.assert_array_equal(unpack(ws.recv(timeout=120))["actions"], chunk)  # same episode, same noise
+    with pytest.raises(urllib.error.HTTPError):
+        urllib.request.urlopen(url.replace("ws://", "http://") + "/other", timeout=10)
