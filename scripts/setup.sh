@@ -68,6 +68,10 @@ if [ ! -f .venv/.vla-ladder-stamp ] || [ "$(cat .venv/.vla-ladder-stamp)" != "$w
   # cache bytecode and every process (each simulation worker and server) would compile torch, LeRobot and
   # transformers from source again: ~70 s of CPU each, measured on 2 busy cores.
   VIRTUAL_ENV="$ROOT/.venv" "$UV" pip install -q --compile-bytecode -e ".[dev]" -e plugins/lerobot_env_grasp_object
+  # openpi's own client, for the test that it talks to `vla-ladder serve-policy` (tests/test_remote_policy.py).
+  # Without its dependencies: it pins numpy < 2, which nothing it runs here needs (its WebSocket client uses
+  # websockets, msgpack and numpy, all already installed); dm-tree is for its own tests only.
+  VIRTUAL_ENV="$ROOT/.venv" "$UV" pip install -q --compile-bytecode --no-deps "openpi-client==0.1.2"
   echo "$want" > .venv/.vla-ladder-stamp
 fi
 log "ready: $ROOT/.venv"

@@ -200,3 +200,40 @@ def test_the_server_answers_bad_requests_in_one_message_and_keeps_serving(served
         np.testing.assert_array_equal(unpack(ws.recv(timeout=120))["actions"], chunk)  # same episode, same noise
     with pytest.raises(urllib.error.HTTPError):
         urllib.request.urlopen(url.replace("ws://", "http://") + "/other", timeout=10)
+
+
+# ---------------------------------------------------------------------- openpi's own client
+def test_openpi_codec_and_ours_read_each_other():
+    from openpi_client import msgpack_numpy
+
+    obs = {"img": np.arange(12, dtype=np.uint8).reshape(2, 2, 3), "s": np.ones(15, np.float32), "p": "grasp",
+           "k": np.int64(4), "nested": {"a": [np.zeros(2, np.float64)]}}
+    for there_and_back in (unpack(msgpack_numpy.packb(obs)), msgpack_numpy.unpackb(pack(obs))):
+        assert there_and_back["p"] == "grasp" and there_and_back["k"] == 4
+        for key in ("img", "s"):
+            assert there_and_back[key].dtype == obs[key].dtype and np.array_equal(there_and_back[key], obs[key])
+        assert np.array_equal(there_and_back["nested"]["a"][0], np.zeros(2))
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:connect\\(\\) must be used as a context manager:DeprecationWarning")  # openpi's
+def test_openpis_client_is_served(served):
+    """openpi's WebsocketClientPolicy (openpi-client from PyPI), as an openpi user's robot code calls it, gets the
+    chunk vla-ladder's own client gets for the same observation, seed and chunk index."""
+    from openpi_client.websocket_client_policy import WebsocketClientPolicy
+    from websockets.sync.client import connect
+
+    _, url = served
+    obs = {c.key: np.random.default_rng(i).integers(0, 256, c.shape, dtype=np.uint8) for i, c in enumerate(CAMERAS)}
+    obs.update({STATE_KEY: np.linspace(-1, 1, 15, dtype=np.float32), PROMPT_KEY: "grasp the apple",
+                SEED_KEY: 5, CHUNK_KEY: 1})
+    client = WebsocketClientPolicy(host=url, api_key=KEY)
+    assert client.get_server_metadata()["n_action_steps"] == 2
+    theirs = client.infer(obs)
+    assert set(theirs) == {"actions", "server_timing"} and theirs["actions"].shape == (4, 7)
+    with connect(url, additional_headers={"Authorization": f"Api-Key {KEY}"}, compression=None) as ws:
+        unpack(ws.recv(timeout=30))
+        ws.send(pack(obs))
+        np.testing.assert_array_equal(unpack(ws.recv(timeout=120))["actions"], theirs["actions"])
+    del obs[SEED_KEY], obs[CHUNK_KEY]  # what any openpi client sends: noise from the server's own generator
+    assert client.infer(obs)["actions"].shape == (4, 7)
