@@ -52,6 +52,25 @@ def test_loads_with_processors_and_runs_chunks_batched(smolvla_run):
     assert policy.predict_chunk(obs, ["grasp the apple"] * 2).shape == (2, 4, 7)
 
 
+def test_act_queues_its_chunks_as_select_action_does(tmp_path_factory):
+    """ACT (without temporal ensembling) acts from chunks queued here, as the flow-matching policies do: the actions
+    LeRobot's own select_action gives on the same observations, with each observation preprocessed once a chunk
+    (steps 0, 2, 4 at horizon 2) rather than every step."""
+    policy = load_policy(f"lerobot:{H.trained(tmp_path_factory, 'act')}?n_action_steps=2", device="cpu")
+    observations, tasks = [_obs(2, seed=s) for s in range(5)], ["grasp the apple", "grasp the mug"]
+    preprocessor, calls = policy.preprocessor, []
+    policy.preprocessor = lambda batch: calls.append(1) or preprocessor(batch)
+    policy.reset([0, 1])
+    ours = torch.stack([policy.act(obs, tasks) for obs in observations])
+    assert len(calls) == 3
+    policy.policy.reset()
+    with torch.no_grad():
+        theirs = torch.stack([policy.postprocessor(policy.policy.select_action(preprocessor(policy.batch(obs, tasks))))
+                              for obs in observations]).clamp(-1, 1)
+    torch.testing.assert_close(ours, theirs, atol=0, rtol=0)
+    assert policy.noise(2) is None  # ACT takes no noise
+
+
 def test_flow_matching_noise_is_drawn_per_episode(smolvla_run):
     """An episode's noise comes from its own seed and chunk index: alone or beside another episode, a SmolVLA
     acts the same (to float rounding), and another seed acts otherwise."""

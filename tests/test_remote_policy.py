@@ -84,7 +84,7 @@ def test_requests_are_checked_before_inference():
         read_request([1, 2])
     with pytest.raises(ValueError, match="allowed types: smolvla, pi0, pi05, act"):
         check_servable("diffusion")
-    with pytest.raises(ValueError, match="temporal_ensemble_coeff"):
+    with pytest.raises(ValueError, match="an act checkpoint with temporal_ensemble_coeff"):
         check_servable("act", 0.01)
     check_servable("act")
 

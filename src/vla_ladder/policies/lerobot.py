@@ -13,7 +13,8 @@ by the episode's seed and the chunk's index, and passed to LeRobot's `predict_ac
 when a chunk is predicted). So an episode gets the same noise alone or in any batch, on the CPU or the GPU.
 `?noise_seed=K` (K > 0) draws another stream for every episode: the same scenes played again with other noise
 measure how much of a policy's result is its own sampling rather than the scene (docs/evaluation.md). Other
-policies (ACT, diffusion, ...) act through LeRobot's own `select_action`. As in `lerobot-eval`,
+policies queue chunks the same way (ACT, without noise), or act through LeRobot's own `select_action` when a chunk
+depends on more than the current observation (diffusion, VQ-BeT, ACT with temporal ensembling). As in `lerobot-eval`,
 a checkpoint whose config says `use_amp` acts under torch.autocast (float16 on CUDA, bfloat16 on the CPU);
 `?use_amp=true|false` overrides it. The same code runs one CPU env or a batch of GPU envs.
 """
@@ -40,6 +41,21 @@ RESIZES_IMAGES = {"smolvla", "pi0", "pi05", "pi0_fast"}
 # Policies whose predict_action_chunk takes the flow-matching noise, (batch, chunk_size, max_action_dim), and which
 # see one observation a step: their chunks are drawn here from per-episode noise (module docstring).
 NOISE_PER_EPISODE = {"smolvla", "pi0", "pi05"}
+
+
+# Policies whose action chunk can depend on the current observation only (and the noise); chunks_from_one_observation
+# says whether a checkpoint's does.
+ONE_OBSERVATION_CHUNKS = ("smolvla", "pi0", "pi05", "act")
+
+
+def chunks_from_one_observation(policy_type: str | None, temporal_ensemble_coeff: float | None = None) -> bool:
+    """Whether a policy's action chunk depends on the current observation only (and its noise): then `act` queues
+    the first n_action_steps of each chunk itself, as LeRobot's select_action does, and preprocesses an observation
+    once a chunk instead of every step; and a policy server answers each request alone (serving.py). Not ACT with
+    temporal ensembling (it blends overlapping chunks every step), nor diffusion or VQ-BeT (they keep a history)."""
+    return policy_type in ONE_OBSERVATION_CHUNKS and temporal_ensemble_coeff is None
+
+
 WEIGHTS_FILE = "model.safetensors"
 
 
@@ -196,8 +212,9 @@ class LeRobotPolicy(Policy):
 
     def noise(self, num_envs: int) -> torch.Tensor | None:
         """The flow-matching noise of the next chunk, (num_envs, chunk_size, max_action_dim): row i from a
-        generator seeded by episode i's seed and the chunk's index (None, LeRobot's own draw, without seeds)."""
-        if len(self._seeds) != num_envs:
+        generator seeded by episode i's seed and the chunk's index (None, LeRobot's own draw, without seeds; None
+        for a policy that takes no noise)."""
+        if len(self._seeds) != num_envs or self.config.type not in NOISE_PER_EPISODE:
             return None
         return torch.stack([self.episode_noise(seed, self._chunks) for seed in self._seeds]).to(self.device)
 
@@ -227,7 +244,7 @@ class LeRobotPolicy(Policy):
     def act(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
         proprio = torch.as_tensor(obs["extra"]["proprio"])
         self._num_envs = proprio.shape[0]
-        if self.config.type not in NOISE_PER_EPISODE:
+        if not chunks_from_one_observation(self.config.type, getattr(self.config, "temporal_ensemble_coeff", None)):
             with self._precision():
                 batch = self.preprocessor(self.batch(obs, instructions))
                 action = self.postprocessor(self.policy.select_action(batch))

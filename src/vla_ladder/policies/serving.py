@@ -36,10 +36,6 @@ from vla_ladder.policies.remote import (API_KEY_ENV, CHUNK_KEY, MAX_MESSAGE, PRO
 
 log = logging.getLogger(__name__)
 MAX_PROMPT = 1000  # characters of an instruction
-# Policy types whose action chunk depends on the current observation only (and the noise): a request can be
-# answered without the client's history. Diffusion and VQ-BeT keep a queue of past observations; ACT with
-# temporal ensembling blends overlapping chunks step by step: neither splits into independent requests.
-SERVABLE = ("smolvla", "pi0", "pi05", "act")
 
 
 @dataclass
@@ -76,13 +72,18 @@ class ServePolicyConfig:
 
 
 def check_servable(policy_type: str | None, temporal_ensemble_coeff: float | None = None) -> None:
-    if policy_type not in SERVABLE:
-        raise ValueError(f"a {policy_type} checkpoint cannot be served chunk by chunk (its actions depend on past "
-                         f"observations); allowed types: {', '.join(SERVABLE)}. Evaluate it in-process with "
-                         "--policy lerobot:CHECKPOINT")
-    if temporal_ensemble_coeff is not None:
-        raise ValueError("an ACT checkpoint with temporal_ensemble_coeff blends chunks step by step and cannot be "
-                         "served chunk by chunk; evaluate it in-process with --policy lerobot:CHECKPOINT")
+    """Requests are independent (the client runs the chunk), so only a policy whose chunk depends on the current
+    observation alone can be served."""
+    from vla_ladder.policies.lerobot import ONE_OBSERVATION_CHUNKS, chunks_from_one_observation
+
+    if chunks_from_one_observation(policy_type, temporal_ensemble_coeff):
+        return
+    if policy_type in ONE_OBSERVATION_CHUNKS:
+        raise ValueError(f"an {policy_type} checkpoint with temporal_ensemble_coeff blends chunks step by step and "
+                         "cannot be served chunk by chunk; evaluate it in-process with --policy lerobot:CHECKPOINT")
+    raise ValueError(f"a {policy_type} checkpoint cannot be served chunk by chunk (its actions depend on past "
+                     f"observations); allowed types: {', '.join(ONE_OBSERVATION_CHUNKS)}. Evaluate it in-process "
+                     "with --policy lerobot:CHECKPOINT")
 
 
 def read_request(request: Any) -> tuple[dict, str, int | None, int | None]:
