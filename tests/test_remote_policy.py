@@ -237,3 +237,53 @@ def test_openpis_client_is_served(served):
         np.testing.assert_array_equal(unpack(ws.recv(timeout=120))["actions"], theirs["actions"])
     del obs[SEED_KEY], obs[CHUNK_KEY]  # what any openpi client sends: noise from the server's own generator
     assert client.infer(obs)["actions"].shape == (4, 7)
+
+
+@pytest.mark.slow
+def test_requests_that_arrive_together_share_a_forward_pass(served):
+    """Four clients asking at once are answered by batched forward passes (dynamic batching), and each gets the
+    chunk it gets alone, up to float rounding."""
+    import threading
+
+    from websockets.sync.client import connect
+
+    _, url = served
+    headers = {"Authorization": f"Api-Key {KEY}"}
+
+    def request(seed: int) -> dict:
+        obs = {c.key: np.random.default_rng(seed * 10 + i).integers(0, 256, c.shape, dtype=np.uint8)
+               for i, c in enumerate(CAMERAS)}
+        obs.update({STATE_KEY: np.full(15, seed / 10, np.float32), PROMPT_KEY: "grasp the mug", SEED_KEY: seed,
+                    CHUNK_KEY: 0})
+        return obs
+
+    with connect(url, additional_headers=headers, compression=None) as ws:
+        unpack(ws.recv(timeout=30))
+        alone = {}
+        for seed in range(4):
+            ws.send(pack(request(seed)))
+            answer = unpack(ws.recv(timeout=120))
+            assert answer["server_timing"]["batch"] == 1
+            alone[seed] = answer["actions"]
+
+    barrier, answers, lock = threading.Barrier(4), [], threading.Lock()
+
+    def client(seed: int) -> None:
+        with connect(url, additional_headers=headers, compression=None) as ws:
+            unpack(ws.recv(timeout=30))
+            for _ in range(5):
+                barrier.wait(timeout=60)
+                ws.send(pack(request(seed)))
+                answer = unpack(ws.recv(timeout=120))
+                with lock:
+                    answers.append((seed, answer))
+
+    threads = [threading.Thread(target=client, args=(seed,)) for seed in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=300)
+    assert len(answers) == 20
+    assert max(a["server_timing"]["batch"] for _, a in answers) > 1
+    for seed, answer in answers:
+        np.testing.assert_allclose(answer["actions"], alone[seed], atol=1e-5, rtol=0)

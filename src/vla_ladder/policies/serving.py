@@ -3,9 +3,11 @@
 The server side of policies/remote.py (whose docstring is the protocol): load the checkpoint once, send its
 metadata to every client that connects, answer every observation with a whole action chunk. Requests are
 independent (the client runs the chunk), so any number of clients (`eval --workers N` opens N) share one copy of
-the model; inference runs one request at a time, off the event loop. A request carrying
-"vla_ladder/episode_seed" and "vla_ladder/chunk_index" gets the flow-matching noise `lerobot:` draws for that
-chunk of that episode, so `eval --policy remote:URL` plays what `eval --policy lerobot:CHECKPOINT` plays.
+the model, and the requests that arrive while it runs are answered together by its next forward pass (dynamic
+batching, at most --max-batch; inference runs off the event loop). A request carrying "vla_ladder/episode_seed" and
+"vla_ladder/chunk_index" gets the flow-matching noise `lerobot:` draws for that chunk of that episode, so
+`eval --policy remote:URL` plays what `eval --policy lerobot:CHECKPOINT` plays: to the bit with one client (each
+pass a batch of one), to float rounding when passes batch several, as `eval --num-envs N` in-process does.
 
 Use it to put the model on a GPU machine and the simulation elsewhere, to serve a checkpoint to openpi-style
 clients, or to check the remote path against the in-process one. It listens on 127.0.0.1 unless told otherwise;
@@ -16,6 +18,7 @@ remote.py reads it from $VLA_LADDER_API_KEY). Nothing received is unpickled and 
 from __future__ import annotations
 
 import asyncio
+import collections
 import hmac
 import http
 import json
@@ -51,6 +54,8 @@ class ServePolicyConfig:
     """port; 0 picks a free one (the URL is printed once listening)"""
     api_key: str | None = field(default_factory=lambda: os.environ.get(API_KEY_ENV))
     """secret clients send as `Authorization: Api-Key KEY` (default: $VLA_LADDER_API_KEY); required off loopback"""
+    max_batch: int = 16
+    """most requests one forward pass answers (those that arrived while the model ran; eval --workers N sends N)"""
 
     def __post_init__(self):
         if not self.policy:
@@ -61,6 +66,8 @@ class ServePolicyConfig:
                              "(the reference and PPO experts read privileged state: evaluate them in-process)")
         if not 0 <= self.port < 65536:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
+        if self.max_batch < 1:
+            raise ValueError(f"max_batch must be >= 1, got {self.max_batch}")
         if not self.api_key and not is_loopback(self.host):
             raise ValueError(f"listening on {self.host!r} (not loopback) needs --api-key (or ${API_KEY_ENV}); "
                              "allowed without one: 127.0.0.1, ::1, localhost")
@@ -115,7 +122,8 @@ def read_request(request: Any) -> tuple[dict, str, int | None, int | None]:
 
 
 class PolicyServer:
-    """One loaded checkpoint, any number of connections, one inference at a time."""
+    """One loaded checkpoint, any number of connections. Requests that arrive while the model runs are answered
+    together by its next forward pass (at most --max-batch), so N clients cost one batched pass, not N."""
 
     def __init__(self, cfg: ServePolicyConfig, policy=None):
         from vla_ladder.policies import load_policy
@@ -129,19 +137,51 @@ class PolicyServer:
                             "prompt": PROMPT_KEY, "episode_seed": SEED_KEY, "chunk_index": CHUNK_KEY},
         }
         self.requests = 0
-        self._lock = asyncio.Lock()
+        self.batches: collections.Counter[int] = collections.Counter()  # forward passes by batch size
+        self._pending: asyncio.Queue | None = None
 
     def infer(self, request: Any) -> np.ndarray:
         """The whole action chunk (chunk_size, 7) for one request."""
-        return self.chunk(*read_request(request))
+        return self.chunks([read_request(request)])[0]
 
-    def chunk(self, obs: dict, prompt: str, seed: int | None, chunk: int | None) -> np.ndarray:
+    def chunks(self, requests: list[tuple]) -> list[np.ndarray]:
+        """One forward pass for several `read_request` results: each one's whole chunk. A flow-matching policy's row
+        gets its episode's noise (`LeRobotPolicy.episode_noise`) when the request names its seed and chunk, else
+        noise from torch's generator; a row's chunk is what it would be alone, up to float rounding."""
         from vla_ladder.policies.lerobot import NOISE_PER_EPISODE
 
+        obs = {"sensor_data": {c.name: {"rgb": torch.cat([r[0]["sensor_data"][c.name]["rgb"] for r in requests])}
+                               for c in CAMERAS},
+               "extra": {"proprio": torch.cat([r[0]["extra"]["proprio"] for r in requests])}}
         noise = None
-        if seed is not None and self.policy.config.type in NOISE_PER_EPISODE:
-            noise = self.policy.episode_noise(seed, chunk)[None].to(self.policy.device)
-        return self.policy.predict_chunk(obs, [prompt], noise=noise)[0].to(torch.float32).cpu().numpy()
+        if self.policy.config.type in NOISE_PER_EPISODE:
+            shape = (self.policy.config.chunk_size, self.policy.config.max_action_dim)
+            noise = torch.stack([torch.randn(shape) if seed is None else self.policy.episode_noise(seed, chunk)
+                                 for _, _, seed, chunk in requests]).to(self.policy.device)
+        actions = self.policy.predict_chunk(obs, [r[1] for r in requests], noise=noise)
+        return list(actions.to(torch.float32).cpu().numpy())
+
+    async def _answer_pending(self) -> None:
+        """Forever: wait for a request, take every other one already waiting (up to --max-batch), run them as one
+        batch off the event loop, hand each its chunk. No waiting window: a lone request runs at once."""
+        while True:
+            batch = [await self._pending.get()]
+            while len(batch) < self.cfg.max_batch and not self._pending.empty():
+                batch.append(self._pending.get_nowait())
+            start = time.perf_counter()
+            try:
+                chunks = await asyncio.to_thread(self.chunks, [parsed for parsed, _ in batch])
+            except Exception as e:
+                log.exception("inference failed for a batch of %d", len(batch))
+                for _, answer in batch:
+                    if not answer.done():
+                        answer.set_exception(e)
+                continue
+            timing = {"infer_ms": (time.perf_counter() - start) * 1000, "batch": len(batch)}
+            self.batches[len(batch)] += 1
+            for (_, answer), chunk in zip(batch, chunks):
+                if not answer.done():  # its client may have gone
+                    answer.set_result((chunk, timing))
 
     def _authorised(self, connection, request):
         if request.path == "/healthz":  # openpi's health check
@@ -171,18 +211,16 @@ class PolicyServer:
                     await ws.send(f"bad request: {e}")
                     await ws.close(1008, "bad request")
                     return
-                start = time.perf_counter()
+                answer = asyncio.get_running_loop().create_future()
+                await self._pending.put((parsed, answer))
                 try:
-                    async with self._lock:
-                        actions = await asyncio.to_thread(self.chunk, *parsed)
+                    actions, timing = await answer
                 except Exception as e:
-                    log.exception("inference failed for client %s", peer)
                     await ws.send(f"inference failed: {type(e).__name__}: {e}")
                     await ws.close(1011, "inference failed")
                     return
                 self.requests += 1
-                await ws.send(pack({"actions": actions,
-                                    "server_timing": {"infer_ms": (time.perf_counter() - start) * 1000}}))
+                await ws.send(pack({"actions": actions, "server_timing": timing}))
         except ConnectionClosed:
             pass
         log.info("client %s disconnected", peer)
@@ -190,13 +228,18 @@ class PolicyServer:
     async def serve(self, ready=None) -> None:
         from websockets.asyncio.server import serve
 
-        async with serve(self.handle, self.cfg.host, self.cfg.port, max_size=MAX_MESSAGE, compression=None,
-                         process_request=self._authorised) as server:
-            port = server.sockets[0].getsockname()[1]
-            host = f"[{self.cfg.host}]" if ":" in self.cfg.host else self.cfg.host
-            if ready is not None:
-                ready(f"ws://{host}:{port}")
-            await server.serve_forever()
+        self._pending = asyncio.Queue()
+        answering = asyncio.create_task(self._answer_pending())
+        try:
+            async with serve(self.handle, self.cfg.host, self.cfg.port, max_size=MAX_MESSAGE, compression=None,
+                             process_request=self._authorised) as server:
+                port = server.sockets[0].getsockname()[1]
+                host = f"[{self.cfg.host}]" if ":" in self.cfg.host else self.cfg.host
+                if ready is not None:
+                    ready(f"ws://{host}:{port}")
+                await server.serve_forever()
+        finally:
+            answering.cancel()
 
 
 def run(cfg: ServePolicyConfig) -> int:
@@ -219,5 +262,6 @@ def run(cfg: ServePolicyConfig) -> int:
         asyncio.run(main())
     except asyncio.CancelledError:
         pass
-    log.info("stopped after %d requests", server.requests)
+    log.info("stopped after %d requests in %d forward passes (by batch size: %s)", server.requests,
+             sum(server.batches.values()), dict(sorted(server.batches.items())))
     return 0
