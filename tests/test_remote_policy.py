@@ -115,6 +115,30 @@ def test_bad_remote_specs_fail_in_one_line_before_work(tmp_path, capsys):
         "ws://h:1", {"n_action_steps": 3, "instruction": "grasp the object"})
 
 
+def test_a_server_that_does_not_name_a_horizon_needs_one(tmp_path, capsys):
+    """openpi's servers send empty metadata: the horizon must then be given, not defaulted to the whole chunk."""
+    import threading
+
+    from websockets.sync.server import serve
+
+    from vla_ladder.policies.remote import check_server
+
+    def openpi_like(ws):
+        ws.send(pack({}))
+        for _ in ws:
+            pass
+
+    with serve(openpi_like, "127.0.0.1", 0) as server:
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        url = f"ws://127.0.0.1:{server.socket.getsockname()[1]}"
+        assert main(["eval", "--policy", f"remote:{url}", *EVAL, "--out", str(tmp_path / "run")]) == 2
+        err = capsys.readouterr().err
+        assert "does not say how many actions of a chunk to run" in err and f"remote:{url}?n_action_steps=H" in err
+        assert not (tmp_path / "run").exists()
+        check_server(f"{url}?n_action_steps=5")
+        server.shutdown()
+
+
 # ---------------------------------------------------------------------- a served checkpoint
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):

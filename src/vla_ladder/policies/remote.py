@@ -7,7 +7,8 @@ which such servers already speak (openpi's `scripts/serve_policy.py`, `openpi_cl
 - on connecting, the server sends one message: its metadata (a map, possibly empty);
 - then, for every request, the client sends one observation (a map) and the server answers one map holding
   "actions", an action chunk (T, 7) (or one action, (7,)); the client runs its first `n_action_steps` actions
-  (the whole chunk by default, or the server's metadata "n_action_steps") before it asks again;
+  (`?n_action_steps=H`, else the server's metadata "n_action_steps": openpi's servers say nothing, so H is then
+  required) before it asks again;
 - messages are msgpack, numpy arrays in openpi's msgpack-numpy layout ({"__ndarray__": True, "data", "dtype",
   "shape"}); a server that fails answers a text message (its error) and closes.
 
@@ -177,14 +178,12 @@ class RemotePolicy(Policy):
 
     def __init__(self, url: str, n_action_steps: int | None = None, instruction: str | None = None):
         """`n_action_steps`: actions of each chunk run before the next request (default: the server's metadata
-        "n_action_steps", else the whole chunk). `instruction` replaces every episode's (a blind policy's
-        contract.BLIND_INSTRUCTION)."""
+        "n_action_steps"; a server that does not say needs it given). `instruction` replaces every episode's (a
+        blind policy's contract.BLIND_INSTRUCTION)."""
         self.url = check_url(url)
         self._ws, self.server = connect(url)
         weakref.finalize(self, self._ws.close)
-        server_steps = self.server.get("n_action_steps")
-        self.n_action_steps = n_action_steps or (server_steps if isinstance(server_steps, int) and server_steps > 0
-                                                 else None)
+        self.n_action_steps = horizon(self.url, n_action_steps, self.server)
         self.instruction = instruction
         self.name = "remote"
         self._seeds: list[int | None] = []
@@ -265,11 +264,26 @@ def _jsonable(metadata: dict) -> Any:
     return plain(metadata)
 
 
+def horizon(url: str, n_action_steps: int | None, metadata: dict) -> int:
+    """The actions of each chunk to run: the spec's ?n_action_steps, else the server's metadata "n_action_steps".
+    Never a silent default: an openpi server says nothing, and running its whole chunk (pi0's 50 steps are a whole
+    episode) open-loop is rarely what anyone means."""
+    if n_action_steps is not None:
+        return int(n_action_steps)
+    served = metadata.get("n_action_steps")
+    if isinstance(served, int) and not isinstance(served, bool) and served > 0:
+        return served
+    raise ValueError(f"the policy server at {url} does not say how many actions of a chunk to run (its metadata has "
+                     f"no n_action_steps); give one: remote:{url}?n_action_steps=H (openpi's examples run 5)")
+
+
 def check_server(arg: str) -> None:
-    """The spec's options parse and a policy server answers at its URL: checked before any long work."""
-    url, _ = parse_arg(arg)
-    ws, _ = connect(url)
+    """The spec's options parse, a policy server answers at its URL, and the horizon is known: checked before any
+    long work."""
+    url, options = parse_arg(arg)
+    ws, metadata = connect(url)
     ws.close()
+    horizon(url, options.get("n_action_steps"), metadata)
 
 
 def make_policy(arg: str | None, **kwargs) -> RemotePolicy:
