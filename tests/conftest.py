@@ -26,3 +26,19 @@ def make_env():
     yield _make
     for env in made:
         env.close()
+
+
+@pytest.fixture
+def refused(capsys):
+    """refused(cases, *paths): each `vla-ladder` argv of (argv, message) pairs exits 2 with one line on stderr holding
+    `message`, and none of `paths` (what the commands would have written) exists afterwards."""
+    from vla_ladder.cli import main
+
+    def check(cases, *paths):
+        for argv, message in cases:
+            assert main(argv) == 2, argv
+            err = capsys.readouterr().err
+            assert message in err and len(err.strip().splitlines()) == 1, err
+        for path in paths:
+            assert not path.exists(), f"{path} was written"
+    return check

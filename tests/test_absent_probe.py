@@ -142,7 +142,7 @@ def test_absent_metrics_tell_grounded_shortcut_and_blind_policies_apart():
 
 
 # ---------------------------------------------------------------------- commands
-def test_absent_object_configs_and_refusals(tmp_path, capsys):
+def test_absent_object_configs_and_refusals(tmp_path, refused):
     cfg = ProbeConfig("absent-object", policy="nearest", out=tmp_path / "p")
     assert cfg.grid.num_objects == (3,)  # its own default; every other probe keeps five
     assert ProbeConfig("instruction-swap", policy="nearest", out=tmp_path / "q").grid.num_objects == (5,)
@@ -166,11 +166,7 @@ def test_absent_object_configs_and_refusals(tmp_path, capsys):
         (["eval", "--policy", "nearest", "--out", str(tmp_path / "e"), "--num-objects", "3", "--instruct", "1",
           "--instruct-absent", "0"], "instruct 1 and instruct_absent 0 each name the instructed object"),
     ]
-    for argv, message in cases:
-        assert main(argv) == 2, argv
-        err = capsys.readouterr().err
-        assert message in err and len(err.strip().splitlines()) == 1, err
-    assert not (tmp_path / "p").exists() and not (tmp_path / "e").exists()
+    refused(cases, tmp_path / "p", tmp_path / "e")
     # A study probes each model in its training condition; five objects leave nothing to name, so five-object data
     # are probed with four (cpu-mini's datasets all have five).
     from vla_ladder.experiments.study import Study, StudyCommand

@@ -9,7 +9,6 @@ import pandas as pd
 import pytest
 from report_fixtures import first_table_row
 
-from vla_ladder.cli import main
 from vla_ladder.conditions import Condition
 from vla_ladder.evaluation import grounding
 from vla_ladder.experiments.probes import ProbeConfig, ProbeGrid, run_probe
@@ -112,7 +111,7 @@ def test_position_metrics_tell_grounded_shortcut_and_blind_policies_apart():
 
 
 # ---------------------------------------------------------------------- commands
-def test_position_swap_configs_and_refusals(tmp_path, capsys):
+def test_position_swap_configs_and_refusals(tmp_path, refused):
     cfg = ProbeConfig("position-swap", policy="nearest", out=tmp_path / "p")
     assert cfg.grid.num_objects == (5,)
     variants = cfg.variants()
@@ -129,11 +128,7 @@ def test_position_swap_configs_and_refusals(tmp_path, capsys):
         (["eval", "--policy", "nearest", "--out", str(tmp_path / "e"), "--num-objects", "3", "--swap-positions",
           "--instruct-absent", "0"], "swap_positions moves the instructed object and instruct_absent names one"),
     ]
-    for argv, message in cases:
-        assert main(argv) == 2, argv
-        err = capsys.readouterr().err
-        assert message in err and len(err.strip().splitlines()) == 1, err
-    assert not (tmp_path / "p").exists() and not (tmp_path / "e").exists()
+    refused(cases, tmp_path / "p", tmp_path / "e")
 
 
 # ---------------------------------------------------------------------- the real simulator

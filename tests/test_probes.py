@@ -111,7 +111,7 @@ def test_paired_and_appearance_metrics():
     assert c["transitions"]["counts"][0][:2] == [n - followed, followed] and c["shape_change"]["value"] < 0
 
 
-def test_probe_and_eval_configs_reject_bad_input_before_any_work(tmp_path, capsys):
+def test_probe_and_eval_configs_reject_bad_input_before_any_work(tmp_path, refused):
     cases = [
         (["probe", "bogus", "--policy", "nearest", "--out", str(tmp_path / "p")],
          "unknown probe 'bogus'; allowed: instruction-swap, paraphrase, appearance-swap"),
@@ -126,11 +126,7 @@ def test_probe_and_eval_configs_reject_bad_input_before_any_work(tmp_path, capsy
         (["eval", "--policy", "nearest", "--out", str(tmp_path / "e"), "--appearance", "neon"],
          "unknown appearance 'neon'; allowed: original, swap"),
     ]
-    for argv, message in cases:
-        assert main(argv) == 2, argv
-        err = capsys.readouterr().err
-        assert message in err and len(err.strip().splitlines()) == 1, err
-    assert not (tmp_path / "p").exists() and not (tmp_path / "e").exists()
+    refused(cases, tmp_path / "p", tmp_path / "e")
 
 
 def test_probe_variants_share_seeds_and_a_probe_dir_refuses_another_request(tmp_path):

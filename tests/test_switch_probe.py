@@ -9,7 +9,6 @@ import pandas as pd
 import pytest
 from report_fixtures import first_table_row
 
-from vla_ladder.cli import main
 from vla_ladder.conditions import Condition
 from vla_ladder.evaluation import grounding
 from vla_ladder.evaluation.rundir import load_run
@@ -119,7 +118,7 @@ def test_switch_metrics_tell_rereading_committing_and_ignoring_policies_apart():
 
 
 # ---------------------------------------------------------------------- commands
-def test_switch_configs_and_refusals(tmp_path, capsys):
+def test_switch_configs_and_refusals(tmp_path, refused):
     cfg = ProbeConfig("instruction-switch", policy="nearest", out=tmp_path / "p")
     assert cfg.grid.num_objects == (5,) and cfg.switch_steps == SWITCH_STEPS == (5, 25)
     variants = cfg.variants()
@@ -146,11 +145,7 @@ def test_switch_configs_and_refusals(tmp_path, capsys):
         (["eval", "--policy", "nearest", "--out", e, "--num-objects", "3", "--switch-at", "5", "--instruct-absent",
           "0"], "switch_at switches from the instructed object to another present one and instruct_absent names"),
     ]
-    for argv, message in cases:
-        assert main(argv) == 2, argv
-        err = capsys.readouterr().err
-        assert message in err and len(err.strip().splitlines()) == 1, err
-    assert not (tmp_path / "p").exists() and not (tmp_path / "e").exists()
+    refused(cases, tmp_path / "p", tmp_path / "e")
 
 
 # ---------------------------------------------------------------------- the real simulator
