@@ -65,6 +65,8 @@ def test_wording_and_colours_never_move_objects_and_instructing_another_object_k
             pos = {n: tuple(p) for n, p in zip(other.objects, other.xy)}
             assert pos == {n: tuple(p) for n, p in zip(base.objects, base.xy)}
             assert other.to_dict()["positions"] == {n: swapped.to_dict()["positions"][n] for n in other.objects}
+            for played in (other, other.positions_swapped(), other.switched(7)):  # the env's order of options
+                assert layout_from_dict(played.to_dict()).to_dict() == played.to_dict()
         assert layout_from_dict(swapped.to_dict()).to_dict() == swapped.to_dict()
     lay = sample_layout(Condition("small_jitter", num_objects=2), 1)
     with pytest.raises(ValueError, match="instruct rank 2 is not a present object.*allowed 0-1"):

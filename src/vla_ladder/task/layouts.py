@@ -362,11 +362,13 @@ def sample_layouts(condition: Condition, seeds=(0,), target: str | None = None, 
 
 def layout_from_dict(data: dict) -> Layout:
     """The layout that the seed of a recorded `Layout.to_dict()` gives, sampled again (dataset checks compare
-    the two): condition, object count, instruction set, appearance, position swap and instruction switch as the
-    dict says."""
+    the two): condition, object count, instruction set, appearance, the instructed object (an instruction swap's
+    `instructed`), position swap and instruction switch as the dict says, applied in the env's order."""
     condition = Condition(data["regime"], data["split"], len(data["positions"]))
     lay = sample_layout(condition, int(data["seed"]), instructions=data.get("instructions", CANONICAL),
                         appearance="swap" if data.get("colour_swap") else "original")
+    if not data.get("absent_target") and data["target"] != lay.target and data["target"] in lay.objects:
+        lay = lay.instructed(data["target"])  # the same scene, another present object named
     if data.get("position_swap"):
         lay = lay.positions_swapped()
     if data.get("switch"):
