@@ -58,6 +58,8 @@ def test_messages_read_openpi_layout_and_refuse_anything_but_plain_arrays():
         unpack(msgpack.packb(msgpack.ExtType(3, b"x")))
     with pytest.raises(ValueError, match="not a msgpack message"):
         unpack(pack({"a": 1})[:-1])
+    with pytest.raises(ValueError, match="not a msgpack message"):
+        unpack(msgpack.packb([[]] * 5000))  # more entries than any message has
     with pytest.raises(ValueError, match="expected a binary message"):
         unpack("text")
     with pytest.raises(ValueError, match="cannot send an array of dtype object"):

@@ -48,6 +48,7 @@ API_KEY_ENV = "VLA_LADDER_API_KEY"  # sent as openpi's client sends its api_key:
 # An observation is ~0.4 MB (two 256x256 RGB images); a chunk a few KB; metadata small. Both directions are
 # bounded well above that and far below what a hostile peer could make us allocate.
 MAX_MESSAGE = 16 * 1024 * 1024
+MAX_CONTAINER = 4096  # entries of one msgpack list or map
 CONNECT_TIMEOUT_S = 10.0
 REPLY_TIMEOUT_S = 600.0  # the first chunk of a large model on a CPU can take minutes
 _KINDS = frozenset("biufSU")  # bool, integers, floats, fixed-width strings: never objects, void or pointers
@@ -109,7 +110,10 @@ def unpack(data: bytes) -> Any:
     if not isinstance(data, bytes):
         raise BadMessage(f"expected a binary message, got {type(data).__name__}")
     try:
-        return msgpack.unpackb(data, object_hook=_decode, ext_hook=_no_ext, strict_map_key=False)
+        # Container limits far above any observation, chunk or metadata (a handful of keys, shapes of 3 numbers),
+        # so that a hostile 16 MiB of tiny containers cannot become gigabytes of Python objects.
+        return msgpack.unpackb(data, object_hook=_decode, ext_hook=_no_ext, strict_map_key=False,
+                               max_array_len=MAX_CONTAINER, max_map_len=MAX_CONTAINER)
     except BadMessage:
         raise
     except Exception as e:  # msgpack's own errors (truncated data, extra bytes) and numpy's (a bad dtype string)
