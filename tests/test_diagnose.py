@@ -31,6 +31,13 @@ def test_bad_input_is_refused_in_one_line_before_any_work(tmp_path, capsys):
         assert main(["diagnose", "--policy", "layout-prior", "--out", str(out), *extra]) == 2
         assert words in _one_line(capsys)
     assert main(["diagnose", "--out", str(out)]) == 2 and "--policy SPEC is required" in _one_line(capsys)
+    for argv, words in [(["--policy", "nearest", "nearest"], "--policy names a policy twice: nearest nearest"),
+                        (["--policy", "nearest", "layout-prior", "--labels", "a"], "--labels must give 2 distinct"),
+                        (["--policy", "nearest", "layout-prior", "--labels", "a", "a"], "got a a"),
+                        (["--policy", "nearest", "layout-prior", "--labels", "a", "b/c"], "letters, digits"),
+                        (["--policy", "nearest", "layout-prior", "--labels", "a", "references"], "distinct names")]:
+        assert main(["diagnose", "--out", str(out), *argv]) == 2
+        assert words in _one_line(capsys)
     assert main(["diagnose", "--policy", f"lerobot:{tmp_path}/missing", "--out", str(out)]) == 2
     _one_line(capsys)
     assert not out.exists()
@@ -82,3 +89,34 @@ def test_a_policy_diagnosed_beside_itself_resembles_itself(tmp_path, capsys):
     capsys.readouterr()
     assert main([*argv[:-len(SMALL)], *SMALL[:-2], "--videos", "0", "--first-seed", "5"]) == 2
     assert "holds another diagnosis request" in _one_line(capsys)
+
+
+@pytest.mark.slow
+def test_two_policies_side_by_side_beside_one_set_of_references(tmp_path, capsys):
+    """Two policies on the same scenes: each answers in its own column, in its own directory, and resembles its own
+    reference twin (both are deterministic); the references play once."""
+    out = tmp_path / "diag"
+    argv = ["diagnose", "--policy", "layout-prior", "nearest", "--labels", "shortcut", "blind", "--out", str(out),
+            "--references", "layout-prior", "nearest", "--episodes", "2", "--probe-episodes", "2", "--workers", "1",
+            "--videos", "0"]
+    assert main(argv) == 0
+    data = json.loads((out / "diagnosis.json").read_text())
+    assert data["policies"] == {"shortcut": "layout-prior", "blind": "nearest"}
+    assert sorted(p.name for p in (out / "policies").iterdir()) == ["blind", "shortcut"]
+    assert not (out / "policy").exists()
+    for q in data["questions"]:
+        assert set(q["answers"]) == {"shortcut", "blind"} and "policy" not in q
+        for label, twin in (("shortcut", "layout-prior"), ("blind", "nearest")):
+            assert q["answers"][label]["answer"]["value"] == pytest.approx(q["references"][twin]), q
+            assert twin in q["answers"][label]["resembles"].split(" / "), q
+    follows = next(q for q in data["questions"] if q["id"] == "empty_place")["answers"]
+    assert follows["shortcut"]["answer"]["value"] == 1.0 and follows["blind"]["answer"]["value"] == 0.0
+    printed = capsys.readouterr().out
+    assert "[shortcut] Does it read the instruction?" in printed and "[blind] Does it read" in printed
+    with chromium_page(out / "report.html") as (page, failed):
+        row = table_row(page, "shortcut [95% CI]")
+        text = page.inner_text("body")
+    assert not failed
+    assert row["question"] == "Does it hold up as the objects move?" and "resembles layout-prior" in row[
+        "shortcut [95% CI]"] and "blind [95% CI]" in row
+    assert "instruction-swap: layout-prior" in text and "instruction-swap: nearest" in text

@@ -1,5 +1,5 @@
-"""`vla-ladder diagnose --policy SPEC --out DIR`: one policy through the ladder and four grounding probes, beside
-the reference policies on the same seeded scenes, and one page of answers.
+"""`vla-ladder diagnose --policy SPEC [SPEC ...] --out DIR`: a policy (or several, side by side) through the ladder
+and four grounding probes, beside the reference policies on the same seeded scenes, and one page of answers.
 
 The questions, each answered by one rate with its 95% interval (or, for the first, a difference of two rates):
 
@@ -19,13 +19,17 @@ The reference policies answer the same questions on the same scenes (state only,
 reading its target once, at the first step, `layout-prior` goes to where the named object stands in training (the
 location shortcut), `nearest` grasps whatever is nearest and ignores the words.
 "Resembles" names the reference whose answer is nearest the policy's: which known behaviour that answer is closest
-to, not a claim that the policy works the same way. Every part is an ordinary run or probe directory
-(DIR/policy/..., DIR/references/<name>/...), so a rerun resumes and `vla-ladder compare`/`report` read them.
+to, not a claim that the policy works the same way. Several policies (checkpoints of two recipes, a model and its
+blind twin) are played on the same scenes and answer in columns side by side, beside one set of references. Every
+part is an ordinary run or probe directory (DIR/policy/... for one policy, DIR/policies/<label>/... for several,
+DIR/references/<name>/...), so a rerun resumes and `vla-ladder compare`/`report` read them: `compare` pairs two
+policies' episodes scene by scene.
 """
 
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Annotated
@@ -37,7 +41,7 @@ from vla_ladder.conditions import MAX_OBJECTS, REGIMES, Condition, ConditionGrid
 from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.experiments.probes import ProbeConfig, run_probe
-from vla_ladder.policies import check_spec
+from vla_ladder.policies import check_spec, parse_spec
 from vla_ladder.report.diagnosis import answer_lines, diagnosis_html
 
 REFERENCES = ("scripted", "committed", "layout-prior", "nearest")
@@ -58,10 +62,15 @@ class DiagnoseConfig:
     """Diagnose a policy: the ladder and four grounding probes on the same seeded scenes, beside the reference
     policies, with one page of answers (`vla-ladder diagnose --policy SPEC --out DIR`)."""
 
-    policy: str | None = None
-    """policy spec: lerobot:DIR[?n_action_steps=H], ppo:PATH, scripted, nearest, layout-prior, random (required)"""
+    policy: tuple[str, ...] = ()
+    """policy spec, or several side by side: lerobot:DIR[?n_action_steps=H], remote:URL, ppo:PATH, scripted, nearest,
+    layout-prior, random (required)"""
     out: Path | None = None
-    """diagnosis directory: policy/, references/, diagnosis.json, report.html (required)"""
+    """diagnosis directory: policy/ (policies/<label>/ for several), references/, diagnosis.json, report.html
+    (required)"""
+    labels: tuple[str, ...] = ()
+    """names of the policies on the page and of their directories (default: from each spec, e.g. a checkpoint's run
+    directory)"""
     condition: str = "small_jitter/canonical/5"
     """the condition the policy was trained in (regime/split/objects, 2-5 objects): the probes play it and the
     ladder moves its objects through every regime"""
@@ -85,12 +94,22 @@ class DiagnoseConfig:
     """replace a diagnosis directory that holds another request (the same request is always resumed)"""
 
     def __post_init__(self):
-        if self.policy is None:
-            raise ValueError("--policy SPEC is required, e.g. lerobot:runs/smolvla/checkpoints/last/pretrained_model")
+        self.policy = (self.policy,) if isinstance(self.policy, str) else tuple(self.policy or ())
+        if not self.policy:
+            raise ValueError("--policy SPEC is required, e.g. lerobot:runs/smolvla/checkpoints/last/pretrained_model "
+                             "(several side by side: --policy SPEC SPEC ...)")
         if self.out is None:
             raise ValueError("--out DIR is required: the diagnosis directory to write")
         self.out = Path(self.out)
-        check_spec(self.policy)
+        if len(set(self.policy)) != len(self.policy):
+            raise ValueError(f"--policy names a policy twice: {' '.join(self.policy)}")
+        for spec in self.policy:
+            check_spec(spec)
+        self.labels = tuple(self.labels) or tuple(default_label(spec) for spec in self.policy)
+        if len(self.labels) != len(self.policy) or len(set(self.labels)) != len(self.labels) or any(
+                not _LABEL.fullmatch(label) or label in ("policy", "references") for label in self.labels):
+            raise ValueError(f"--labels must give {len(self.policy)} distinct names of letters, digits, '.', '_' or "
+                             f"'-' (one per --policy); got {' '.join(self.labels) or 'none'}")
         cond = Condition.parse(self.condition)
         if cond.num_objects < 2:
             raise ValueError(f"--condition {self.condition}: the probes need at least two objects on the table "
@@ -103,9 +122,16 @@ class DiagnoseConfig:
         self.references = tuple(self.references)
         self.plan()  # every run is configured, and so checked, before any simulator starts
 
+    def roots(self) -> dict[str, Path]:
+        """label -> the directory of that policy's runs: DIR/policy for one policy (as ever), DIR/policies/<label>."""
+        if len(self.policy) == 1:
+            return {self.labels[0]: self.out / "policy"}
+        return {label: self.out / "policies" / label for label in self.labels}
+
     def plan(self) -> list[tuple[str, EvalConfig, dict[str, ProbeConfig]]]:
-        """(who, the ladder, the probes) for the policy, then for each reference."""
-        return [self._runs("policy", self.policy, self.out / "policy", self.videos),
+        """(who, the ladder, the probes) for each policy, then for each reference."""
+        mine = zip(self.policy, self.roots().values())
+        return [*(self._runs("policy", spec, root, self.videos) for spec, root in mine),
                 *(self._runs(r, r, self.out / "references" / r, 0) for r in self.references)]
 
     def _runs(self, who: str, spec: str, root: Path, videos: int) -> tuple[str, EvalConfig, dict[str, ProbeConfig]]:
@@ -125,8 +151,26 @@ class DiagnoseConfig:
         return who, ladder, probes
 
     def request(self) -> dict:
-        return {k: v for k, v in json.loads(json.dumps(asdict(self), default=files._default)).items()
-                if k not in NOT_THE_REQUEST}
+        out = {k: v for k, v in json.loads(json.dumps(asdict(self), default=files._default)).items()
+               if k not in NOT_THE_REQUEST}
+        if len(self.policy) == 1:  # as a one-policy diagnosis always wrote it: those directories still resume
+            out["policy"] = self.policy[0]
+            del out["labels"]
+        return out
+
+
+_LABEL = re.compile(r"[A-Za-z0-9._-]+")
+
+
+def default_label(spec: str) -> str:
+    """A policy's name on the page: the kind for a reference, a checkpoint's run directory (the path without
+    checkpoints/<step>/pretrained_model), a server's host:port."""
+    kind, arg = parse_spec(spec)
+    if arg is None:
+        return kind
+    parts = [p for p in re.split(r"[/\\]+", arg.partition("?")[0])
+             if p and p not in ("pretrained_model", "checkpoints", "last", "ws:", "wss:") and not p.isdigit()]
+    return re.sub(r"[^A-Za-z0-9._-]", "_", parts[-1]) if parts else kind
 
 
 def open_diagnosis_dir(cfg: DiagnoseConfig) -> None:
@@ -188,22 +232,32 @@ def answers(root: Path, condition: str) -> dict[str, dict | None]:
 
 
 def diagnosis(cfg: DiagnoseConfig) -> dict:
-    mine = answers(cfg.out / "policy", cfg.condition)
+    """The answers of every policy and reference. Each question's "answers" maps a policy's label to its answer and
+    the reference(s) it resembles; a one-policy diagnosis also keeps "policy" and "resembles" at the top of each
+    question, as it always wrote them."""
+    mine = {label: answers(root, cfg.condition) for label, root in cfg.roots().items()}
     refs = {r: answers(cfg.out / "references" / r, cfg.condition) for r in cfg.references}
     rows = []
     for key, question, measure in QUESTIONS:
-        value = mine[key]
         theirs = {r: (None if a[key] is None else a[key]["value"]) for r, a in refs.items()}
-        known = {r: abs(v - value["value"]) for r, v in theirs.items() if v is not None and value is not None}
-        # Every reference at the nearest distance (scripted and layout-prior both read the words, for one); with
-        # fewer than two references there is nothing to choose between.
-        resembles = (" / ".join(r for r, d in known.items() if d <= min(known.values()) + 1e-9)
-                     if len(known) > 1 else None)
-        rows.append({"id": key, "question": question, "measure": measure, "policy": value, "references": theirs,
-                     "resembles": resembles})
-    return {"policy": cfg.policy, "condition": cfg.condition, "episodes": cfg.episodes,
-            "probe_episodes": cfg.probe_episodes, "first_seed": cfg.first_seed, "references": list(cfg.references),
-            "questions": rows, "provenance": files.provenance()}
+        per_policy = {label: {"answer": a[key], "resembles": _resembles(a[key], theirs)} for label, a in mine.items()}
+        row = {"id": key, "question": question, "measure": measure, "answers": per_policy, "references": theirs}
+        if len(per_policy) == 1:
+            (only,) = per_policy.values()
+            row.update(policy=only["answer"], resembles=only["resembles"])
+        rows.append(row)
+    out = {"policy": cfg.policy[0] if len(cfg.policy) == 1 else list(cfg.policy),
+           "policies": dict(zip(cfg.labels, cfg.policy)), "condition": cfg.condition, "episodes": cfg.episodes,
+           "probe_episodes": cfg.probe_episodes, "first_seed": cfg.first_seed, "references": list(cfg.references),
+           "questions": rows, "provenance": files.provenance()}
+    return out
+
+
+def _resembles(answer: dict | None, theirs: dict[str, float | None]) -> str | None:
+    """Every reference at the nearest distance (scripted and layout-prior both read the words, for one); with fewer
+    than two references there is nothing to choose between."""
+    known = {r: abs(v - answer["value"]) for r, v in theirs.items() if v is not None and answer is not None}
+    return " / ".join(r for r, d in known.items() if d <= min(known.values()) + 1e-9) if len(known) > 1 else None
 
 
 def run_diagnosis(cfg: DiagnoseConfig, progress: bool = True) -> dict:
@@ -218,11 +272,12 @@ def run_diagnosis(cfg: DiagnoseConfig, progress: bool = True) -> dict:
     data = diagnosis(cfg)
     files.write_json(cfg.out / "diagnosis.json", data)
     from vla_ladder.report.html import build_report
-    _, ladder, probes = plan[0]
     ladders = [load_run(lad.out) for _, lad, _ in plan]
-    variants = [load_run(p.out / v) for p in probes.values() for v in p.variants()]
-    build_report(ladders, cfg.out / "report.html", title=f"vla-ladder diagnose: {cfg.policy}",
-                 labels=[cfg.policy, *(f"{r} (reference)" for r in cfg.references)],
+    variants = [load_run(p.out / v) for who, _, probes in plan if who == "policy"
+                for p in probes.values() for v in p.variants()]
+    named = cfg.policy if len(cfg.policy) == 1 else cfg.labels
+    build_report(ladders, cfg.out / "report.html", title=f"vla-ladder diagnose: {', '.join(named)}",
+                 labels=[*named, *(f"{r} (reference)" for r in cfg.references)],
                  sections=[("Diagnosis", diagnosis_html(data))],
                  probe_runs=variants)
     return data

@@ -1,5 +1,5 @@
-"""The page and the lines of `vla-ladder diagnose` (experiments/diagnose.py): its five answers beside the
-reference policies' answers, with the reference each is nearest."""
+"""The page and the lines of `vla-ladder diagnose` (experiments/diagnose.py): its five answers, for one policy or
+several side by side, beside the reference policies' answers, with the reference each is nearest."""
 
 from __future__ import annotations
 
@@ -10,41 +10,61 @@ def _pct(x: float | None, signed: bool = False) -> str:
     return "–" if x is None or x != x else (f"{100 * x:+.0f}" if signed else f"{100 * x:.0f}")
 
 
-def _answer(q: dict) -> tuple[str, str] | None:
-    """The policy's answer to question `q` and its interval, in % (the ladder's drop in signed points)."""
-    v, signed = q["policy"], q["id"] == "holds_up"
-    if v is None:
+def _answer(q: dict, answer: dict | None) -> tuple[str, str] | None:
+    """A policy's answer to question `q` and its interval, in % (the ladder's drop in signed points)."""
+    signed = q["id"] == "holds_up"
+    if answer is None:
         return None
-    return _pct(v["value"], signed), f"[{_pct(v['ci95'][0], signed)}, {_pct(v['ci95'][1], signed)}]"
+    return _pct(answer["value"], signed), f"[{_pct(answer['ci95'][0], signed)}, {_pct(answer['ci95'][1], signed)}]"
+
+
+def _policies(q: dict) -> dict[str, dict]:
+    """label -> {"answer", "resembles"}; a diagnosis written before several policies were possible has one."""
+    return q.get("answers") or {"policy": {"answer": q["policy"], "resembles": q["resembles"]}}
 
 
 def answer_lines(data: dict) -> list[str]:
-    """One line per question: the answer, the measure, the references' answers and the nearest."""
+    """One line per question (and policy): the answer, the measure, the references' answers and the nearest."""
     lines = []
     for q in data["questions"]:
-        value = " ".join(_answer(q) or ("n/a",))
         refs = ", ".join(f"{r} {_pct(x, q['id'] == 'holds_up')}" for r, x in q["references"].items())
-        like = f"; resembles {q['resembles']}" if q["resembles"] else ""
-        lines.append(f"{q['question']} {value} ({q['measure']}){'; ' + refs if refs else ''}{like}")
+        several = len(_policies(q)) > 1
+        for label, a in _policies(q).items():
+            value = " ".join(_answer(q, a["answer"]) or ("n/a",))
+            like = f"; resembles {a['resembles']}" if a["resembles"] else ""
+            who = f"[{label}] " if several else ""
+            lines.append(f"{who}{q['question']} {value} ({q['measure']}){'; ' + refs if refs else ''}{like}")
     return lines
 
 
 def diagnosis_html(data: dict) -> str:
-    """The diagnosis table, the first section of the report."""
+    """The diagnosis table, the first section of the report: one policy's answer and the reference it resembles in
+    two columns, or one column per policy (each answer with what it resembles under it)."""
     refs = data["references"]
-    head = "".join(f"<th>{html.escape(h)}</th>" for h in ("question", "measure", "this policy [95% CI]",
-                                                          *refs, "resembles"))
+    labels = list(_policies(data["questions"][0])) if data["questions"] else []
+    several = len(labels) > 1
+    policy_heads = [f"{label} [95% CI]" for label in labels] if several else ["this policy [95% CI]"]
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in ("question", "measure", *policy_heads, *refs,
+                                                          *(() if several else ("resembles",))))
     rows = []
     for q in data["questions"]:
-        answer = _answer(q)
-        value = "n/a" if answer is None else f"{answer[0]} <span class=ci>{answer[1]}</span>"
-        cells = [html.escape(q["question"]), html.escape(q["measure"]), value,
-                 *(_pct(q["references"][r], q["id"] == "holds_up") for r in refs), html.escape(q["resembles"] or "–")]
+        cells = [html.escape(q["question"]), html.escape(q["measure"])]
+        for a in _policies(q).values():
+            answer = _answer(q, a["answer"])
+            value = "n/a" if answer is None else f"{answer[0]} <span class=ci>{answer[1]}</span>"
+            if several:
+                value += f"<br><span class=ci>resembles {html.escape(a['resembles'] or '–')}</span>"
+            cells.append(value)
+        cells += [_pct(q["references"][r], q["id"] == "holds_up") for r in refs]
+        if not several:
+            cells.append(html.escape(next(iter(_policies(q).values()))["resembles"] or "–"))
         rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
     note = ("<p class=note>Rates in %, on the same seeded scenes for every policy. The references: "
             "<b>scripted</b> reads its target every step (grounded by construction), <b>committed</b> is that expert "
             "reading its target once, at the first step, <b>layout-prior</b> goes where "
             "the named object stands in training (the location shortcut), <b>nearest</b> grasps whatever is nearest "
             "and ignores the words. <i>Resembles</i>: the reference whose answer is nearest this policy's; read it "
-            "with the interval, and the probes' sections below for what lies behind each number.</p>")
+            "with the interval, and the probes' sections below for what lies behind each number."
+            + (" Two policies' answers are on the same scenes: <code>vla-ladder compare</code> on their run "
+               "directories tests a difference pair by pair." if several else "") + "</p>")
     return f"<table><tr>{head}</tr>{''.join(rows)}</table>{note}"
