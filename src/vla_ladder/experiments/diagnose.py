@@ -1,7 +1,8 @@
 """`vla-ladder diagnose --policy SPEC [SPEC ...] --out DIR`: a policy (or several, side by side) through the ladder
-and four grounding probes, beside the reference policies on the same seeded scenes, and one page of answers.
+and six grounding probes, beside the reference policies on the same seeded scenes, and one page of answers.
 
-The questions, each answered by one rate with its 95% interval (or, for the first, a difference of two rates):
+The questions, each answered by one rate with its 95% interval (or, for the first and the sixth, a difference of two
+rates):
 
 1. Does it hold up as the objects move? Success in the ladder's farthest regime minus success in the policy's own
    (the ladder of its training condition's split and object count).
@@ -13,6 +14,11 @@ The questions, each answered by one rate with its 95% interval (or, for the firs
    shortcut reach.
 5. Does it keep reading the instruction? The instruction switch at step 5 (0.25 s): the share of scenes in which
    the gripper ends at the object the instruction switched to.
+6. Does it understand the instruction worded otherwise? The paraphrase probe: success with held-out wordings minus
+   success with "grasp the <object>" on the same scenes (a bootstrap interval over scenes).
+7. Does it find the named object by its colour rather than its shape? The appearance swap (the named object and a
+   distractor exchange colours): the share of swapped scenes in which it grasps the object wearing the named
+   object's colour.
 
 The reference policies answer the same questions on the same scenes (state only, so they cost little):
 `scripted` reads its target from the state every step (grounded by construction), `committed` is the same expert
@@ -40,14 +46,14 @@ from vla_ladder import files
 from vla_ladder.conditions import MAX_OBJECTS, REGIMES, Condition, ConditionGrid
 from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
-from vla_ladder.experiments.probes import ProbeConfig, run_probe
+from vla_ladder.experiments.probes import ONE_ENV_PROBES, ProbeConfig, run_probe
 from vla_ladder.policies import check_spec, parse_spec
 from vla_ladder.report.diagnosis import answer_lines, diagnosis_html
 
 REFERENCES = ("scripted", "committed", "layout-prior", "nearest")
 """The reference profiles: grounded and re-reading its target, grounded but reading it once, the location
 shortcut, ignoring the instruction."""
-PROBES = ("instruction-swap", "position-swap", "absent-object", "instruction-switch")
+PROBES = ("instruction-swap", "position-swap", "absent-object", "instruction-switch", "paraphrase", "appearance-swap")
 SWITCH_STEP = 5
 """The instruction switch's step for question 5: before the scripted expert closes its gripper in every scene
 measured (docs/probes.md), so a policy that re-reads its instruction can still turn."""
@@ -59,7 +65,7 @@ beside those already there."""
 
 @dataclass
 class DiagnoseConfig:
-    """Diagnose a policy: the ladder and four grounding probes on the same seeded scenes, beside the reference
+    """Diagnose a policy: the ladder and six grounding probes on the same seeded scenes, beside the reference
     policies, with one page of answers (`vla-ladder diagnose --policy SPEC --out DIR`)."""
 
     policy: tuple[str, ...] = ()
@@ -144,10 +150,12 @@ class DiagnoseConfig:
         for name in PROBES:
             # absent-object needs an object off the table: five-object policies are probed with four, as a study does
             n = min(cond.num_objects, MAX_OBJECTS - 1) if name == "absent-object" else cond.num_objects
+            # the appearance swap paints each scene's objects: one env per scene, in worker processes
+            plays = dict(workers=self.workers) if name in ONE_ENV_PROBES else players
             probes[name] = ProbeConfig(name, policy=spec, out=root / "probes" / name,
                                        grid=ConditionGrid((cond.regime,), (cond.split,), (n,)),
                                        episodes=self.probe_episodes, first_seed=self.first_seed, videos=videos,
-                                       overwrite=self.overwrite, report=False, **players)
+                                       overwrite=self.overwrite, report=False, **plays)
         return who, ladder, probes
 
     def request(self) -> dict:
@@ -213,22 +221,32 @@ QUESTIONS = (
      "absent object: gripper ends at the named object's (empty) usual place"),
     ("keeps_reading", f"Does it keep reading the instruction? (switched at step {SWITCH_STEP}, 0.25 s)",
      "instruction switch: gripper ends at the object the instruction switched to"),
+    ("reworded", "Does it understand the instruction worded otherwise?",
+     "paraphrase: success with held-out wordings minus with \"grasp the <object>\" (points)"),
+    ("by_colour", "Does it find the named object by its colour rather than its shape?",
+     "appearance swap: grasps the object that wears the named object's colour"),
 )
+# The references read their target from the state: wording cannot change what they do, so on "reworded" they all
+# answer 0 and none is nearer than another (resembles then names none).
 
 
 def answers(root: Path, condition: str) -> dict[str, dict | None]:
-    """The five answers of the runs under `root` (policy/ or references/<name>/)."""
+    """The seven answers of the runs under `root` (policy/ or references/<name>/)."""
     ladder = load_run(root / "ladder").summary["conditions"]
 
     def probe(name: str) -> dict:
-        return next(iter(json.loads((root / "probes" / name / "probe.json").read_text())["conditions"].values()))
+        played = json.loads((root / "probes" / name / "probe.json").read_text())["conditions"]
+        # the policy's own condition (the paraphrase probe adds a one-object control; absent-object plays four)
+        return played.get(condition) or next(iter(played.values()))
 
     switch = probe("instruction-switch")["by_step"][str(SWITCH_STEP)]
     return {"holds_up": ladder_drop(ladder, condition),
             "reads": _rate(probe("instruction-swap")["instruction_sensitivity"]),
             "follows_object": _rate(probe("position-swap")["reaches_object_swapped"]),
             "empty_place": _rate(probe("absent-object")["shortcut_reach"]),
-            "keeps_reading": _rate(switch["reaches_new_switched"])}
+            "keeps_reading": _rate(switch["reaches_new_switched"]),
+            "reworded": _rate(probe("paraphrase")["paraphrase-heldout"]["vs_canonical"]["success"]),
+            "by_colour": _rate(probe("appearance-swap")["follows_colour"])}
 
 
 def diagnosis(cfg: DiagnoseConfig) -> dict:
@@ -255,9 +273,11 @@ def diagnosis(cfg: DiagnoseConfig) -> dict:
 
 def _resembles(answer: dict | None, theirs: dict[str, float | None]) -> str | None:
     """Every reference at the nearest distance (scripted and layout-prior both read the words, for one); with fewer
-    than two references there is nothing to choose between."""
+    than two references, or all at the same distance, there is nothing to choose between."""
     known = {r: abs(v - answer["value"]) for r, v in theirs.items() if v is not None and answer is not None}
-    return " / ".join(r for r, d in known.items() if d <= min(known.values()) + 1e-9) if len(known) > 1 else None
+    if len(known) < 2 or max(known.values()) - min(known.values()) < 1e-9:
+        return None  # no reference is nearer than another
+    return " / ".join(r for r, d in known.items() if d <= min(known.values()) + 1e-9)
 
 
 def run_diagnosis(cfg: DiagnoseConfig, progress: bool = True) -> dict:
