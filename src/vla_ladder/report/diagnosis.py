@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import html
 
+DIFFERENCES = ("holds_up", "reworded")
+"""Questions answered by a difference of two rates: shown in signed points."""
+
 
 def _pct(x: float | None, signed: bool = False) -> str:
     return "–" if x is None or x != x else (f"{100 * x:+.0f}" if signed else f"{100 * x:.0f}")
@@ -12,7 +15,7 @@ def _pct(x: float | None, signed: bool = False) -> str:
 
 def _answer(q: dict, answer: dict | None) -> tuple[str, str] | None:
     """A policy's answer to question `q` and its interval, in % (the ladder's drop in signed points)."""
-    signed = q["id"] == "holds_up"
+    signed = q["id"] in DIFFERENCES
     if answer is None:
         return None
     return _pct(answer["value"], signed), f"[{_pct(answer['ci95'][0], signed)}, {_pct(answer['ci95'][1], signed)}]"
@@ -27,7 +30,7 @@ def answer_lines(data: dict) -> list[str]:
     """One line per question (and policy): the answer, the measure, the references' answers and the nearest."""
     lines = []
     for q in data["questions"]:
-        refs = ", ".join(f"{r} {_pct(x, q['id'] == 'holds_up')}" for r, x in q["references"].items())
+        refs = ", ".join(f"{r} {_pct(x, q['id'] in DIFFERENCES)}" for r, x in q["references"].items())
         several = len(_policies(q)) > 1
         for label, a in _policies(q).items():
             value = " ".join(_answer(q, a["answer"]) or ("n/a",))
@@ -55,7 +58,7 @@ def diagnosis_html(data: dict) -> str:
             if several:
                 value += f"<br><span class=ci>resembles {html.escape(a['resembles'] or '–')}</span>"
             cells.append(value)
-        cells += [_pct(q["references"][r], q["id"] == "holds_up") for r in refs]
+        cells += [_pct(q["references"][r], q["id"] in DIFFERENCES) for r in refs]
         if not several:
             cells.append(html.escape(next(iter(_policies(q).values()))["resembles"] or "–"))
         rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
