@@ -150,14 +150,16 @@ def served(tmp_path_factory):
     proc = subprocess.Popen([sys.executable, "-m", "vla_ladder.cli", "serve-policy", "--policy",
                              f"lerobot:{run}?n_action_steps=2", "--port", "0"],
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
-    lines = [proc.stdout.readline()]  # after what LeRobot prints while it loads the model
-    while lines[-1] and not lines[-1].startswith("listening on "):
-        lines.append(proc.stdout.readline())
-    line = lines[-1]
-    assert line.startswith("listening on ws://127.0.0.1:"), lines
-    yield run, line.split()[-1]
-    proc.kill()
-    proc.wait()
+    try:  # the server goes away even when it never says where it listens
+        lines = [proc.stdout.readline()]  # after what LeRobot prints while it loads the model
+        while lines[-1] and not lines[-1].startswith("listening on "):
+            lines.append(proc.stdout.readline())
+        line = lines[-1]
+        assert line.startswith("listening on ws://127.0.0.1:"), lines
+        yield run, line.split()[-1]
+    finally:
+        proc.kill()
+        proc.wait()
 
 
 @pytest.mark.slow
