@@ -264,11 +264,10 @@ def diagnosis(cfg: DiagnoseConfig) -> dict:
             (only,) = per_policy.values()
             row.update(policy=only["answer"], resembles=only["resembles"])
         rows.append(row)
-    out = {"policy": cfg.policy[0] if len(cfg.policy) == 1 else list(cfg.policy),
-           "policies": dict(zip(cfg.labels, cfg.policy)), "condition": cfg.condition, "episodes": cfg.episodes,
-           "probe_episodes": cfg.probe_episodes, "first_seed": cfg.first_seed, "references": list(cfg.references),
-           "questions": rows, "provenance": files.provenance()}
-    return out
+    return {"policy": cfg.policy[0] if len(cfg.policy) == 1 else list(cfg.policy),
+            "policies": dict(zip(cfg.labels, cfg.policy)), "condition": cfg.condition, "episodes": cfg.episodes,
+            "probe_episodes": cfg.probe_episodes, "first_seed": cfg.first_seed, "references": list(cfg.references),
+            "questions": rows, "provenance": files.provenance()}
 
 
 def _resembles(answer: dict | None, theirs: dict[str, float | None]) -> str | None:

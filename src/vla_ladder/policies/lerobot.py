@@ -41,11 +41,10 @@ RESIZES_IMAGES = {"smolvla", "pi0", "pi05", "pi0_fast"}
 # Policies whose predict_action_chunk takes the flow-matching noise, (batch, chunk_size, max_action_dim), and which
 # see one observation a step: their chunks are drawn here from per-episode noise (module docstring).
 NOISE_PER_EPISODE = {"smolvla", "pi0", "pi05"}
-
-
 # Policies whose action chunk can depend on the current observation only (and the noise); chunks_from_one_observation
 # says whether a checkpoint's does.
 ONE_OBSERVATION_CHUNKS = ("smolvla", "pi0", "pi05", "act")
+WEIGHTS_FILE = "model.safetensors"
 
 
 def chunks_from_one_observation(policy_type: str | None, temporal_ensemble_coeff: float | None = None) -> bool:
@@ -54,9 +53,6 @@ def chunks_from_one_observation(policy_type: str | None, temporal_ensemble_coeff
     once a chunk instead of every step; and a policy server answers each request alone (serving.py). Not ACT with
     temporal ensembling (it blends overlapping chunks every step), nor diffusion or VQ-BeT (they keep a history)."""
     return policy_type in ONE_OBSERVATION_CHUNKS and temporal_ensemble_coeff is None
-
-
-WEIGHTS_FILE = "model.safetensors"
 
 
 def _bool(value: str) -> bool:

@@ -184,8 +184,8 @@ class RemotePolicy(Policy):
         """`n_action_steps`: actions of each chunk run before the next request (default: the server's metadata
         "n_action_steps"; a server that does not say needs it given). `instruction` replaces every episode's (a
         blind policy's contract.BLIND_INSTRUCTION)."""
-        self.url = check_url(url)
-        self._ws, self.server = connect(url)
+        self._ws, self.server = connect(url)  # checks the URL first
+        self.url = url
         weakref.finalize(self, self._ws.close)
         self.n_action_steps = horizon(self.url, n_action_steps, self.server)
         self.instruction = instruction

@@ -125,11 +125,11 @@ class PolicyServer:
     """One loaded checkpoint, any number of connections. Requests that arrive while the model runs are answered
     together by its next forward pass (at most --max-batch), so N clients cost one batched pass, not N."""
 
-    def __init__(self, cfg: ServePolicyConfig, policy=None):
+    def __init__(self, cfg: ServePolicyConfig):
         from vla_ladder.policies import load_policy
 
         self.cfg = cfg
-        self.policy = policy if policy is not None else load_policy(cfg.policy)
+        self.policy = load_policy(cfg.policy)
         self.metadata = {
             "server": "vla-ladder", "policy": self.policy.describe(),
             "n_action_steps": self.policy.n_action_steps, "action_dim": ACTION_DIM,
@@ -139,10 +139,6 @@ class PolicyServer:
         self.requests = 0
         self.batches: collections.Counter[int] = collections.Counter()  # forward passes by batch size
         self._pending: asyncio.Queue | None = None
-
-    def infer(self, request: Any) -> np.ndarray:
-        """The whole action chunk (chunk_size, 7) for one request."""
-        return self.chunks([read_request(request)])[0]
 
     def chunks(self, requests: list[tuple]) -> list[np.ndarray]:
         """One forward pass for several `read_request` results: each one's whole chunk. A flow-matching policy's row
