@@ -7,7 +7,11 @@ them, and times the round trip; the server reports the inference part of each (`
 round trip minus inference is the protocol: packing, the loopback WebSocket and unpacking. The same
 observation then goes through the checkpoint loaded in this process (`LeRobotPolicy.predict_chunk`).
 
-    .venv/bin/python benchmarks/remote_overhead.py CHECKPOINT [--repeats 20] [--out FILE]
+Then, for each B of --batches, what B envs' chunks cost on one connection (`remote:` with --num-envs B): asked
+one at a time (what an openpi server gets), and pipelined (all B sent before any answer is read, what
+vla-ladder's server allows), with the batch sizes the server's passes had.
+
+    .venv/bin/python benchmarks/remote_overhead.py CHECKPOINT [--repeats 20] [--batches 1 4 16] [--out FILE]
 
 Writes benchmarks/results/remote_overhead_<cpu|cuda>.json.
 """
@@ -39,6 +43,9 @@ class Args:
     """a LeRobot checkpoint `serve-policy` can serve (SmolVLA, pi0, pi0.5, ACT)"""
     repeats: int = 20
     """requests timed (after one untimed warm-up)"""
+    batches: tuple[int, ...] = (1, 4, 16)
+    """envs whose chunks one connection asks for at once, one at a time and pipelined (each timed --repeats // 4
+    times, at least 3)"""
     device: str = "cpu"
     """where the model runs, in the server and in this process"""
     out: Path | None = None
@@ -55,6 +62,31 @@ def observation(seed: int = 0) -> dict:
 
 def median_ms(xs: list[float]) -> float:
     return round(statistics.median(xs) * 1000, 3)
+
+
+def envs_on_one_connection(ws, envs: int, repeats: int) -> dict:
+    """Milliseconds for `envs` chunks (each env its own observation and seed), asked one at a time and pipelined."""
+    messages = [pack({**observation(seed), SEED_KEY: seed}) for seed in range(envs)]
+    row: dict = {"envs": envs}
+    for mode in ("one_at_a_time", "pipelined"):
+        times, passes = [], []
+        for _ in range(repeats + 1):  # the first untimed: a new batch size builds caches
+            t0 = time.perf_counter()
+            if mode == "pipelined":
+                for m in messages:
+                    ws.send(m)
+                answers = [unpack(ws.recv(timeout=600)) for _ in messages]
+            else:
+                answers = []
+                for m in messages:
+                    ws.send(m)
+                    answers.append(unpack(ws.recv(timeout=600)))
+            times.append(time.perf_counter() - t0)
+            passes.append(sorted({(a["server_timing"]["infer_ms"], a["server_timing"]["batch"]) for a in answers}))
+        row[f"{mode}_ms"] = median_ms(times[1:])
+        row[f"{mode}_pass_batches"] = sorted((b for _, b in passes[-1]), reverse=True)  # the last repeat's passes
+    row["speedup"] = round(row["one_at_a_time_ms"] / row["pipelined_ms"], 2)
+    return row
 
 
 def main(args: Args) -> dict:
@@ -88,6 +120,7 @@ def main(args: Args) -> dict:
             trips.append(t3 - t0)
             unpacks.append(t3 - t2)
             infers.append(answer["server_timing"]["infer_ms"] / 1000)
+        batched = [envs_on_one_connection(ws, b, max(3, args.repeats // 4)) for b in args.batches]
         ws.close()
     finally:
         server.terminate()
@@ -116,6 +149,7 @@ def main(args: Args) -> dict:
         "in_process_chunk_ms": median_ms(local), "remote_round_trip_ms": median_ms(trips),
         "server_infer_ms": median_ms(infers), "protocol_ms": median_ms(protocol),
         "pack_request_ms": median_ms(packs), "unpack_reply_ms": median_ms(unpacks),
+        "envs_on_one_connection": batched,
         "machine": {"cores": cores(), "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
                     "load_average_1min": [load_before, os.getloadavg()[0]]},
         "provenance": files.provenance(),

@@ -141,6 +141,48 @@ def test_a_server_that_does_not_name_a_horizon_needs_one(tmp_path, capsys):
         server.shutdown()
 
 
+@pytest.mark.parametrize("depth", [None, 2])
+def test_a_batch_of_envs_pipelines_its_requests_only_to_servers_that_say_so(depth):
+    """With --num-envs N, `remote:` sends up to the server's "max_pipelined" requests before it reads an answer, and
+    gives each env the answer to its own request; to a server that does not say, one request at a time."""
+    import threading
+
+    import torch
+    from websockets.sync.server import serve
+
+    from vla_ladder.policies.remote import RemotePolicy
+
+    arrived_together = []
+
+    def server_side(ws):
+        ws.send(pack({} if depth is None else {"max_pipelined": depth}))
+        while True:
+            try:
+                first = [unpack(ws.recv())]
+            except Exception:
+                return
+            try:  # a second request before the first is answered: the client pipelines
+                first.append(unpack(ws.recv(timeout=1)))
+            except TimeoutError:
+                pass
+            arrived_together.append(len(first))
+            for request in first:
+                ws.send(pack({"actions": np.full((3, 7), request[SEED_KEY] / 100, np.float32)}))
+
+    with serve(server_side, "127.0.0.1", 0) as server:
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        policy = RemotePolicy(f"ws://127.0.0.1:{server.socket.getsockname()[1]}", n_action_steps=1)
+        n = 3
+        obs = {"sensor_data": {c.name: {"rgb": torch.zeros((n, *c.shape), dtype=torch.uint8)} for c in CAMERAS},
+               "extra": {"proprio": torch.zeros(n, 15)}}
+        policy.reset([10, 20, 30])
+        action = policy.act(obs, ["grasp the mug"] * n)
+        server.shutdown()
+    np.testing.assert_allclose(action[:, 0].numpy(), [0.1, 0.2, 0.3])  # each env its own chunk, in order
+    assert policy.pipelined == (depth or 1)
+    assert arrived_together == ([1, 1, 1] if depth is None else [2, 1])
+
+
 # ---------------------------------------------------------------------- a served checkpoint
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
@@ -267,6 +309,15 @@ def test_openpis_client_is_served(served):
     assert client.infer(obs)["actions"].shape == (4, 7)
 
 
+def _request(seed: int) -> dict:
+    """An observation of its own for each seed, naming that seed's first chunk."""
+    obs = {c.key: np.random.default_rng(seed * 10 + i).integers(0, 256, c.shape, dtype=np.uint8)
+           for i, c in enumerate(CAMERAS)}
+    obs.update({STATE_KEY: np.full(15, seed / 10, np.float32), PROMPT_KEY: "grasp the mug", SEED_KEY: seed,
+                CHUNK_KEY: 0})
+    return obs
+
+
 @pytest.mark.slow
 def test_requests_that_arrive_together_share_a_forward_pass(served):
     """Four clients asking at once are answered by batched forward passes (dynamic batching), and each gets the
@@ -277,19 +328,11 @@ def test_requests_that_arrive_together_share_a_forward_pass(served):
 
     _, url = served
     headers = {"Authorization": f"Api-Key {KEY}"}
-
-    def request(seed: int) -> dict:
-        obs = {c.key: np.random.default_rng(seed * 10 + i).integers(0, 256, c.shape, dtype=np.uint8)
-               for i, c in enumerate(CAMERAS)}
-        obs.update({STATE_KEY: np.full(15, seed / 10, np.float32), PROMPT_KEY: "grasp the mug", SEED_KEY: seed,
-                    CHUNK_KEY: 0})
-        return obs
-
     with connect(url, additional_headers=headers, compression=None) as ws:
         unpack(ws.recv(timeout=30))
         alone = {}
         for seed in range(4):
-            ws.send(pack(request(seed)))
+            ws.send(pack(_request(seed)))
             answer = unpack(ws.recv(timeout=120))
             assert answer["server_timing"]["batch"] == 1
             alone[seed] = answer["actions"]
@@ -301,7 +344,7 @@ def test_requests_that_arrive_together_share_a_forward_pass(served):
             unpack(ws.recv(timeout=30))
             for _ in range(5):
                 barrier.wait(timeout=60)
-                ws.send(pack(request(seed)))
+                ws.send(pack(_request(seed)))
                 answer = unpack(ws.recv(timeout=120))
                 with lock:
                     answers.append((seed, answer))
@@ -315,3 +358,41 @@ def test_requests_that_arrive_together_share_a_forward_pass(served):
     assert max(a["server_timing"]["batch"] for _, a in answers) > 1
     for seed, answer in answers:
         np.testing.assert_allclose(answer["actions"], alone[seed], atol=1e-5, rtol=0)
+
+
+@pytest.mark.slow
+def test_one_connection_may_pipeline_requests_and_gets_answers_in_order(served):
+    """Up to max_pipelined requests sent before any answer is read (what `remote:` does with --num-envs N) share
+    forward passes and come back in the order asked, each the chunk it gets alone up to float rounding."""
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    from vla_ladder.policies.remote import pipeline_depth
+
+    _, url = served
+    with connect(url, additional_headers={"Authorization": f"Api-Key {KEY}"}, compression=None) as ws:
+        metadata = unpack(ws.recv(timeout=30))
+        assert pipeline_depth(metadata) == metadata["max_pipelined"] == 16  # serve-policy's --max-batch
+        alone = []
+        for seed in range(4):
+            ws.send(pack(_request(seed)))
+            alone.append(unpack(ws.recv(timeout=120))["actions"])
+        for seed in range(4):
+            ws.send(pack(_request(seed)))
+        ws.send(pack({"__ctrl__": "episode_end"}))  # answered in its turn too
+        answers = [unpack(ws.recv(timeout=120)) for _ in range(5)]
+    assert answers[4] == {"__ack__": "episode_end"}
+    assert max(a["server_timing"]["batch"] for a in answers[:4]) > 1
+    for answer, chunk in zip(answers, alone):
+        np.testing.assert_allclose(answer["actions"], chunk, atol=1e-5, rtol=0)
+    assert not np.allclose(alone[0], alone[1])  # the order is visible: seeds give different chunks
+    with connect(url, additional_headers={"Authorization": f"Api-Key {KEY}"}, compression=None) as ws:
+        unpack(ws.recv(timeout=30))
+        ws.send(pack(_request(0)))
+        ws.send(pack({**_request(1), PROMPT_KEY: ""}))  # bad: refused after the answer to what came before it
+        np.testing.assert_allclose(unpack(ws.recv(timeout=120))["actions"], alone[0], atol=1e-5, rtol=0)
+        assert ws.recv(timeout=30).startswith(f"bad request: {PROMPT_KEY!r} must be the instruction")
+        with pytest.raises(ConnectionClosed) as closed:
+            ws.recv(timeout=30)
+        assert closed.value.rcvd.code == 1008
+    assert pipeline_depth({}) == pipeline_depth({"max_pipelined": True}) == 1  # openpi's servers: one at a time

@@ -82,9 +82,13 @@ def parse(name: str, argv: list[str]):
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    # OpenMP threads that outnumber free cores spin for each other (10x slower steps measured on a busy
-    # 2-core machine); passive waiting costs nothing when cores are free. Read when torch first loads.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    # OpenMP threads that outnumber free cores spin for each other (10x slower steps measured on a busy 2-core
+    # machine), so workers sleep between parallel regions. A policy server keeps libgomp's default (spin a while,
+    # then sleep): its forward passes are back-to-back small matmuls, 11.5 ms a SmolVLA chunk against 34 ms passive
+    # on 2 idle cores, 24 ms against 18 and 33 beside one and two busy processes
+    # (benchmarks/results/openmp_wait_cpu.json). Read when torch first loads.
+    if argv[:1] != ["serve-policy"]:
+        os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if not argv or argv[0] in ("-h", "--help"):
         print(usage())
         return 0 if argv else 2

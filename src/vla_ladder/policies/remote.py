@@ -17,7 +17,10 @@ The observation of one episode holds both cameras under their LeRobot keys (cont
 that openpi's input transforms ignore: "vla_ladder/episode_seed" and "vla_ladder/chunk_index". vla-ladder's own
 server (`vla-ladder serve-policy`, policies/serving.py) draws a flow-matching policy's noise from them, so a
 remote episode plays exactly as the same checkpoint does in-process (`lerobot:`). A batch of envs
-(`eval --num-envs N`) sends one request per env whose chunk has run out.
+(`eval --num-envs N`) sends one request per env whose chunk has run out; to a server whose metadata says
+"max_pipelined": K (vla-ladder's does) it sends up to K of them before reading the answers, which come in the order
+asked, so that the server can answer them with one batched forward pass. Other servers get one request at a time,
+as openpi's client sends them.
 
 A server that wants a key gets $VLA_LADDER_API_KEY as openpi's client sends its api_key. Nothing received is
 unpickled: arrays are rebuilt with np.frombuffer, only for boolean, numeric and fixed-width string dtypes and
@@ -188,6 +191,7 @@ class RemotePolicy(Policy):
         self.url = url
         weakref.finalize(self, self._ws.close)
         self.n_action_steps = horizon(self.url, n_action_steps, self.server)
+        self.pipelined = pipeline_depth(self.server)
         self.instruction = instruction
         self.name = "remote"
         self._seeds: list[int | None] = []
@@ -217,12 +221,20 @@ class RemotePolicy(Policy):
             out[SEED_KEY], out[CHUNK_KEY] = self._seeds[i], self._chunks[i]
         return out
 
-    def request(self, observation: dict) -> np.ndarray:
-        """One request: the chunk (T, 7) the server answers, checked."""
+    def send(self, observation: dict) -> None:
+        """Ask for one chunk; `receive` reads the answers in the order asked."""
         from websockets.exceptions import ConnectionClosed
 
         try:
             self._ws.send(pack(observation))
+        except ConnectionClosed as e:
+            raise RuntimeError(f"the policy server at {self.url} closed the connection ({e})") from None
+
+    def receive(self) -> np.ndarray:
+        """The next answer: the chunk (T, 7) the server sent, checked."""
+        from websockets.exceptions import ConnectionClosed
+
+        try:
             reply = self._ws.recv(timeout=REPLY_TIMEOUT_S)
         except ConnectionClosed as e:
             raise RuntimeError(f"the policy server at {self.url} closed the connection ({e})") from None
@@ -244,9 +256,13 @@ class RemotePolicy(Policy):
         proprio = torch.as_tensor(obs["extra"]["proprio"])
         n = proprio.shape[0]
         self._grow(n)
-        for i in range(n):
-            if not self._queues[i]:
-                chunk = self.request(self.observation(obs, i, instructions[i]))
+        empty = [i for i in range(n) if not self._queues[i]]
+        for start in range(0, len(empty), self.pipelined):  # windows the server takes in one go (module docstring)
+            window = empty[start:start + self.pipelined]
+            for i in window:
+                self.send(self.observation(obs, i, instructions[i]))
+            for i in window:
+                chunk = self.receive()
                 self._chunks[i] += 1
                 self._queues[i].extend(torch.from_numpy(chunk[:self.n_action_steps].astype(np.float32)))
         action = torch.stack([self._queues[i].popleft() for i in range(n)])
@@ -254,7 +270,7 @@ class RemotePolicy(Policy):
 
     def describe(self) -> dict:
         return {"name": self.name, "url": self.url, "n_action_steps": self.n_action_steps,
-                "instruction": self.instruction, "server": _jsonable(self.server)}
+                "instruction": self.instruction, "pipelined": self.pipelined, "server": _jsonable(self.server)}
 
 
 def _jsonable(metadata: dict) -> Any:
@@ -279,6 +295,13 @@ def horizon(url: str, n_action_steps: int | None, metadata: dict) -> int:
         return served
     raise ValueError(f"the policy server at {url} does not say how many actions of a chunk to run (its metadata has "
                      f"no n_action_steps); give one: remote:{url}?n_action_steps=H (openpi's examples run 5)")
+
+
+def pipeline_depth(metadata: dict) -> int:
+    """Requests one connection may have in flight: the server's metadata "max_pipelined", else 1 (an openpi server
+    would answer more in order too, but one at a time; asking one at a time is what its own client does)."""
+    depth = metadata.get("max_pipelined")
+    return depth if isinstance(depth, int) and not isinstance(depth, bool) and depth > 0 else 1
 
 
 def check_server(arg: str) -> None:

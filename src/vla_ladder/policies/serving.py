@@ -4,10 +4,17 @@ The server side of policies/remote.py (whose docstring is the protocol): load th
 metadata to every client that connects, answer every observation with a whole action chunk. Requests are
 independent (the client runs the chunk), so any number of clients (`eval --workers N` opens N) share one copy of
 the model, and the requests that arrive while it runs are answered together by its next forward pass (dynamic
-batching, at most --max-batch; inference runs off the event loop). A request carrying "vla_ladder/episode_seed" and
-"vla_ladder/chunk_index" gets the flow-matching noise `lerobot:` draws for that chunk of that episode, so
-`eval --policy remote:URL` plays what `eval --policy lerobot:CHECKPOINT` plays: to the bit with one client (each
-pass a batch of one), to float rounding when passes batch several, as `eval --num-envs N` in-process does.
+batching, at most --max-batch). One connection may also have up to --max-batch requests in flight (its metadata
+says "max_pipelined"): `eval --num-envs N` sends its envs' requests together and reads the answers in order, so they
+too share a pass. A request carrying "vla_ladder/episode_seed" and "vla_ladder/chunk_index" gets the flow-matching
+noise `lerobot:` draws for that chunk of that episode, so `eval --policy remote:URL` plays what `eval --policy
+lerobot:CHECKPOINT` plays: to the bit with one client (each pass a batch of one), to float rounding when passes
+batch several, as `eval --num-envs N` in-process does.
+
+The forward passes run on the main thread, the WebSocket event loop on another: torch's OpenMP workers belong to
+the thread that made them, and a second thread's workers outnumber the cores and sleep between matmuls (a SmolVLA
+chunk: 11.5 ms on the main thread of 2 idle cores, 33-38 ms on another; cli.py leaves this command libgomp's
+default wait policy for the same reason; benchmarks/openmp_wait.py).
 
 Use it to put the model on a GPU machine and the simulation elsewhere, to serve a checkpoint to openpi-style
 clients, or to check the remote path against the in-process one. It listens on 127.0.0.1 unless told otherwise;
@@ -19,14 +26,17 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import concurrent.futures
 import hmac
 import http
 import json
 import logging
 import os
+import queue
 import signal
+import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -52,12 +62,15 @@ class ServePolicyConfig:
     """address to listen on; anything but loopback needs --api-key"""
     port: int = 8000
     """port; 0 picks a free one (the URL is printed once listening)"""
-    api_key: str | None = field(default_factory=lambda: os.environ.get(API_KEY_ENV))
+    api_key: str | None = None  # read from the environment in __post_init__, so that --help never prints it
     """secret clients send as `Authorization: Api-Key KEY` (default: $VLA_LADDER_API_KEY); required off loopback"""
     max_batch: int = 16
-    """most requests one forward pass answers (those that arrived while the model ran; eval --workers N sends N)"""
+    """most requests one forward pass answers (those that arrived while the model ran: eval --workers N sends N,
+    eval --num-envs N up to N on one connection), and most one connection may have in flight"""
 
     def __post_init__(self):
+        if self.api_key is None:
+            self.api_key = os.environ.get(API_KEY_ENV)
         if not self.policy:
             raise ValueError("--policy lerobot:CHECKPOINT is required (the checkpoint to serve)")
         kind, arg = parse_spec(self.policy)
@@ -132,13 +145,14 @@ class PolicyServer:
         self.policy = load_policy(cfg.policy)
         self.metadata = {
             "server": "vla-ladder", "policy": self.policy.describe(),
-            "n_action_steps": self.policy.n_action_steps, "action_dim": ACTION_DIM,
+            "n_action_steps": self.policy.n_action_steps, "action_dim": ACTION_DIM, "max_pipelined": cfg.max_batch,
             "observation": {"cameras": {c.key: list(c.shape) for c in CAMERAS}, "state": [STATE_KEY, STATE_DIM],
                             "prompt": PROMPT_KEY, "episode_seed": SEED_KEY, "chunk_index": CHUNK_KEY},
         }
         self.requests = 0
         self.batches: collections.Counter[int] = collections.Counter()  # forward passes by batch size
-        self._pending: asyncio.Queue | None = None
+        self._pending: asyncio.Queue | None = None  # requests waiting for a forward pass, on the event loop
+        self._passes: queue.Queue = queue.Queue()  # batches handed from the event loop to the inference thread
 
     def chunks(self, requests: list[tuple]) -> list[np.ndarray]:
         """One forward pass for several `read_request` results: each one's whole chunk. A flow-matching policy's row
@@ -158,15 +172,17 @@ class PolicyServer:
         return list(actions.to(torch.float32).cpu().numpy())
 
     async def _answer_pending(self) -> None:
-        """Forever: wait for a request, take every other one already waiting (up to --max-batch), run them as one
-        batch off the event loop, hand each its chunk. No waiting window: a lone request runs at once."""
+        """Forever: wait for a request, take every other one already waiting (up to --max-batch), have the inference
+        thread run them as one batch, hand each its chunk. No waiting window: a lone request runs at once."""
         while True:
             batch = [await self._pending.get()]
             while len(batch) < self.cfg.max_batch and not self._pending.empty():
                 batch.append(self._pending.get_nowait())
             start = time.perf_counter()
+            done: concurrent.futures.Future = concurrent.futures.Future()
+            self._passes.put(([parsed for parsed, _ in batch], done))
             try:
-                chunks = await asyncio.to_thread(self.chunks, [parsed for parsed, _ in batch])
+                chunks = await asyncio.wrap_future(done)
             except Exception as e:
                 log.exception("inference failed for a batch of %d", len(batch))
                 for _, answer in batch:
@@ -189,39 +205,64 @@ class PolicyServer:
         return None
 
     async def handle(self, ws) -> None:
+        """One connection: its requests are read as they come (up to --max-batch in flight, so that a client's
+        batch of envs can share a forward pass) and answered in the order they came."""
         from websockets.exceptions import ConnectionClosed
 
         peer = ws.remote_address
         log.info("client %s connected", peer)
+        replies: asyncio.Queue = asyncio.Queue(self.cfg.max_batch)  # full: stop reading, TCP holds the client back
+        reader = asyncio.create_task(self._read(ws, replies))
         try:
             await ws.send(pack(self.metadata))
+            while (reply := await replies.get()) is not None:
+                kind, value = reply
+                if kind == "answer":
+                    try:
+                        actions, timing = await value
+                    except Exception as e:
+                        await ws.send(f"inference failed: {type(e).__name__}: {e}")
+                        await ws.close(1011, "inference failed")
+                        break
+                    self.requests += 1
+                    await ws.send(pack({"actions": actions, "server_timing": timing}))
+                elif kind == "bad":  # after the answers to what came before it
+                    await ws.send(value)
+                    await ws.close(1008, "bad request")
+                    break
+                else:
+                    await ws.send(value)
+        except ConnectionClosed:
+            pass
+        finally:
+            reader.cancel()
+        log.info("client %s disconnected", peer)
+
+    async def _read(self, ws, replies: asyncio.Queue) -> None:
+        """The connection's requests, in order, onto `replies`: an inference's future, an acknowledgement, or the
+        error that ends the connection; None once the client has gone."""
+        from websockets.exceptions import ConnectionClosed
+
+        try:
             async for message in ws:
                 try:
                     request = unpack(message)
                     if isinstance(request, dict) and "__ctrl__" in request:  # openpi's episode markers: nothing to do
-                        await ws.send(pack({"__ack__": str(request["__ctrl__"])[:64]}))
+                        await replies.put(("ack", pack({"__ack__": str(request["__ctrl__"])[:64]})))
                         continue
                     parsed = read_request(request)  # a bad request is the client's mistake: no inference
                 except ValueError as e:
-                    log.info("client %s sent a bad request: %s", peer, e)
-                    await ws.send(f"bad request: {e}")
-                    await ws.close(1008, "bad request")
+                    log.info("client %s sent a bad request: %s", ws.remote_address, e)
+                    await replies.put(("bad", f"bad request: {e}"))
                     return
                 answer = asyncio.get_running_loop().create_future()
                 await self._pending.put((parsed, answer))
-                try:
-                    actions, timing = await answer
-                except Exception as e:
-                    await ws.send(f"inference failed: {type(e).__name__}: {e}")
-                    await ws.close(1011, "inference failed")
-                    return
-                self.requests += 1
-                await ws.send(pack({"actions": actions, "server_timing": timing}))
+                await replies.put(("answer", answer))
         except ConnectionClosed:
             pass
-        log.info("client %s disconnected", peer)
+        await replies.put(None)
 
-    async def serve(self, ready=None) -> None:
+    async def _serve(self, ready) -> None:
         from websockets.asyncio.server import serve
 
         self._pending = asyncio.Queue()
@@ -237,6 +278,41 @@ class PolicyServer:
         finally:
             answering.cancel()
 
+    def serve_forever(self, ready=None) -> None:
+        """Serve until KeyboardInterrupt: the event loop on a thread of its own, the forward passes on this one (the
+        main thread; the module docstring says why). `ready(url)` is called once listening."""
+        started: dict[str, Any] = {}
+
+        def loop_thread() -> None:
+            async def main() -> None:
+                started["loop"], started["task"] = asyncio.get_running_loop(), asyncio.current_task()
+                await self._serve(ready)
+            try:
+                asyncio.run(main())
+            except asyncio.CancelledError:
+                pass
+            except BaseException as e:  # re-raised on the main thread
+                started["error"] = e
+
+        thread = threading.Thread(target=loop_thread, name="websockets", daemon=True)
+        thread.start()
+        try:
+            while thread.is_alive():
+                try:
+                    requests, done = self._passes.get(timeout=0.2)
+                except queue.Empty:
+                    continue
+                try:
+                    done.set_result(self.chunks(requests))
+                except Exception as e:  # answered to the batch's clients; the server goes on
+                    done.set_exception(e)
+        finally:
+            if "loop" in started and thread.is_alive():
+                started["loop"].call_soon_threadsafe(started["task"].cancel)
+            thread.join(timeout=30)
+        if "error" in started:
+            raise started["error"]
+
 
 def run(cfg: ServePolicyConfig) -> int:
     if not log.handlers:  # LeRobot configures the root logger on import; this command's lines go to stderr as is
@@ -246,17 +322,11 @@ def run(cfg: ServePolicyConfig) -> int:
         log.propagate = False
     log.setLevel(logging.INFO)
     server = PolicyServer(cfg)
-
-    async def main() -> None:
-        task = asyncio.current_task()
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, task.cancel)
-        await server.serve(lambda url: print(f"listening on {url}", flush=True))
-
+    for sig in (signal.SIGINT, signal.SIGTERM):  # both stop it as Ctrl-C does, even where a shell ignored SIGINT
+        signal.signal(sig, signal.default_int_handler)
     try:
-        asyncio.run(main())
-    except asyncio.CancelledError:
+        server.serve_forever(lambda url: print(f"listening on {url}", flush=True))
+    except KeyboardInterrupt:
         pass
     log.info("stopped after %d requests in %d forward passes (by batch size: %s)", server.requests,
              sum(server.batches.values()), dict(sorted(server.batches.items())))
