@@ -408,3 +408,21 @@ def test_eval_batches_cpu_envs_one_per_core_and_not_with_workers(tmp_path, capsy
                     f"--num-envs must be at most the {cores()} CPU cores here, got {cores() + 1}")
     _one_line_error(capsys, main([*base, "--num-envs", "2", "--workers", "2"]), "choose one, --workers N")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_help_never_prints_a_secret_from_the_environment(monkeypatch, capsys):
+    """The servers' secrets default to environment variables, read when the command runs, not when --help shows
+    the defaults (it printed them before)."""
+    from vla_ladder.recording.server import ServeConfig
+
+    secret = "s3cr3t-from-env"
+    monkeypatch.setenv("VLA_LADDER_TOKEN", secret)
+    monkeypatch.setenv("VLA_LADDER_API_KEY", secret)
+    for command in COMMANDS:
+        with pytest.raises(SystemExit) as e:
+            main([command, "--help"])
+        assert e.value.code == 0
+        out = capsys.readouterr().out
+        assert "--" in out and secret not in out, command
+    assert ServeConfig().token == secret  # still the default
+    assert ServeConfig(token="given").token == "given"

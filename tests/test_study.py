@@ -94,6 +94,7 @@ def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
     assert study.select_units() == []  # one horizon, chosen while tuning: nothing to select
     chosen = study.best({})
     assert {k: v["horizon"] for k, v in chosen.items()} == {m: 4 for m in models}
+    assert all(v["success"] is None and v["candidates"][0]["reach"] is None for v in chosen.values())  # unmeasured
     evals = {u.id: u.config for u in study.eval_units(chosen)}
     assert evals["eval-SmolVLA-scratch-blind-sj"]["policy"].endswith("?n_action_steps=4&instruction=grasp the object")
     assert evals["eval-SmolVLA-scratch-pid"]["grid"]["splits"] == ["pairings_id", "pairings_ood"]

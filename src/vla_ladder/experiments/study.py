@@ -221,7 +221,8 @@ class Study:
         return [h for h in self.cfg.grid.horizons if h <= chunk]
 
     def best(self, results: dict) -> dict[tuple[str, str], dict]:
-        """(policy, dataset) -> the chosen model and horizon, with the validation rates it was chosen on."""
+        """(policy, dataset) -> the chosen model and horizon, with the validation rates it was chosen on (None where
+        the grid has no selection phase, --select-episodes 0: nothing was measured, the first candidate is used)."""
         chosen = {}
         for p, d, bcs in self.models():
             rows = []
@@ -229,11 +230,11 @@ class Study:
                 mid = model_id(p, d, b, c)
                 for h in self.horizons(c):
                     r = results.get(f"select-{mid}-h{h}")
-                    rates = next(iter(r["conditions"].values())) if r else {m: 0.0 for m in RANK_BY}
+                    rates = next(iter(r["conditions"].values())) if r else {}
                     rows.append({"model": mid, "batch_size": b, "chunk_size": c, "horizon": h,
-                                 **{m: rates[m] for m in RANK_BY}})
-            # Stable sort: on a full tie the first in grid order wins.
-            rows.sort(key=lambda r: tuple(r[m] for m in RANK_BY), reverse=True)
+                                 **{m: rates.get(m) for m in RANK_BY}})
+            # Stable sort: on a full tie (or with nothing measured) the first in grid order wins.
+            rows.sort(key=lambda r: tuple(-1.0 if r[m] is None else r[m] for m in RANK_BY), reverse=True)
             chosen[(p.name, d.name)] = {**rows[0], "candidates": rows}
         return chosen
 

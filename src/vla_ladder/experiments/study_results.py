@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from vla_ladder import files
@@ -57,6 +58,8 @@ def write_results(study, chosen: dict, results: dict, curves_results: dict) -> P
             cells += cells_of(run_dir, ref)
             runs.append(load_run(run_dir))
             labels.append(f"{ref} #{run_dir.name.rsplit('-', 1)[1]}")
+    for cell in cells:  # relative to the study's folder, so that its summary holds wherever it is copied
+        cell["run"] = os.path.relpath(cell["run"], root)
     curves = curve_points(study, chosen)
     # Probe metrics are recomputed from the plays (cheap), so a re-run with newer metrics refreshes them.
     probes = {}

@@ -67,7 +67,7 @@ class RecordConfig:
     vcodec: str = DEFAULT_VCODEC
     """video codec of the cameras: libsvtav1 (AV1, LeRobot's default) or h264 (a quarter less of the writer's CPU
     time, half the bytes, ~2 dB lower PSNR; docs/recording.md); fixed for the dataset's life"""
-    token: str | None = field(default_factory=lambda: os.environ.get(TOKEN_ENV))
+    token: str | None = None  # read from the environment in __post_init__, so that --help never prints it
     """server token (default: $VLA_LADDER_TOKEN)"""
     commit_every: int = 50
     """commit to the dataset every N saved episodes"""
@@ -84,6 +84,8 @@ class RecordConfig:
     """seed reservation shared with other writers (set by `record --writers` for its writers)"""
 
     def __post_init__(self):
+        if self.token is None:
+            self.token = os.environ.get(TOKEN_ENV)
         self.out = Path(self.out)
         self.condition = Condition.of(self.condition)
         self.server = tuple(self.server)

@@ -51,7 +51,7 @@ class ServeConfig:
     """address to bind; anything but loopback needs --token"""
     port: int = 8765
     """port; 0 picks a free one (the URL is printed once listening)"""
-    token: str | None = field(default_factory=lambda: os.environ.get(TOKEN_ENV))
+    token: str | None = None  # read from the environment in __post_init__, so that --help never prints it
     """shared secret every client must send in its hello; required off loopback (default: $VLA_LADDER_TOKEN)"""
     max_outstanding: int = 0
     """episodes one client may have requested but not yet received (0: 4 x num_envs, at least 8)"""
@@ -71,6 +71,8 @@ class ServeConfig:
     """exit when stdin closes (how `record` ties the local server it starts to its own life)"""
 
     def __post_init__(self):
+        if self.token is None:
+            self.token = os.environ.get(TOKEN_ENV)
         self.condition = Condition.of(self.condition)
         check_seed(self.rng_seed, "--rng-seed")
         check_spec(self.policy)
