@@ -8,8 +8,8 @@ round trip minus inference is the protocol: packing, the loopback WebSocket and 
 observation then goes through the checkpoint loaded in this process (`LeRobotPolicy.predict_chunk`).
 
 Then, for each B of --batches, what B envs' chunks cost on one connection (`remote:` with --num-envs B): asked
-one at a time (what an openpi server gets), and pipelined (all B sent before any answer is read, what
-vla-ladder's server allows), with the batch sizes the server's passes had.
+one at a time (what an openpi server gets), and pipelined (all B sent, as one window, before any answer is read:
+what `remote:` sends vla-ladder's server), with the batch sizes the server's passes had.
 
     .venv/bin/python benchmarks/remote_overhead.py CHECKPOINT [--repeats 20] [--batches 1 4 16] [--out FILE]
 
@@ -32,7 +32,7 @@ import tyro
 from vla_ladder import files
 from vla_ladder.contract import CAMERAS, STATE_DIM, STATE_KEY
 from vla_ladder.machine import cores
-from vla_ladder.policies.remote import CHUNK_KEY, PROMPT_KEY, SEED_KEY, connect, pack, unpack
+from vla_ladder.policies.remote import CHUNK_KEY, PROMPT_KEY, SEED_KEY, WINDOW_KEY, connect, pack, unpack
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -66,9 +66,10 @@ def median_ms(xs: list[float]) -> float:
 
 def envs_on_one_connection(ws, envs: int, repeats: int) -> dict:
     """Milliseconds for `envs` chunks (each env its own observation and seed), asked one at a time and pipelined."""
-    messages = [pack({**observation(seed), SEED_KEY: seed}) for seed in range(envs)]
     row: dict = {"envs": envs}
     for mode in ("one_at_a_time", "pipelined"):
+        window = {WINDOW_KEY: envs} if mode == "pipelined" and envs > 1 else {}  # as `remote:` names its windows
+        messages = [pack({**observation(seed), SEED_KEY: seed, **window}) for seed in range(envs)]
         times, passes = [], []
         for _ in range(repeats + 1):  # the first untimed: a new batch size builds caches
             t0 = time.perf_counter()

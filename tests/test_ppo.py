@@ -4,6 +4,7 @@ acts through load_policy, and clean errors for bad input."""
 import dataclasses
 import json
 import math
+import os
 
 import pytest
 import torch
@@ -181,10 +182,15 @@ def test_cli_exposes_every_field(capsys):
 
 
 @pytest.mark.slow
-def test_several_cpu_envs_run_in_spawned_processes():
+def test_several_cpu_envs_run_in_spawned_processes(monkeypatch):
     args = Args(out="x", sim_backend="physx_cpu", num_envs=2, num_steps=50, total_timesteps=100)
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    torch.set_num_threads(2)  # what the trainer sets from --torch-threads before it builds its envs
     envs = TrainEnvs(args, torch.device("cpu"))
     try:
+        # One torch thread and one lavapipe thread are for the env processes: the env gymnasium builds here to read
+        # its spaces left them set in the trainer's process (its --torch-threads became 1).
+        assert torch.get_num_threads() == 2 and "LP_NUM_THREADS" not in os.environ
         conds = [("small_jitter", "canonical", 5), ("full_random", "canonical", 1)]
         obs = envs.reset([TRAIN_SEED_MIN, TRAIN_SEED_MIN + 1], conds)
         assert obs.shape == (2, 96) and envs.object_set == "standin"

@@ -17,7 +17,8 @@ import pytest
 import lerobot_helpers as H
 from vla_ladder.cli import main
 from vla_ladder.contract import CAMERAS, STATE_KEY
-from vla_ladder.policies.remote import CHUNK_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY, pack, parse_arg, unpack
+from vla_ladder.policies.remote import (CHUNK_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY, WINDOW_KEY, pack, parse_arg,
+                                        unpack)
 from vla_ladder.policies.serving import check_servable, read_request
 
 KEY = "k3y"
@@ -165,7 +166,7 @@ def test_a_batch_of_envs_pipelines_its_requests_only_to_servers_that_say_so(dept
                 first.append(unpack(ws.recv(timeout=1)))
             except TimeoutError:
                 pass
-            arrived_together.append(len(first))
+            arrived_together.append([r.get(WINDOW_KEY) for r in first])
             for request in first:
                 ws.send(pack({"actions": np.full((3, 7), request[SEED_KEY] / 100, np.float32)}))
 
@@ -180,7 +181,7 @@ def test_a_batch_of_envs_pipelines_its_requests_only_to_servers_that_say_so(dept
         server.shutdown()
     np.testing.assert_allclose(action[:, 0].numpy(), [0.1, 0.2, 0.3])  # each env its own chunk, in order
     assert policy.pipelined == (depth or 1)
-    assert arrived_together == ([1, 1, 1] if depth is None else [2, 1])
+    assert arrived_together == ([[None]] * 3 if depth is None else [[2, 2], [None]])  # each names its window
 
 
 # ---------------------------------------------------------------------- a served checkpoint
@@ -213,14 +214,19 @@ def test_a_served_checkpoint_plays_what_it_plays_in_process(served, tmp_path, mo
     assert "needs its --api-key in $VLA_LADDER_API_KEY" in capsys.readouterr().err
     monkeypatch.setenv("VLA_LADDER_API_KEY", KEY)
     runs = {"remote": [f"remote:{url}"], "local": [f"lerobot:{run}?n_action_steps=2"],
-            "remote4": [f"remote:{url}?n_action_steps=4"], "batched": [f"remote:{url}", "--num-envs", "2"]}
+            "remote4": [f"remote:{url}?n_action_steps=4"], "batched": [f"remote:{url}", "--num-envs", "2"],
+            "local_batched": [f"lerobot:{run}?n_action_steps=2", "--num-envs", "2"]}
     for name, (spec, *more) in runs.items():
         assert main(["eval", "--policy", spec, *EVAL, *more, "--out", str(tmp_path / name)]) == 0
-    remote, local, remote4, batched = (
+    remote, local, remote4, batched, local_batched = (
         pd.read_parquet(tmp_path / n / "episodes.parquet").drop(columns="policy").sort_values("episode")
         .reset_index(drop=True) for n in runs)
-    pd.testing.assert_frame_equal(remote, local)
-    pd.testing.assert_frame_equal(batched, local)  # two envs at once: one request each per chunk
+    pd.testing.assert_frame_equal(remote, local, check_exact=True)
+    # Two envs at once: their two requests are one window, one forward pass of two rows, as in-process.
+    pd.testing.assert_frame_equal(batched, local_batched, check_exact=True)
+    # ... and the same episodes as one env at a time, up to float rounding (batched matmuls round differently).
+    assert (batched[["success", "grasp_any", "reach"]] == local[["success", "grasp_any", "reach"]]).all().all()
+    np.testing.assert_allclose(batched[["tcp_x", "tcp_y"]], local[["tcp_x", "tcp_y"]], atol=1e-4, rtol=0)
     assert not np.array_equal(remote4[["tcp_x", "tcp_y"]].to_numpy(), local[["tcp_x", "tcp_y"]].to_numpy())
 
 
@@ -381,9 +387,13 @@ def test_one_connection_may_pipeline_requests_and_gets_answers_in_order(served):
             ws.send(pack(_request(seed)))
         ws.send(pack({"__ctrl__": "episode_end"}))  # answered in its turn too
         answers = [unpack(ws.recv(timeout=120)) for _ in range(5)]
+        for seed in range(4):  # a window of 4: one forward pass, however the requests arrive
+            ws.send(pack({**_request(seed), WINDOW_KEY: 4}))
+        answers += [unpack(ws.recv(timeout=120)) for _ in range(4)]
     assert answers[4] == {"__ack__": "episode_end"}
     assert max(a["server_timing"]["batch"] for a in answers[:4]) > 1
-    for answer, chunk in zip(answers, alone):
+    assert [a["server_timing"]["batch"] for a in answers[5:]] == [4] * 4
+    for answer, chunk in zip(answers[:4] + answers[5:], alone * 2):
         np.testing.assert_allclose(answer["actions"], chunk, atol=1e-5, rtol=0)
     assert not np.allclose(alone[0], alone[1])  # the order is visible: seeds give different chunks
     with connect(url, additional_headers={"Authorization": f"Api-Key {KEY}"}, compression=None) as ws:
@@ -395,4 +405,8 @@ def test_one_connection_may_pipeline_requests_and_gets_answers_in_order(served):
         with pytest.raises(ConnectionClosed) as closed:
             ws.recv(timeout=30)
         assert closed.value.rcvd.code == 1008
+    with connect(url, additional_headers={"Authorization": f"Api-Key {KEY}"}, compression=None) as ws:
+        unpack(ws.recv(timeout=30))
+        ws.send(pack({**_request(0), WINDOW_KEY: 17}))  # larger than max_pipelined
+        assert ws.recv(timeout=30).startswith(f"bad request: {WINDOW_KEY!r} must be an integer in 1..16")
     assert pipeline_depth({}) == pipeline_depth({"max_pipelined": True}) == 1  # openpi's servers: one at a time

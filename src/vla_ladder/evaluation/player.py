@@ -113,15 +113,25 @@ class Player:
             import torch
             kwargs["render_backend"] = "gpu" if torch.cuda.is_available() else "cpu"
         make = dict(obs_mode=policy.obs_mode, object_set=settings.object_set, robot_mesh=settings.robot_mesh, **kwargs)
+        self._threads = None
         if settings.sim_backend == "physx_cpu" and settings.num_envs > 1:
-            # One CPU env per process, in lockstep: the policy here acts on all of them as one batch.
+            # One CPU env per process, in lockstep: the policy here acts on all of them as one batch, with one torch
+            # thread, as each --workers copy has: the study's SmolVLA-scratch took 5.2 ms a step so on 2 cores, 10.5
+            # with two threads (OpenMP's passive waits, cli.py); restored by close().
+            import torch
+
             from vla_ladder.task.vector import CPUEnvs
             self.env = CPUEnvs(settings.num_envs, **make)
+            self._threads = torch.get_num_threads()
+            torch.set_num_threads(1)
         else:
             self.env = gym.make(ENV_ID, num_envs=settings.num_envs, sim_backend=settings.sim_backend, **make)
 
     def close(self) -> None:
         self.env.close()
+        if self._threads is not None:
+            import torch
+            torch.set_num_threads(self._threads)
 
     def play(self, jobs: Sequence[Job]) -> list[dict]:
         """Play up to num_envs jobs sharing their options at once; one result row per job, in order."""

@@ -19,8 +19,8 @@ server (`vla-ladder serve-policy`, policies/serving.py) draws a flow-matching po
 remote episode plays exactly as the same checkpoint does in-process (`lerobot:`). A batch of envs
 (`eval --num-envs N`) sends one request per env whose chunk has run out; to a server whose metadata says
 "max_pipelined": K (vla-ladder's does) it sends up to K of them before reading the answers, which come in the order
-asked, so that the server can answer them with one batched forward pass. Other servers get one request at a time,
-as openpi's client sends them.
+asked; each request of such a window names its size under "vla_ladder/window", so that the server runs the window
+in one forward pass. Other servers get one request at a time, as openpi's client sends them.
 
 A server that wants a key gets $VLA_LADDER_API_KEY as openpi's client sends its api_key. Nothing received is
 unpickled: arrays are rebuilt with np.frombuffer, only for boolean, numeric and fixed-width string dtypes and
@@ -46,6 +46,7 @@ from vla_ladder.policies import Policy, parse_options
 PROMPT_KEY = "prompt"
 SEED_KEY = "vla_ladder/episode_seed"
 CHUNK_KEY = "vla_ladder/chunk_index"
+WINDOW_KEY = "vla_ladder/window"  # the size of the pipelined window a request belongs to (module docstring)
 ACTIONS_KEY = "actions"
 API_KEY_ENV = "VLA_LADDER_API_KEY"  # sent as openpi's client sends its api_key: `Authorization: Api-Key KEY`
 # An observation is ~0.4 MB (two 256x256 RGB images); a chunk a few KB; metadata small. Both directions are
@@ -260,7 +261,10 @@ class RemotePolicy(Policy):
         for start in range(0, len(empty), self.pipelined):  # windows the server takes in one go (module docstring)
             window = empty[start:start + self.pipelined]
             for i in window:
-                self.send(self.observation(obs, i, instructions[i]))
+                request = self.observation(obs, i, instructions[i])
+                if len(window) > 1:
+                    request[WINDOW_KEY] = len(window)
+                self.send(request)
             for i in window:
                 chunk = self.receive()
                 self._chunks[i] += 1

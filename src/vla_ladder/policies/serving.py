@@ -5,11 +5,13 @@ metadata to every client that connects, answer every observation with a whole ac
 independent (the client runs the chunk), so any number of clients (`eval --workers N` opens N) share one copy of
 the model, and the requests that arrive while it runs are answered together by its next forward pass (dynamic
 batching, at most --max-batch). One connection may also have up to --max-batch requests in flight (its metadata
-says "max_pipelined"): `eval --num-envs N` sends its envs' requests together and reads the answers in order, so they
-too share a pass. A request carrying "vla_ladder/episode_seed" and "vla_ladder/chunk_index" gets the flow-matching
-noise `lerobot:` draws for that chunk of that episode, so `eval --policy remote:URL` plays what `eval --policy
-lerobot:CHECKPOINT` plays: to the bit with one client (each pass a batch of one), to float rounding when passes
-batch several, as `eval --num-envs N` in-process does.
+says "max_pipelined"): `eval --num-envs N` sends its envs' requests together, each naming the size of their window
+("vla_ladder/window"), and reads the answers in order; the server runs a window in one forward pass, so N envs cost
+one pass, with the rows `eval --num-envs N` computes in-process. A request carrying "vla_ladder/episode_seed" and
+"vla_ladder/chunk_index" gets the flow-matching noise `lerobot:` draws for that chunk of that episode, so `eval
+--policy remote:URL` plays what `eval --policy lerobot:CHECKPOINT` plays: to the bit with one client, its envs
+alone or together (each window a pass of its own; with as many torch threads as in-process, where batches use
+one), to float rounding when clients' requests share passes.
 
 The forward passes run on the main thread, the WebSocket event loop on another: torch's OpenMP workers belong to
 the thread that made them, and a second thread's workers outnumber the cores and sleep between matmuls (a SmolVLA
@@ -45,7 +47,8 @@ import torch
 from vla_ladder.checks import check_port_free, is_loopback
 from vla_ladder.contract import ACTION_DIM, CAMERAS, STATE_DIM, STATE_KEY
 from vla_ladder.policies import check_spec, parse_spec
-from vla_ladder.policies.remote import (API_KEY_ENV, CHUNK_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY, pack, unpack)
+from vla_ladder.policies.remote import (API_KEY_ENV, CHUNK_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY, WINDOW_KEY, pack,
+                                        unpack)
 
 log = logging.getLogger(__name__)
 MAX_PROMPT = 1000  # characters of an instruction
@@ -134,6 +137,17 @@ def read_request(request: Any) -> tuple[dict, str, int | None, int | None]:
     return obs, prompt, None if seed is None else int(seed), None if chunk is None else int(chunk)
 
 
+def read_window(request: dict, max_batch: int) -> int:
+    """The size of the window a request belongs to (WINDOW_KEY; 1 without it): the server waits for the window's
+    other requests on the connection and runs them in one forward pass, so that a client's batch of envs is one
+    batch here too, whatever the timing (and its rows are what `eval --num-envs N` computes in-process)."""
+    window = request.get(WINDOW_KEY, 1)
+    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or not 1 <= window <= max_batch:
+        raise ValueError(f"{WINDOW_KEY!r} must be an integer in 1..{max_batch} (this server's max_pipelined), "
+                         f"got {window!r}")
+    return int(window)
+
+
 class PolicyServer:
     """One loaded checkpoint, any number of connections. Requests that arrive while the model runs are answered
     together by its next forward pass (at most --max-batch), so N clients cost one batched pass, not N."""
@@ -151,7 +165,7 @@ class PolicyServer:
         }
         self.requests = 0
         self.batches: collections.Counter[int] = collections.Counter()  # forward passes by batch size
-        self._pending: asyncio.Queue | None = None  # requests waiting for a forward pass, on the event loop
+        self._pending: asyncio.Queue | None = None  # groups of requests waiting for a forward pass
         self._passes: queue.Queue = queue.Queue()  # batches handed from the event loop to the inference thread
 
     def chunks(self, requests: list[tuple]) -> list[np.ndarray]:
@@ -172,12 +186,19 @@ class PolicyServer:
         return list(actions.to(torch.float32).cpu().numpy())
 
     async def _answer_pending(self) -> None:
-        """Forever: wait for a request, take every other one already waiting (up to --max-batch), have the inference
-        thread run them as one batch, hand each its chunk. No waiting window: a lone request runs at once."""
+        """Forever: wait for a group (one request, or a client's window: `read_window`), add every other group
+        already waiting while the batch stays within --max-batch, have the inference thread run them as one batch,
+        hand each its chunk. No waiting window: a lone request runs at once."""
+        held = None  # a group that did not fit the last batch: it opens the next
         while True:
-            batch = [await self._pending.get()]
-            while len(batch) < self.cfg.max_batch and not self._pending.empty():
-                batch.append(self._pending.get_nowait())
+            batch = list(held or await self._pending.get())
+            held = None
+            while not self._pending.empty():
+                group = self._pending.get_nowait()
+                if len(batch) + len(group) > self.cfg.max_batch:
+                    held = group
+                    break
+                batch += group
             start = time.perf_counter()
             done: concurrent.futures.Future = concurrent.futures.Future()
             self._passes.put(([parsed for parsed, _ in batch], done))
@@ -243,6 +264,8 @@ class PolicyServer:
         error that ends the connection; None once the client has gone."""
         from websockets.exceptions import ConnectionClosed
 
+        group: list[tuple] = []  # the requests of an open window
+        expected = 1
         try:
             async for message in ws:
                 try:
@@ -251,13 +274,19 @@ class PolicyServer:
                         await replies.put(("ack", pack({"__ack__": str(request["__ctrl__"])[:64]})))
                         continue
                     parsed = read_request(request)  # a bad request is the client's mistake: no inference
+                    window = read_window(request, self.cfg.max_batch)
                 except ValueError as e:
                     log.info("client %s sent a bad request: %s", ws.remote_address, e)
                     await replies.put(("bad", f"bad request: {e}"))
                     return
                 answer = asyncio.get_running_loop().create_future()
-                await self._pending.put((parsed, answer))
+                if not group:
+                    expected = window
+                group.append((parsed, answer))
                 await replies.put(("answer", answer))
+                if len(group) >= expected:  # the window is complete: its requests share one forward pass
+                    await self._pending.put(group)
+                    group = []
         except ConnectionClosed:
             pass
         await replies.put(None)

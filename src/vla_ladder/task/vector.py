@@ -11,6 +11,7 @@ condition; each is the same episode as that seed on a single env (one process, o
 from __future__ import annotations
 
 import functools
+import os
 from typing import Any, Sequence
 
 import gymnasium as gym
@@ -49,9 +50,18 @@ def make_cpu_env(index: int, **make_kwargs) -> gym.Env:
 
 def cpu_vector_env(num_envs: int, **make_kwargs) -> gym.vector.AsyncVectorEnv:
     """num_envs single CPU envs in spawned processes; numpy in and out, no automatic resets."""
-    return gym.vector.AsyncVectorEnv([functools.partial(make_cpu_env, i, sim_backend="physx_cpu", **make_kwargs)
-                                      for i in range(num_envs)], context="spawn",
-                                     autoreset_mode=gym.vector.AutoresetMode.DISABLED)
+    # AsyncVectorEnv also builds env 0 once in this process, to read its spaces: what make_cpu_env sets for a
+    # worker process (one torch thread, one lavapipe thread) must not stay set here, where the policy or the PPO
+    # trainer runs (it did: their --torch-threads became 1).
+    threads, lavapipe = torch.get_num_threads(), os.environ.get("LP_NUM_THREADS")
+    try:
+        return gym.vector.AsyncVectorEnv([functools.partial(make_cpu_env, i, sim_backend="physx_cpu", **make_kwargs)
+                                          for i in range(num_envs)], context="spawn",
+                                         autoreset_mode=gym.vector.AutoresetMode.DISABLED)
+    finally:
+        torch.set_num_threads(threads)
+        if lavapipe is None:
+            os.environ.pop("LP_NUM_THREADS", None)
 
 
 def _torch(x: Any) -> Any:
