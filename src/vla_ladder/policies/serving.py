@@ -166,7 +166,7 @@ class PolicyServer:
         self.requests = 0
         self.batches: collections.Counter[int] = collections.Counter()  # forward passes by batch size
         self._pending: asyncio.Queue | None = None  # groups of requests waiting for a forward pass
-        self._passes: queue.Queue = queue.Queue()  # batches handed from the event loop to the inference thread
+        self._passes: queue.Queue = queue.Queue()  # batches handed from the event loop to serve_forever's thread
 
     def chunks(self, requests: list[tuple]) -> list[np.ndarray]:
         """One forward pass for several `read_request` results: each one's whole chunk. A flow-matching policy's row
@@ -187,8 +187,8 @@ class PolicyServer:
 
     async def _answer_pending(self) -> None:
         """Forever: wait for a group (one request, or a client's window: `read_window`), add every other group
-        already waiting while the batch stays within --max-batch, have the inference thread run them as one batch,
-        hand each its chunk. No waiting window: a lone request runs at once."""
+        already waiting while the batch stays within --max-batch, have the main thread run them as one batch, hand
+        each its chunk. It waits for nothing it was not told of: a lone request runs at once."""
         held = None  # a group that did not fit the last batch: it opens the next
         while True:
             batch = list(held or await self._pending.get())
