@@ -173,3 +173,27 @@ def test_a_killed_run_resumes_and_another_request_is_refused(tmp_path, capsys):
     (tmp_path / "notes" / "mine.txt").write_text("keep me")
     assert main([*argv[:-4], "--out", str(tmp_path / "notes")]) == 2
     assert (tmp_path / "notes" / "mine.txt").read_text() == "keep me"
+
+
+def test_a_player_acts_with_one_torch_thread_unless_told_and_gives_the_process_its_own_back(monkeypatch):
+    """Each --workers copy of a policy has one torch thread; so has the copy that plays in-process (two threads
+    under passive OpenMP waits doubled a SmolVLA step on 2 cores). OMP_NUM_THREADS wins; close() restores."""
+    import torch
+
+    from vla_ladder.evaluation.player import EnvSettings, Player
+    from vla_ladder.policies import load_policy
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+        player = Player(load_policy("scripted"), EnvSettings())
+        assert torch.get_num_threads() == 1
+        player.close()
+        assert torch.get_num_threads() == 2
+        monkeypatch.setenv("OMP_NUM_THREADS", "2")
+        player = Player(load_policy("scripted"), EnvSettings())
+        assert torch.get_num_threads() == 2
+        player.close()
+    finally:
+        torch.set_num_threads(before)

@@ -10,6 +10,7 @@ On physx_cuda, one process steps `num_envs` episodes at once instead.
 
 from __future__ import annotations
 
+import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
@@ -104,34 +105,36 @@ class Player:
 
     def __init__(self, policy, settings: EnvSettings):
         import gymnasium as gym
+        import torch
 
         import vla_ladder.task.env  # noqa: F401  (registers GraspObject-v1)
 
         self.policy, self.settings = policy, settings
+        # One torch thread, as each --workers copy has, unless OMP_NUM_THREADS says otherwise; close() restores the
+        # process's own. Under the passive OpenMP waits every command but serve-policy runs with (cli.py), a second
+        # thread is woken for every small matmul: the study's SmolVLA-scratch on 2 cores took 3.9-4.0 ms a step with
+        # one thread and 8.1-9.4 with two (`eval --workers 1`, 8 episodes in 16.9-17.5 s against 18.5-18.9), 5.2 and
+        # 10.5 acting on two envs (`--num-envs 2`).
+        self._threads = torch.get_num_threads()
+        if "OMP_NUM_THREADS" not in os.environ:
+            torch.set_num_threads(1)
         kwargs = dict(settings.extra)
         if settings.render:  # a state policy's env renders only when asked; filmed episodes need pictures
             import torch
             kwargs["render_backend"] = "gpu" if torch.cuda.is_available() else "cpu"
         make = dict(obs_mode=policy.obs_mode, object_set=settings.object_set, robot_mesh=settings.robot_mesh, **kwargs)
-        self._threads = None
         if settings.sim_backend == "physx_cpu" and settings.num_envs > 1:
-            # One CPU env per process, in lockstep: the policy here acts on all of them as one batch, with one torch
-            # thread, as each --workers copy has: the study's SmolVLA-scratch took 5.2 ms a step so on 2 cores, 10.5
-            # with two threads (OpenMP's passive waits, cli.py); restored by close().
-            import torch
-
+            # One CPU env per process, in lockstep: the policy here acts on all of them as one batch.
             from vla_ladder.task.vector import CPUEnvs
             self.env = CPUEnvs(settings.num_envs, **make)
-            self._threads = torch.get_num_threads()
-            torch.set_num_threads(1)
         else:
             self.env = gym.make(ENV_ID, num_envs=settings.num_envs, sim_backend=settings.sim_backend, **make)
 
     def close(self) -> None:
+        import torch
+
         self.env.close()
-        if self._threads is not None:
-            import torch
-            torch.set_num_threads(self._threads)
+        torch.set_num_threads(self._threads)
 
     def play(self, jobs: Sequence[Job]) -> list[dict]:
         """Play up to num_envs jobs sharing their options at once; one result row per job, in order."""
