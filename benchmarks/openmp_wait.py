@@ -56,19 +56,17 @@ def child(checkpoint: str, repeats: int, thread: str) -> None:
     sys.path.insert(0, str(Path(__file__).parent))
     from remote_overhead import observation
 
-    from vla_ladder.contract import CAMERAS, STATE_KEY
     from vla_ladder.policies import load_policy
+    from vla_ladder.policies.serving import read_request
 
     policy = load_policy(f"lerobot:{checkpoint}")
-    obs = observation()
-    batch = {"sensor_data": {c.name: {"rgb": torch.from_numpy(obs[c.key])[None]} for c in CAMERAS},
-             "extra": {"proprio": torch.from_numpy(obs[STATE_KEY])[None]}}
+    batch, prompt, _, _ = read_request(observation())
     times: list[float] = []
 
     def measure() -> None:
         for _ in range(repeats + 2):
             t0 = time.perf_counter()
-            policy.predict_chunk(batch, ["grasp the mug"])
+            policy.predict_chunk(batch, [prompt])
             times.append(time.perf_counter() - t0)
 
     if thread == "main":

@@ -130,16 +130,17 @@ def main(args: Args) -> dict:
     import torch
 
     from vla_ladder.policies import load_policy
+    from vla_ladder.policies.lerobot import NOISE_PER_EPISODE
+    from vla_ladder.policies.serving import read_request
 
     policy = load_policy(spec)
-    batch = {"sensor_data": {c.name: {"rgb": torch.from_numpy(obs[c.key])[None]} for c in CAMERAS},
-             "extra": {"proprio": torch.from_numpy(obs[STATE_KEY])[None]}}
-    noise = policy.episode_noise(0, 0)[None] if policy.config.type in ("smolvla", "pi0", "pi05") else None
-    policy.predict_chunk(batch, ["grasp the mug"], noise=noise)
+    batch, prompt, seed, chunk = read_request(obs)  # what the server hands the model for this request
+    noise = policy.episode_noise(seed, chunk)[None] if policy.config.type in NOISE_PER_EPISODE else None
+    policy.predict_chunk(batch, [prompt], noise=noise)
     local = []
     for _ in range(args.repeats):
         t0 = time.perf_counter()
-        policy.predict_chunk(batch, ["grasp the mug"], noise=noise)
+        policy.predict_chunk(batch, [prompt], noise=noise)
         local.append(time.perf_counter() - t0)
 
     protocol = [t - i for t, i in zip(trips, infers)]

@@ -85,10 +85,10 @@ def main(argv: list[str] | None = None) -> int:
     # OpenMP threads that outnumber free cores spin for each other (10x slower steps measured on a busy 2-core
     # machine), so workers sleep between parallel regions. In-process `eval` of SmolVLA-scratch on 2 cores gains
     # nothing from spinning: the policy's 7.8 ms a step become 4.0, the renderer's 16.8 become 23.3 (its threads
-    # lose their cores to the spinning ones). A policy server keeps libgomp's default (spin a while,
-    # then sleep): its forward passes are back-to-back small matmuls, 11.5 ms a SmolVLA chunk against 34 ms passive
-    # on 2 idle cores, 24 ms against 18 and 33 beside one and two busy processes
-    # (benchmarks/results/openmp_wait_cpu.json). Read when torch first loads.
+    # lose their cores to the spinning ones). A policy server keeps libgomp's default (spin a while, then sleep):
+    # its forward passes are back-to-back small matmuls, 11.5 ms a SmolVLA chunk against 34 ms passive on 2 idle
+    # cores, 24 ms against 18 and 33 beside one and two busy processes (benchmarks/results/openmp_wait_cpu.json).
+    # Read when torch first loads.
     if argv[:1] != ["serve-policy"]:
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if not argv or argv[0] in ("-h", "--help"):

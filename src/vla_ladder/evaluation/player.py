@@ -120,7 +120,6 @@ class Player:
             torch.set_num_threads(1)
         kwargs = dict(settings.extra)
         if settings.render:  # a state policy's env renders only when asked; filmed episodes need pictures
-            import torch
             kwargs["render_backend"] = "gpu" if torch.cuda.is_available() else "cpu"
         make = dict(obs_mode=policy.obs_mode, object_set=settings.object_set, robot_mesh=settings.robot_mesh, **kwargs)
         if settings.sim_backend == "physx_cpu" and settings.num_envs > 1:
