@@ -14,6 +14,27 @@ from vla_ladder.experiments.diagnose import QUESTIONS
 SMALL = ["--episodes", "3", "--probe-episodes", "3", "--workers", "1", "--videos", "1"]
 
 
+def test_ladder_drop_pairs_the_regimes_episodes_by_seed(tmp_path):
+    """Episode j plays the same seed in every regime: the drop's interval is the paired one (Newcombe's), and a
+    policy whose own regime is the farthest gets no answer."""
+    import numpy as np
+    from report_fixtures import make_run
+
+    from vla_ladder.evaluation.rundir import load_run
+    from vla_ladder.experiments.diagnose import ladder_drop
+    from vla_ladder.stats import paired_difference
+
+    sj, fr = ("small_jitter", "canonical", 5), ("full_random", "canonical", 5)
+    run = load_run(make_run(tmp_path / "r", "nearest", [sj, fr], ["success"] * 6 + ["nothing"] * 4))
+    far = run.episodes["regime"] == "full_random"
+    run.episodes.loc[far, "success"] = run.episodes.loc[far, "episode"] < 2  # 2 of the same 6 scenes still succeed
+    drop = ladder_drop(run, "small_jitter/canonical/5")
+    own = np.arange(10) < 6
+    assert drop["value"] == pytest.approx(0.2 - 0.6) and drop["n"] == 10 and drop["to"] == "full_random/canonical/5"
+    assert drop["ci95"] == pytest.approx(list(paired_difference(own, np.arange(10) < 2)))
+    assert ladder_drop(run, "full_random/canonical/5") is None
+
+
 def _one_line(capsys) -> str:
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1, err

@@ -9,9 +9,8 @@ from report_fixtures import make_run
 
 from vla_ladder.cli import main
 from vla_ladder.evaluation.compare import compare_runs, mcnemar_exact, two_proportion_z
-from vla_ladder.stats import detectable_difference, mcnemar_power
 from vla_ladder.evaluation.metrics import confusion, outcomes, summarize
-from vla_ladder.stats import wilson
+from vla_ladder.stats import detectable_difference, mcnemar_power, paired_difference, rates, wilson
 from vla_ladder.evaluation.rundir import load_run
 
 SJ = ("small_jitter", "canonical", 5)
@@ -38,6 +37,45 @@ def test_paired_and_unpaired_tests_known_values():
     assert z == pytest.approx(-0.57989, abs=1e-4)
     assert p == pytest.approx(0.56199, abs=1e-4)
     assert two_proportion_z(0, 10, 0, 10) == (0.0, 1.0)
+
+
+def _pairs(both: int, only_y: int, only_x: int, neither: int) -> tuple[np.ndarray, np.ndarray]:
+    x = np.array([1] * both + [0] * only_y + [1] * only_x + [0] * neither, bool)
+    y = np.array([1] * both + [1] * only_y + [0] * only_x + [0] * neither, bool)
+    return x, y
+
+
+def test_paired_difference_is_newcombes_interval():
+    # Fagerland, Lydersen & Laake, Statistical Analysis of Contingency Tables (2017), chapter 8: Cavo et al. (2012),
+    # 59 / 6 / 16 / 80 pairs: Newcombe's square-and-add interval -0.0621 (-0.1186 to -0.0046); Bentur et al.
+    # (2009), 1 / 1 / 7 / 12: -0.2857 (-0.5069 to -0.0256).
+    assert paired_difference(*_pairs(59, 6, 16, 80)) == pytest.approx((-0.1186, -0.0046), abs=1e-4)
+    assert paired_difference(*_pairs(1, 1, 7, 12)) == pytest.approx((-0.5069, -0.0256), abs=1e-4)
+    # No scene changes: a width from the rates' Wilson intervals, never the point [0, 0] a bootstrap gives.
+    lo, hi = paired_difference(np.zeros(50, bool), np.zeros(50, bool))
+    assert lo == pytest.approx(-wilson(0, 50)[1]) and hi == pytest.approx(wilson(0, 50)[1])
+    assert paired_difference(np.ones(20, bool), np.zeros(20, bool)) == pytest.approx((-1.0, -0.7721), abs=1e-4)
+    lo, hi = paired_difference(np.zeros(0, bool), np.zeros(0, bool))
+    assert lo != lo and hi != hi
+
+
+def test_paired_difference_covers_its_level():
+    """Simulated pairs of correlated outcomes on 30 scenes: the interval holds the true difference in ~95% of
+    draws (Newcombe's 1998 evaluation found 93-97% at such sizes)."""
+    rng = np.random.default_rng(1)
+    cover, trials = 0, 2000
+    for _ in range(trials):
+        u = rng.random(30)
+        x, y = u < 0.4, (u < 0.55) ^ (rng.random(30) < 0.1)  # correlated, true difference 0.55*0.9+0.45*0.1-0.4
+        lo, hi = paired_difference(x, y)
+        cover += lo <= 0.14 <= hi
+    assert 0.92 < cover / trials < 0.985
+
+
+def test_rates_refuse_missing_outcomes():
+    df = pd.DataFrame({"success": [np.nan, 0, 1, np.nan], "grasp_any": [1, 1, 1, 1], "reach": [0, 0, 1, 1]})
+    with pytest.raises(ValueError, match="2 episode.*no success outcome"):
+        rates(df)
 
 
 def _ep(target, held, success, grasp_any, reach):
@@ -81,6 +119,8 @@ def test_compare_pairs_episodes_and_tests_each_metric(tmp_path, capsys):
     assert (row["n"], row["only_a"], row["only_b"]) == (10, 0, 7)
     assert row["rate_a"] == pytest.approx(0.3) and row["diff"] == pytest.approx(0.7)
     assert row["mcnemar_p"] == pytest.approx(2 / 2**7)
+    assert row["ci95_diff"] == pytest.approx(list(paired_difference(*_pairs(3, 7, 0, 0))))
+    assert row["ci95_diff"][0] > 0 and row["z"] > 0  # B better: the interval and z both say B - A > 0
     assert len(result["rows"]) == 2 * 3
 
     # Pooled success 65% over 10 scenes: only a difference of ~0.6 or more is found 80% of the time.

@@ -80,7 +80,7 @@ def swap_plays(policy, regime="small_jitter", k=5, scenes=12) -> tuple[pd.DataFr
 
 def test_position_metrics_tell_grounded_shortcut_and_blind_policies_apart():
     key = "small_jitter/canonical/5"
-    g = grounding.position_swap(*swap_plays(lambda lay, base: lay.target), 300)[key]
+    g = grounding.position_swap(*swap_plays(lambda lay, base: lay.target))[key]
     assert g["scenes"] == g["swapped"] == 12 and g["no_swap"] == 0
     assert g["follows_object_original"]["value"] == g["follows_object_swapped"]["value"] == 1
     assert g["follows_place_swapped"]["value"] == 0 and g["follows_object_change"]["value"] == 0
@@ -89,25 +89,25 @@ def test_position_metrics_tell_grounded_shortcut_and_blind_policies_apart():
     def shortcut(lay, base):  # whatever stands where the instructed object stood in the original scene
         return lay.objects[int(np.argmin(np.linalg.norm(lay.xy - base.xy[0], axis=1)))]
 
-    s = grounding.position_swap(*swap_plays(shortcut), 300)[key]
+    s = grounding.position_swap(*swap_plays(shortcut))[key]
     assert s["follows_object_original"]["value"] == 1 and s["follows_object_swapped"]["value"] == 0
     assert s["follows_place_swapped"]["value"] == 1 and s["follows_place_change"]["value"] == 1
     assert s["follows_place_change"]["mcnemar_p"] == pytest.approx(2 * 0.5 ** 12)
     assert s["reaches_place_swapped"]["value"] == 1 and s["reaches_object_swapped"]["value"] == 0
     assert s["transitions"]["counts"][0] == [0, 12, 0, 0]  # instructed in the original -> partner when swapped
-    b = grounding.position_swap(*swap_plays(lambda lay, base: sorted(lay.objects)[0]), 300)[key]
+    b = grounding.position_swap(*swap_plays(lambda lay, base: sorted(lay.objects)[0]))[key]
     assert b["follows_object_change"]["value"] == 0 and b["follows_place_change"]["value"] == 0
     assert sum(map(sum, b["transitions"]["counts"])) == 12 and sum(b["pairs"].values()) == 12
     # Full random with two objects: some scenes have no collision-free swap; they are counted, not scored.
-    f = grounding.position_swap(*swap_plays(lambda lay, base: lay.target, "full_random", 2, 30), 300)
+    f = grounding.position_swap(*swap_plays(lambda lay, base: lay.target, "full_random", 2, 30))
     f = f["full_random/canonical/2"]
     assert f["scenes"] == 30 and f["no_swap"] >= 1 and f["swapped"] == 30 - f["no_swap"]
     # Runs from before tcp_x/tcp_y were kept: where the gripper ends is unknown, not 0.
     original, swapped = swap_plays(shortcut)
-    old = grounding.position_swap(original.assign(tcp_x=np.nan), swapped, 300)[key]
+    old = grounding.position_swap(original.assign(tcp_x=np.nan), swapped)[key]
     assert old["reaches_place_swapped"] is None and old["follows_place_swapped"]["value"] == 1
     with pytest.raises(ValueError, match="different seeds or instructions"):
-        grounding.position_swap(original, swapped.assign(seed=swapped["seed"] + 1), 300)
+        grounding.position_swap(original, swapped.assign(seed=swapped["seed"] + 1))
 
 
 # ---------------------------------------------------------------------- commands

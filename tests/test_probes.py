@@ -45,8 +45,8 @@ def test_instruction_swap_metrics_tell_grounded_from_blind_policies():
     assert grounded["scenes"] == 12 and grounded["plays"] == 60
     for m in ("instruction_sensitivity", "scene_accuracy", "grounded_accuracy", "nmi", "success"):
         assert grounded[m]["value"] == pytest.approx(1.0), m
-    # Every grasp right: no bootstrap resample leaves 100%, so each scene counts as one trial (Wilson, 12 of 12)
-    # rather than claiming [1.0, 1.0]; the same for success.
+    # Every grasp right: no variance between scenes to measure, so each scene counts as one trial (Wilson, 12 of
+    # 12) rather than claiming [1.0, 1.0]; the same for success.
     for m in ("grounded_accuracy", "success"):
         assert grounded[m]["ci95"][0] == pytest.approx(0.757, abs=1e-3) and grounded[m]["ci95"][1] == 1.0, m
         assert grounded[m]["method"] == "wilson over scenes (every play alike)" and grounded[m]["n"] == 60
@@ -57,6 +57,10 @@ def test_instruction_swap_metrics_tell_grounded_from_blind_policies():
     blind = metrics(plays(lambda lay, r, j: sorted(lay.objects)[0]))  # one object per scene, whatever is said
     assert blind["instruction_sensitivity"]["value"] == 0 and blind["scene_accuracy"]["value"] == 0
     assert blind["nmi"]["value"] == pytest.approx(0.0, abs=1e-12) and blind["nmi"]["ci95"][1] < 1e-9
+    # Shuffling what is held among a scene's plays changes nothing for it (p = 1), and everything for the grounded
+    # policy, whose NMI no shuffle reaches.
+    assert blind["nmi"]["permutation_p"] == 1.0 and blind["nmi"]["null_mean"] == pytest.approx(0.0, abs=1e-12)
+    assert grounded["nmi"]["permutation_p"] == pytest.approx(1 / 301) and grounded["nmi"]["null_mean"] < 0.5
     assert blind["grounded_accuracy"]["value"] == pytest.approx(0.2)
     # With three of five objects on the table the held object is always "one of those present": the mutual
     # information conditions on the object set, so a blind policy still scores 0.
@@ -78,6 +82,34 @@ def test_instruction_swap_metrics_tell_grounded_from_blind_policies():
     assert 0 < half["nmi"]["value"] < 1 and half["nmi"]["ci95"][0] <= half["nmi"]["value"] <= half["nmi"]["ci95"][1]
 
 
+def test_nmi_null_is_what_an_instruction_blind_policy_scores():
+    """A policy holding a random present object whatever is said: its plug-in NMI is above 0 (the estimator's
+    bias), near the permutation null's mean, and the permutation p is not small."""
+    rng = np.random.default_rng(0)
+    random = metrics(plays(lambda lay, r, j: lay.objects[rng.integers(len(lay.objects))], scenes=20))
+    nmi = random["nmi"]
+    assert 0.02 < nmi["value"] < 0.2 and nmi["ci95"][0] > 0  # the bias: the interval excludes 0
+    assert abs(nmi["value"] - nmi["null_mean"]) < 0.05 and nmi["permutation_p"] > 0.05
+
+
+def test_pooled_rate_counts_correlated_plays_by_their_design_effect():
+    """Rates pooled over correlated plays of a scene: one play a scene is the Wilson interval of the plays; plays
+    that a scene decides (all or none succeed) count as one trial a scene; plays independent of their scene come
+    close to the plays' own Wilson interval."""
+    from vla_ladder.stats import wilson
+
+    one = grounding.pooled_rate(np.array([1, 0, 1, 1, 0, 1.0]), np.ones(6))
+    assert one["ci95"] == pytest.approx(list(wilson(4, 6))) and one["n"] == 6
+    decided = grounding.pooled_rate(np.array([5, 0, 5, 5, 0, 5.0] * 3), np.full(18, 5.0))
+    assert decided["ci95"] == pytest.approx(list(wilson(12, 18)), abs=1e-9)
+    rng = np.random.default_rng(0)
+    num = rng.binomial(5, 0.5, 200).astype(float)
+    spread = grounding.pooled_rate(num, np.full(200, 5.0))
+    lo, hi = wilson(int(num.sum()), 1000)
+    assert spread["ci95"] == pytest.approx([lo, hi], abs=0.01)
+    assert grounding.pooled_rate(np.zeros(3), np.zeros(3))["n"] == 0
+
+
 def test_incomplete_scenes_are_left_out():
     df = plays(lambda lay, r, j: lay.target)
     df = df[~((df["episode"] == 3) & (df["instruct"] == 4))]
@@ -89,7 +121,7 @@ def test_paired_and_appearance_metrics():
     a = a[a["instruct"] == 0].drop(columns="instruct")
     b = a.assign(success=[j >= 4 for j in a["episode"]], held=[t if j >= 4 else "none" for t, j in
                                                                 zip(a["target"], a["episode"])])
-    diff = grounding.paired(a, b, resamples=300)["small_jitter/canonical/5"]["difference"]["success"]
+    diff = grounding.paired(a, b)["small_jitter/canonical/5"]["difference"]["success"]
     assert diff["value"] == pytest.approx(-4 / 12) and diff["ci95"][1] < 0
     assert diff["mcnemar_p"] == pytest.approx(0.125)  # 4 discordant pairs, all one way
     rows = []
@@ -102,7 +134,7 @@ def test_paired_and_appearance_metrics():
     swapped = pd.DataFrame(rows)
     plain = [json.dumps(sample_layout(Condition("small_jitter"), j).to_dict()) for j in range(12)]
     original = swapped.assign(held=swapped["target"], layout=plain)
-    c = grounding.appearance_swap(original, swapped, resamples=300)["small_jitter/canonical/5"]
+    c = grounding.appearance_swap(original, swapped)["small_jitter/canonical/5"]
     n = c["swapped"]
     followed = sum(1 for r in rows if r["held"] != r["target"])
     assert 0 < n < 12 and c["follows_colour"]["value"] == pytest.approx(followed / n)

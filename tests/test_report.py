@@ -57,6 +57,40 @@ def test_tables_follow_the_paper_layouts(runs):
     assert "0.5k → 1k" in scaling.to_markdown()
 
 
+def test_the_reports_paper_tables_follow_the_regimes_played(tmp_path):
+    """Pairings evaluated under large jitter fill the pairings table from large jitter (it was fixed to small
+    jitter and came out empty), and the object count falls back to the regime whose counts were played."""
+    from vla_ladder.report.html import _paper_tables
+
+    conds = [("large_jitter", "pairings_id", 5), ("large_jitter", "pairings_ood", 5)] + \
+        [("medium_jitter", "canonical", k) for k in (1, 3)]
+    run = load_run(make_run(tmp_path / "r", "nearest", conds, ["success", "nothing"]))
+    found = {name: (table, kwargs) for name, table, kwargs in _paper_tables({run.label: run.summary["conditions"]})}
+    assert set(found) == {"pairings", "object_count"}
+    assert found["pairings"][1] == {"regime": "large_jitter"} and len(found["pairings"][0].groups["nearest"]) == 2
+    assert "(large jitter)" in found["pairings"][0].caption
+    assert found["object_count"][1] == {"regime": "medium_jitter"}
+    assert [row for row, _ in found["object_count"][0].groups["nearest"]] == ["1", "3"]
+
+
+def test_data_scaling_keeps_each_dataset_size_in_results_json(tmp_path):
+    """Data scaling evaluates one model per dataset size on the same conditions: results.json keeps both sizes
+    (it once kept the larger only, the two sharing the model's label), as table.md does."""
+    from vla_ladder.experiments.experiment import build_outputs
+
+    cond = [("medium_jitter", "canonical", 5)]
+    small = load_run(make_run(tmp_path / "runs" / "small", "nearest", cond, ["success"] + ["wrong_object"] * 3))
+    large = load_run(make_run(tmp_path / "runs" / "large", "nearest", cond, ["success"] * 3 + ["wrong_object"]))
+    cfg = ExperimentConfig.load("data_scaling")
+    entries = [PolicyEntry("nearest", "SmolVLA", "medium_jitter", size) for size in cfg.sizes["medium_jitter"]]
+    summary = build_outputs(cfg, list(zip(entries, [small, large])), tmp_path)
+    results = json.loads((tmp_path / "results.json").read_text())["results"]
+    assert results == summary["results"]
+    assert {k: v["medium_jitter/canonical/5"]["success"] for k, v in results.items()} == \
+        {f"SmolVLA@{cfg.sizes['medium_jitter'][0]}": 0.25, f"SmolVLA@{cfg.sizes['medium_jitter'][1]}": 0.75}
+    assert "25 [5, 70] → 75 [30, 95]" in (tmp_path / "table.md").read_text()
+
+
 def test_plots_write_pngs(runs, tmp_path):
     res = _results(runs)
     paths = [plots.plot_ladder(res, tmp_path / "ladder.png"), plots.plot_pairings(res, tmp_path / "pair.png"),

@@ -46,7 +46,12 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         "unknown regime 'tiny_jitter'": _micro(**{"datasets.0.condition": "tiny_jitter/canonical/2"}),
         "horizons: no horizon in [8] fits a chunk size in [4]": _micro(**{"grid.horizons": [8]}),
         "reference_policies: unknown 'oracle'": _micro(**{"evaluation.reference_policies": ["oracle"]}),
-        "overlap the evaluation or validation seeds": _micro(**{"datasets.0.first_seed": 1}),
+        "the evaluation and probe seeds (0-": _micro(**{"datasets.0.first_seed": 1}),
+        # Validation starts below the dataset but runs into it; probes reach into the dataset's seeds.
+        "the validation (grid.select_first_seed) seeds (999990-": _micro(**{"grid.select_first_seed": 999_990,
+                                                                          "grid.select_episodes": 20}),
+        "overlap the datasets[": _micro(**{"evaluation.probes": ["instruction-swap"],
+                                          "evaluation.probe_episodes": 5000, "datasets.0.first_seed": 1000}),
         "policies[x].datasets: unknown dataset 'fr'": {**_micro(), "policies": [
             {"name": "x", "type": "act", "steps": 1, "datasets": ["fr"]}]},
     }

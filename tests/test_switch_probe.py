@@ -83,7 +83,7 @@ def test_switch_metrics_tell_rereading_committing_and_ignoring_policies_apart():
     def rereads(lay, step):  # re-reads its instruction, and has grasped by step 15
         return lay.final_target if step is None or step < 15 else lay.target
 
-    top = grounding.instruction_switch(*switch_plays(rereads), 300)[key]
+    top = grounding.instruction_switch(*switch_plays(rereads))[key]
     assert top["scenes"] == 12 and top["switch_steps"] == [5, 25]
     r = top["by_step"]
     assert list(r) == ["5", "25"] and r["5"]["scenes"] == 12 and r["5"]["switch_step"] == 5
@@ -101,10 +101,10 @@ def test_switch_metrics_tell_rereading_committing_and_ignoring_policies_apart():
     assert r["25"]["follows_new_switched"]["value"] == 0 and r["25"]["stays_old_change"]["value"] == 0
     assert r["25"]["transitions"]["counts"][1] == [0, 12, 0, 0]
     assert sum(r["5"]["pairs"].values()) == 12
-    c = grounding.instruction_switch(*switch_plays(lambda lay, step: lay.target), 300)[key]["by_step"]  # commits
+    c = grounding.instruction_switch(*switch_plays(lambda lay, step: lay.target))[key]["by_step"]  # commits
     assert all(c[s]["stays_old_switched"]["value"] == 1 and c[s]["follows_new_switched"]["value"] == 0 for s in c)
     # Ignores the instruction: the same grasp in both plays, whatever either names.
-    b = grounding.instruction_switch(*switch_plays(lambda lay, step: sorted(lay.objects)[0]), 300)[key]["by_step"]
+    b = grounding.instruction_switch(*switch_plays(lambda lay, step: sorted(lay.objects)[0]))[key]["by_step"]
     for s in b.values():
         assert s["follows_new_change"]["value"] == 0 and s["stays_old_change"]["value"] == 0
         assert s["follows_new_original"] == s["follows_new_switched"]
@@ -112,9 +112,9 @@ def test_switch_metrics_tell_rereading_committing_and_ignoring_policies_apart():
         assert counts.trace() == counts.sum() == 12
     original, switched = switch_plays(rereads)
     with pytest.raises(ValueError, match="different seeds"):
-        grounding.instruction_switch(original, {5: switched[5].assign(seed=switched[5]["seed"] + 1)}, 300)
+        grounding.instruction_switch(original, {5: switched[5].assign(seed=switched[5]["seed"] + 1)})
     with pytest.raises(ValueError, match="do not all switch at step 25"):
-        grounding.instruction_switch(original, {25: switched[5]}, 300)
+        grounding.instruction_switch(original, {25: switched[5]})
 
 
 # ---------------------------------------------------------------------- commands

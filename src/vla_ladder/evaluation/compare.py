@@ -22,7 +22,7 @@ from vla_ladder.contract import METRICS
 from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
 from vla_ladder.evaluation.rundir import EPISODE_KEY, Run, check_same_seeds, load_run
 from vla_ladder.files import write_json
-from vla_ladder.stats import detectable_difference, wilson
+from vla_ladder.stats import detectable_difference, paired_difference, wilson
 
 
 DETECT_POWER = 0.8
@@ -68,8 +68,9 @@ def _describe(row) -> str:
 
 
 def compare_runs(a: Run, b: Run, alpha: float = 0.05) -> dict:
-    """Per condition and metric: both rates with Wilson intervals, McNemar's exact test, the z-test, and the
-    difference these n scenes would find with probability DETECT_POWER (stats.detectable_difference)."""
+    """Per condition and metric: both rates with Wilson intervals, their paired difference B - A with Newcombe's
+    paired interval, McNemar's exact test, the z-test (its z of B - A), and the difference these n scenes would
+    find with probability DETECT_POWER (stats.detectable_difference)."""
     merged = pair_episodes(a, b)
     # Conditions in run A's order (the outer join sorts its keys alphabetically).
     order = [tuple(k) for k in a.episodes[list(CONDITION_KEYS)].drop_duplicates().itertuples(index=False)]
@@ -82,16 +83,19 @@ def compare_runs(a: Run, b: Run, alpha: float = 0.05) -> dict:
             xa, xb = df[f"{m}_a"].astype(bool), df[f"{m}_b"].astype(bool)
             ka, kb = int(xa.sum()), int(xb.sum())
             only_a, only_b = int((xa & ~xb).sum()), int((~xa & xb).sum())
-            z, pz = two_proportion_z(ka, n, kb, n)
+            z, pz = two_proportion_z(kb, n, ka, n)  # (B - A, the sign of "diff")
             rows.append({
                 "condition": condition_key(*key), "metric": m, "n": n,
                 "rate_a": ka / n, "ci95_a": list(wilson(ka, n)), "rate_b": kb / n, "ci95_b": list(wilson(kb, n)),
-                "diff": (kb - ka) / n, "only_a": only_a, "only_b": only_b,
+                "diff": (kb - ka) / n, "ci95_diff": list(paired_difference(xa.to_numpy(), xb.to_numpy())),
+                "only_a": only_a, "only_b": only_b,
                 "mcnemar_p": mcnemar_exact(only_a, only_b), "z": z, "z_p": pz,
                 "detectable_diff": detectable_difference((ka + kb) / (2 * n), n, alpha, DETECT_POWER),
             })
     return {"run_a": str(a.path), "run_b": str(b.path), "policy_a": a.label, "policy_b": b.label,
-            "tests": {"paired": "McNemar exact (binomial on discordant pairs), two-sided",
+            "tests": {"paired": "McNemar exact (binomial on discordant pairs), two-sided; each row at alpha, not "
+                                "corrected for the number of rows",
+                      "ci95_diff": "Newcombe's hybrid score interval for paired proportions (stats.paired_difference)",
                       "unpaired": "pooled two-proportion z-test, two-sided",
                       "detectable_diff": f"the difference around the pooled rate that McNemar's test at alpha={alpha} "
                                          f"finds with probability {DETECT_POWER} when outcomes are independent "
@@ -101,16 +105,20 @@ def compare_runs(a: Run, b: Run, alpha: float = 0.05) -> dict:
 
 def format_table(result: dict, alpha: float = 0.05) -> str:
     lines = [f"A = {result['policy_a']} ({result['run_a']})", f"B = {result['policy_b']} ({result['run_b']})", ""]
-    head = f"{'condition':<28} {'metric':<9} {'n':>4} {'A %':>5} {'B %':>5} {'B-A':>6} " \
+    head = f"{'condition':<28} {'metric':<9} {'n':>4} {'A %':>5} {'B %':>5} {'B-A':>6} {'95% CI':>11} " \
            f"{'A only':>6} {'B only':>6} {'McNemar p':>10} {'z':>6} {'z-test p':>9} {'MDD':>5}"
     lines += [head, "-" * len(head)]
     for r in result["rows"]:
         star = " *" if r["mcnemar_p"] < alpha else ""
         z = "" if math.isnan(r["z"]) else f"{r['z']:6.2f}"
+        lo, hi = r["ci95_diff"]
+        ci = f"[{100 * lo:+.0f}, {100 * hi:+.0f}]"
         lines.append(f"{r['condition']:<28} {r['metric']:<9} {r['n']:>4} {100 * r['rate_a']:5.0f} "
-                     f"{100 * r['rate_b']:5.0f} {100 * r['diff']:+6.0f} {r['only_a']:>6} {r['only_b']:>6} "
+                     f"{100 * r['rate_b']:5.0f} {100 * r['diff']:+6.0f} {ci:>11} {r['only_a']:>6} {r['only_b']:>6} "
                      f"{r['mcnemar_p']:10.4f} {z:>6} {r['z_p']:9.4f} {100 * r['detectable_diff']:5.0f}{star}")
-    lines += ["", f"* paired difference significant at {alpha} (McNemar exact)",
+    lines += ["", f"* paired difference significant at {alpha} (McNemar exact), row by row: with many rows, expect "
+              "some stars by chance (no correction for multiple comparisons)",
+              "95% CI: of B-A, Newcombe's interval for paired rates; z: pooled two-proportion z of B-A, unpaired",
               f"MDD: the smallest difference (points) these n scenes find with probability {DETECT_POWER} at this rate",
               "     when episodes are independent draws; a smaller B-A without * is not evidence of no difference"]
     return "\n".join(lines)

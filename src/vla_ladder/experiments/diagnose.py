@@ -5,7 +5,8 @@ The questions, each answered by one rate with its 95% interval (or, for the firs
 rates):
 
 1. Does it hold up as the objects move? Success in the ladder's farthest regime minus success in the policy's own
-   (the ladder of its training condition's split and object count).
+   (the ladder of its training condition's split and object count; the same seeds in every regime, so a paired
+   difference; no answer when its own regime is the farthest).
 2. Does it read the instruction? The instruction swap's sensitivity: the share of scenes whose held object changes
    when another present object is named.
 3. Does it follow the named object, or the place where it usually stands? The position swap: the share of swapped
@@ -15,7 +16,7 @@ rates):
 5. Does it keep reading the instruction? The instruction switch at step 5 (0.25 s): the share of scenes in which
    the gripper ends at the object the instruction switched to.
 6. Does it understand the instruction worded otherwise? The paraphrase probe: success with held-out wordings minus
-   success with "grasp the <object>" on the same scenes (a bootstrap interval over scenes).
+   success with "grasp the <object>" on the same scenes (Newcombe's interval for paired rates).
 7. Does it find the named object by its colour rather than its shape? The appearance swap (the named object and a
    distractor exchange colours): the share of swapped scenes in which it grasps the object wearing the named
    object's colour.
@@ -44,11 +45,13 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import MAX_OBJECTS, REGIMES, Condition, ConditionGrid
-from vla_ladder.evaluation.rundir import load_run
+from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
+from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.experiments.probes import ONE_ENV_PROBES, ProbeConfig, run_probe
 from vla_ladder.policies import check_spec, parse_spec
 from vla_ladder.report.diagnosis import answer_lines, diagnosis_html
+from vla_ladder.stats import paired_difference
 
 REFERENCES = ("scripted", "committed", "layout-prior", "nearest")
 """The reference profiles: grounded and re-reading its target, grounded but reading it once, the location
@@ -159,7 +162,7 @@ class DiagnoseConfig:
         return who, ladder, probes
 
     def request(self) -> dict:
-        out = {k: v for k, v in json.loads(json.dumps(asdict(self), default=files._default)).items()
+        out = {k: v for k, v in files.plain(asdict(self)).items()
                if k not in NOT_THE_REQUEST}
         if len(self.policy) == 1:  # as a one-policy diagnosis always wrote it: those directories still resume
             out["policy"] = self.policy[0]
@@ -195,19 +198,22 @@ def _rate(entry: dict | None) -> dict | None:
     return None if entry is None else {"value": entry["value"], "ci95": list(entry["ci95"]), "n": entry.get("n")}
 
 
-def ladder_drop(conditions: dict, condition: str) -> dict:
+def ladder_drop(run: Run, condition: str) -> dict | None:
     """Success in the ladder's farthest regime minus success in `condition`'s own, with Newcombe's interval for
-    the difference of two independent rates (statsmodels)."""
-    from statsmodels.stats.proportion import confint_proportions_2indep
-
-    own = conditions[condition]
+    paired rates: episode j plays seed first_seed + j, with the same instructed object, in every regime, so the two
+    regimes' episodes pair by index. None when `condition` is itself the farthest regime played."""
+    conditions = run.summary["conditions"]
     far_key = max(conditions, key=lambda k: list(REGIMES).index(Condition.parse(k).regime))  # the farthest there
-    far = conditions[far_key]
-    k1, n1, k2, n2 = round(far["success"] * far["n"]), far["n"], round(own["success"] * own["n"]), own["n"]
-    lo, hi = confint_proportions_2indep(k1, n1, k2, n2, method="newcomb", compare="diff")
-    diff = k1 / n1 - k2 / n2  # (at 0, Newcombe's bounds can miss it by a rounding error)
-    return {"value": diff, "ci95": [min(float(lo), diff), max(float(hi), diff)], "n": n1 + n2, "from": condition,
-            "to": far_key, "success_from": own["success"], "success_to": far["success"]}
+    if far_key == condition:
+        return None
+    keyed = run.episodes.assign(key=[condition_key(*k) for k in run.episodes[list(CONDITION_KEYS)].itertuples(
+        index=False)])
+    pairs = keyed[keyed["key"] == condition].merge(keyed[keyed["key"] == far_key], on="episode", suffixes=("", "_far"))
+    x, y = pairs["success"].astype(bool).to_numpy(), pairs["success_far"].astype(bool).to_numpy()
+    lo, hi = paired_difference(x, y)
+    return {"value": float(y.mean() - x.mean()), "ci95": [lo, hi], "n": int(len(pairs)),
+            "method": "newcombe paired score", "from": condition, "to": far_key, "success_from": float(x.mean()),
+            "success_to": float(y.mean())}
 
 
 QUESTIONS = (
@@ -232,7 +238,7 @@ QUESTIONS = (
 
 def answers(root: Path, condition: str) -> dict[str, dict | None]:
     """The seven answers of the runs under `root` (policy/ or references/<name>/)."""
-    ladder = load_run(root / "ladder").summary["conditions"]
+    ladder = load_run(root / "ladder")
 
     def probe(name: str) -> dict:
         played = json.loads((root / "probes" / name / "probe.json").read_text())["conditions"]

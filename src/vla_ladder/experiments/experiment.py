@@ -163,7 +163,8 @@ def build_outputs(cfg: ExperimentConfig, runs: list[tuple[PolicyEntry, Run]], ou
     """Table (Markdown + LaTeX), figure and results.json of finished runs."""
     results: dict[str, dict] = {}
     for e, r in runs:
-        results.setdefault(e.label, {}).update(r.summary["conditions"])
+        # Data scaling evaluates one model per dataset size on the same conditions: keep each size apart.
+        results.setdefault(e.label if e.size is None else f"{e.label}@{e.size}", {}).update(r.summary["conditions"])
     figure = out / f"{cfg.table}.png"
     if cfg.table == "data_scaling":
         stages = []
@@ -212,7 +213,7 @@ class ExperimentCommand:
     workers: int = 0
     """worker processes playing episodes on the CPU backend (0: one per core, capped by memory)"""
     num_envs: int = 1
-    """episodes simulated at once (needs physx_cuda)"""
+    """episodes one copy of the policy acts on at once (batched inference; see `vla-ladder eval --num-envs`)"""
     sim_backend: str = "physx_cpu"
     """physx_cpu or physx_cuda"""
     report: bool = True

@@ -87,7 +87,8 @@ class ProbeConfig:
     name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
     """the probe: instruction-swap, paraphrase, appearance-swap, absent-object, position-swap or instruction-switch"""
     policy: str | None = None
-    """policy spec: scripted, ppo:PATH, lerobot:DIR, nearest, layout-prior, random (required on the command line)"""
+    """policy spec, as `vla-ladder eval --policy`: scripted, committed, nearest, layout-prior, random, ppo:PATH,
+    lerobot:DIR[?...] or remote:ws://HOST:PORT (required on the command line)"""
     out: Path | None = None
     """probe directory: one run directory per variant, probe.json, the figure, report.html (required)"""
     grid: Annotated[ProbeGrid, tyro.conf.arg(name="")] = field(
@@ -101,7 +102,8 @@ class ProbeConfig:
     workers: int = 0
     """worker processes on the CPU backend (0: one per core); any number gives the same episodes"""
     num_envs: int = 1
-    """episodes simulated at once (more than one needs physx_cuda; appearance-swap needs 1)"""
+    """episodes played at once by one copy of the policy (physx_cuda: in one process; physx_cpu: in num_envs
+    processes in lockstep; not with --workers > 1; appearance-swap needs 1)"""
     sim_backend: str = "physx_cpu"
     """physx_cpu or physx_cuda"""
     object_set: str = "auto"
@@ -111,7 +113,8 @@ class ProbeConfig:
     videos: int = 0
     """film the first K scenes of each condition in every variant"""
     resamples: int = grounding.RESAMPLES
-    """bootstrap resamples of scenes for the intervals without a closed form"""
+    """resamples for the intervals without a closed form (instruction swap's NMI and its permutation null, the
+    absent object's grasp change)"""
     report: bool = True
     """write report.html (the variants' results and the probe's section)"""
     overwrite: bool = False
@@ -179,7 +182,7 @@ class ProbeConfig:
                                  **kw) for name, kw in plays.items()}
 
     def request(self) -> dict:
-        return the_request(json.loads(json.dumps(asdict(self), default=files._default)), self.name)
+        return the_request(files.plain(asdict(self)), self.name)
 
 
 def the_request(config: dict, name: str) -> dict:
@@ -208,14 +211,16 @@ def probe_results(probe: str, runs: dict[str, Run], resamples: int) -> dict:
                             if name != "present"], ignore_index=True)
         return grounding.absent_object(runs["present"].episodes, absent, resamples)
     if probe == "position-swap":
-        return grounding.position_swap(runs["original"].episodes, runs["swapped"].episodes, resamples)
+        return grounding.position_swap(runs["original"].episodes, runs["swapped"].episodes)
     if probe == "instruction-switch":
         return grounding.instruction_switch(runs["original"].episodes, {int(name.rsplit("-", 1)[1]): r.episodes
                                                                         for name, r in runs.items()
-                                                                        if name != "original"}, resamples)
+                                                                        if name != "original"})
     if probe == "appearance-swap":
-        return grounding.appearance_swap(runs["original"].episodes, runs["swap"].episodes, resamples)
-    return grounding.paraphrase({name: r.episodes for name, r in runs.items()}, resamples)
+        return grounding.appearance_swap(runs["original"].episodes, runs["swap"].episodes)
+    if probe == "paraphrase":
+        return grounding.paraphrase({name: r.episodes for name, r in runs.items()})
+    raise ValueError(f"unknown probe {probe!r}; allowed: {', '.join(PROBES)}")
 
 
 def rescore_probe(out: Path) -> dict:

@@ -185,16 +185,30 @@ class StudyConfig:
                                      f"{', '.join(names)}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device: unknown {self.device!r}; allowed: auto, cpu, cuda")
+        self._check_seeds()
+
+    def _check_seeds(self):
+        """No seed serves two purposes: the evaluation's and probes' scenes, the validation episodes that select
+        checkpoints, the learning curves' episodes and the recorded demonstrations are disjoint ranges, so no
+        reported number is measured on a layout a model was trained or selected on."""
         ev, sel = self.evaluation, self.grid
-        if sel.select_first_seed < ev.first_seed + ev.episodes and ev.first_seed < sel.select_first_seed + \
-                sel.select_episodes:
-            raise ValueError("grid.select_first_seed: validation seeds overlap the evaluation seeds")
-        for d in self.datasets:
-            # Recorded seeds run upwards from first_seed (failures skip seeds, so allow 4x the episodes).
-            span = range(d.first_seed, d.first_seed + 4 * d.episodes)
-            if ev.first_seed in span or sel.select_first_seed in span or d.first_seed < ev.first_seed + ev.episodes:
-                raise ValueError(f"datasets[{d.name}].first_seed: its seeds overlap the evaluation or validation "
-                                 "seeds")
+        uses = {"evaluation and probe": range(ev.first_seed, ev.first_seed + max(
+                    ev.episodes, ev.probe_episodes if ev.probes else 0)),
+                "validation (grid.select_first_seed)": range(sel.select_first_seed,
+                                                             sel.select_first_seed + sel.select_episodes),
+                "learning-curve": range(sel.select_first_seed + sel.select_episodes,
+                                        sel.select_first_seed + sel.select_episodes + ev.curve_episodes)}
+        # Recorded seeds run upwards from first_seed (failures skip seeds, so allow 4x the episodes).
+        uses.update({f"datasets[{d.name}]": range(d.first_seed, d.first_seed + 4 * d.episodes) for d in self.datasets})
+        names = list(uses)
+        for i, a in enumerate(names):
+            for b in names[i + 1:]:
+                ra, rb = uses[a], uses[b]
+                if a.startswith("datasets[") and b.startswith("datasets["):
+                    continue  # two training sets may share seeds
+                if len(ra) and len(rb) and ra.start < rb.stop and rb.start < ra.stop:
+                    raise ValueError(f"the {a} seeds ({ra.start}-{ra.stop - 1}) overlap the {b} seeds "
+                                     f"({rb.start}-{rb.stop - 1}); move a first_seed so that they are disjoint")
 
     @classmethod
     def load(cls, name_or_path: str) -> "StudyConfig":

@@ -2,9 +2,10 @@
 
 A probe directory holds probe.json (experiments/probes.py) and its variants' run directories; the report finds
 a probe next to any run it is given (a run directory whose parent holds probe.json) or is handed the probe
-directories directly. Every value is shown with its 95% interval: Wilson for proportions over scenes, a
-bootstrap over scenes where plays of one scene are pooled (grounded accuracy, mutual information, the absent
-plays of a scene); McNemar's exact p with every paired change.
+directories directly. Every value is shown with its 95% interval: Wilson for proportions over scenes, Wilson on
+the effective number of plays where plays of one scene are pooled (grounded accuracy, the absent plays of a
+scene), a bootstrap over scenes for the mutual information (beside what shuffling the held objects within scenes
+gives, and its permutation p); Newcombe's paired interval and McNemar's exact p with every paired change.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vla_ladder.contract import CONTROL_HZ
+from vla_ladder.contract import CONTROL_HZ, EPISODE_STEPS
 from vla_ladder.report.plots import _plt, _save, plot_confusion
 
 PROBE_FILE = "probe.json"
@@ -37,13 +38,15 @@ EXPLAIN = {
     "instruction changes. <b>Instruction sensitivity</b>: share of scenes whose held object is not the same under "
     "all instructions. <b>Scene accuracy</b>: share of scenes where the instructed object is held under every "
     "instruction. <b>Grounded accuracy</b>: P(held = instructed | something held). <b>NMI</b>: I(instructed; "
-    "held) / H(instructed), 0 when the held object does not depend on the instruction, 1 when it determines "
-    "it. A location shortcut is sensitive where objects sit in their usual regions and not elsewhere; a policy "
-    "that ignores the instruction is never sensitive.",
+    "held | objects present) / H(instructed | objects present), 0 when the held object does not depend on the "
+    "instruction, 1 when it determines it; the plug-in estimate is above 0 even then, so the cell also gives the "
+    "mean NMI with the held objects shuffled among each scene's plays and the permutation p (the share of "
+    "shuffles at least as high). A location shortcut is sensitive where objects sit in their usual regions and "
+    "not elsewhere; a policy that ignores the instruction is never sensitive.",
     "paraphrase": "The same scenes with the canonical wording, training paraphrases and held-out paraphrases "
     "(task/paraphrases.json); one-object conditions are the distractor-free control: a drop there is the wording "
-    "upsetting the motion, not object selection. Δ is the paired difference to the canonical wording (bootstrap "
-    "over scenes) with McNemar's exact p.",
+    "upsetting the motion, not object selection. Δ is the paired difference to the canonical wording (Newcombe's "
+    "paired interval) with McNemar's exact p.",
     "appearance-swap": "The same scenes with the instructed object and one distractor exchanging colours "
     "(task/appearance.py). Shares of what is held, without the swap → with it: the instructed object (follows "
     "shape and words) or its colour partner, which now wears the instructed object's usual colour (follows "
@@ -63,7 +66,7 @@ EXPLAIN = {
     "unchanged (task/layouts.py Layout.positions_swapped). Shares of what is held, original → swapped: the "
     "instructed object (<b>follows the object</b>) or the partner, which in the swapped play stands where the "
     "instructed object stood (<b>follows the place</b>; in the original play holding it is an ordinary wrong "
-    "grasp). Δ is the paired change (bootstrap over scenes) with McNemar's exact p. A grounded policy follows the "
+    "grasp). Δ is the paired change (Newcombe's paired interval) with McNemar's exact p. A grounded policy follows the "
     "object in both plays; a location shortcut's follows-object drops and its follows-place rises; a policy that "
     "ignores the instruction grasps by its own rule. <b>Gripper ends at the object / place</b>: the TCP ends "
     "within 5 cm (horizontally) of the instructed object's / the partner's footprint, nearer it than the other, "
@@ -74,7 +77,8 @@ EXPLAIN = {
     "the seed, which success is then judged against (task/layouts.py Layout.switched; 50 steps at 20 Hz, so K = 5 "
     "is 0.25 s). Shares of what is held at the end, original → switched: B (<b>follows new</b>: the policy kept "
     "reading its instruction) or A (<b>stays with old</b>: it committed to its first reading); in the original play "
-    "holding B is an ordinary wrong grasp. Δ is the paired change (bootstrap over scenes) with McNemar's exact p. "
+    "holding B is an ordinary wrong grasp. Δ is the paired change (Newcombe's paired interval) with McNemar's "
+    "exact p. "
     "<b>Gripper ends at B / A</b>: the TCP ends within 5 cm (horizontally) of that object's footprint, nearer it "
     "than the other, whatever is held. A policy that re-reads its instruction follows the new one when K is early "
     "and, having grasped, stays with the old one when K is late; one that commits from its first frames stays with "
@@ -106,6 +110,15 @@ def _cell(entry: dict, scale: str = "pct") -> str:
     fmt = _pct if scale == "pct" else (lambda x: "–" if x != x else f"{x:.2f}")
     lo, hi = entry["ci95"]
     return f"{fmt(entry['value'])}<span class=ci> [{fmt(lo)}, {fmt(hi)}]</span>"
+
+
+def _nmi(entry: dict) -> str:
+    """The NMI cell: its value and interval, then (probes from before the permutation null: nothing more) what
+    shuffling the held objects within scenes gives and the permutation p."""
+    cell = _cell(entry, "unit")
+    if "null_mean" not in entry:
+        return cell
+    return cell + f"<span class=ci> (shuffled {entry['null_mean']:.2f}, p={entry['permutation_p']:.2g})</span>"
 
 
 def _rate(cond: dict, metric: str) -> str:
@@ -146,7 +159,7 @@ def table_html(data: dict) -> str:
     conds, name = data["conditions"], data["probe"]
     if name == "instruction-swap":
         head = ["condition", "scenes", *SWAP_METRICS.values()]
-        rows = [[html.escape(k), str(c["scenes"])] + [_cell(c[m], "unit" if m == "nmi" else "pct")
+        rows = [[html.escape(k), str(c["scenes"])] + [_nmi(c[m]) if m == "nmi" else _cell(c[m])
                                                       for m in SWAP_METRICS] for k, c in conds.items()]
     elif name == "paraphrase":
         head = ["condition", "wording", "n", "success", "grasp-any", "reach", "wrong object", "Δ success vs canonical",
@@ -184,12 +197,14 @@ def table_html(data: dict) -> str:
                  *_two_play_cells(c, ("follows_new", "stays_old"), ("switched", "switched"),
                                   ("reaches_new", "reaches_old"))]
                 for k, cond in conds.items() for c in cond["by_step"].values()]
-    else:
+    elif name == "appearance-swap":
         head = ["condition", "swapped scenes", *(f"{COLOUR_NAMES[o]}: no swap → swap" for o in COLOUR_OUTCOMES),
                 "Δ follows shape"]
         rows = [[html.escape(k), f"{c['swapped']} of {c['scenes']}"]
                 + [f"{_cell(c['original'][o])} → {_cell(c['swap'][o])}" for o in COLOUR_OUTCOMES]
                 + [_delta(c["shape_change"])] for k, c in conds.items()]
+    else:
+        raise ValueError(f"no table for the probe {name!r}; allowed: {', '.join(EXPLAIN)}")
     unit = {"instruction-swap": " (NMI on [0, 1])", "absent-object": "; Δ in points",
             "position-swap": "; Δ in points", "instruction-switch": "; Δ in points"}.get(name, "")
     return _table(head, rows) + f"<p class=note>In %, 95% intervals in brackets{unit}.</p>"
@@ -304,8 +319,8 @@ def _plot_position(data: dict, path: Path) -> Path:
 
 
 def _plot_switch(data: dict, path: Path) -> Path:
-    """Follows new and stays with old against the switch step, one panel per condition; at step 50 (no switch
-    within the episode) the original play's values, whose "follows new" is an ordinary wrong grasp of B."""
+    """Follows new and stays with old against the switch step, one panel per condition; at step EPISODE_STEPS (no
+    switch within the episode) the original play's values, whose "follows new" is an ordinary wrong grasp of B."""
     plt = _plt()
     conds = data["conditions"]
     fig, axes = plt.subplots(1, len(conds), figsize=(3.6 * max(len(conds), 1) + 0.4, 3.4), squeeze=False)
@@ -328,12 +343,12 @@ def _plot_switch(data: dict, path: Path) -> Path:
             ax.errorbar(ks, v[:-1], yerr=None if dashed else err[:, :-1].tolist(), marker="o",
                         linestyle="--" if dashed else "-", label=label, **style)
             # (the original play, not joined to the switched ones: it is no switch step)
-            ax.errorbar([50], v[-1:], yerr=None if dashed else err[:, -1:].tolist(), marker="s", mfc="none",
+            ax.errorbar([EPISODE_STEPS], v[-1:], yerr=None if dashed else err[:, -1:].tolist(), marker="s", mfc="none",
                         linestyle="none", **style)
-        ax.set_xticks([*ks, 50], [*map(str, ks), "none"], fontsize=7)
-        ax.set_xlim(0, 52)
+        ax.set_xticks([*ks, EPISODE_STEPS], [*map(str, ks), "none"], fontsize=7)
+        ax.set_xlim(0, EPISODE_STEPS + 2)
         ax.set_ylim(-2, 105)
-        ax.set_xlabel("switch at control step (20 Hz)")
+        ax.set_xlabel(f"switch at control step ({CONTROL_HZ} Hz)")
         ax.set_title(key, fontsize=8)
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("% of scenes, 95% Wilson interval")
@@ -394,8 +409,10 @@ def summary_lines(data: dict) -> list[str]:
                              f"{e['follows_new_original']['value']:.2f} -> {e['follows_new_switched']['value']:.2f} "
                              f"stays_old {e['stays_old_original']['value']:.2f} -> "
                              f"{e['stays_old_switched']['value']:.2f}")
-        else:
+        elif name == "appearance-swap":
             lines.append(f"{key}: swapped={c['swapped']} follows_shape={c['follows_shape']['value']:.2f} "
                          f"(no swap {c['original']['instructed']['value']:.2f}) "
                          f"follows_colour={c['follows_colour']['value']:.2f}")
+        else:
+            raise ValueError(f"no summary for the probe {name!r}; allowed: {', '.join(EXPLAIN)}")
     return lines
