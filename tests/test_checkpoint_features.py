@@ -115,3 +115,20 @@ def test_a_cuda_device_without_a_gpu_is_refused(tmp_path):
     good = _checkpoint(tmp_path / "good", "act", ENV_CAMERAS)
     with pytest.raises(ValueError, match=r"device=cuda needs a CUDA GPU and none is visible; use \?device=cpu"):
         LeRobotPolicy(good, device="cuda")
+
+
+def test_eval_refuses_a_mismatched_checkpoint_before_its_run_directory(tmp_path):
+    """`vla-ladder eval` in a fresh process (nothing of LeRobot imported yet): a checkpoint whose cameras the env
+    cannot feed, weights and all, is refused in one line by check_spec, and the run directory is never written."""
+    import subprocess
+    import sys
+
+    small = _checkpoint(tmp_path / "small", "act", {HAND: (3, 96, 96), FIXED: (3, 96, 96)})
+    (small / "model.safetensors").write_bytes(b"")  # present: the mismatch, not a missing file, must stop it
+    out = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", "vla_ladder.cli", "eval", "--policy", f"lerobot:{small}",
+                           "--episodes", "1", "--out", str(out)], capture_output=True, text=True, timeout=600)
+    err = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(err) == 1, done.stderr[-3000:]
+    assert f"camera {HAND} has shape (3, 96, 96), the env renders (3, 256, 256)" in err[0]
+    assert not out.exists()

@@ -92,11 +92,13 @@ def test_seed_determines_layout_target_and_instruction():
 # recorded datasets no longer pass `check-dataset` and published seeds no longer name the same scenes: a new
 # sampler (or a NumPy whose random streams changed) must keep it, or say in the changelog that seeds changed.
 LAYOUT_FINGERPRINT = "462a8cc1efa0adcad9b577d40b3eb87c8de8af28cbec4024989ac0d166b0b602"
+PUBLISHED_REGIMES = ("small_jitter", "medium_jitter", "large_jitter", "full_random")
+"""The regimes the fingerprint covers: a regime added to REGIMES later has no published seeds to keep."""
 
 
 def test_layouts_of_published_seeds_never_change():
     h = hashlib.sha256()
-    for regime, split, k in itertools.product(REGIMES, SPLITS, (1, 3, 5)):
+    for regime, split, k in itertools.product(PUBLISHED_REGIMES, SPLITS, (1, 3, 5)):
         if split != "canonical" and REGIMES[regime] is None:
             continue
         for s in range(100):

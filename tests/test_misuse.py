@@ -346,6 +346,14 @@ def test_serve_refuses_a_missing_expert_checkpoint(tmp_path, capsys):
                     "has config.json but no model.safetensors", str(ckpt))
 
 
+@pytest.mark.parametrize("spec", ["scripted:fast", "random:7", "nearest:x"])
+def test_an_argument_to_a_policy_that_takes_none_is_refused_before_the_run_directory(spec, tmp_path, capsys):
+    out = tmp_path / "run"
+    _one_line_error(capsys, main(["eval", "--policy", spec, "--episodes", "1", "--out", str(out)]),
+                    "takes no argument", spec)
+    assert not out.exists()
+
+
 def test_train_expert_without_a_gpu_names_the_cpu_flags(tmp_path, capsys):
     import torch
 

@@ -68,7 +68,7 @@ def claim_dir(out: Path, previous: dict | None, request: dict, overwrite: bool, 
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=_default) + "\n")
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=json_default) + "\n")
     return Path(path)
 
 
@@ -84,7 +84,8 @@ def write_parquet(path: str | os.PathLike, frame) -> Path:
     return Path(path)
 
 
-def _default(o):
+def json_default(o):
+    """json.dumps' `default` for what results hold besides plain types: numpy scalars and arrays, paths."""
     import numpy as np
     if isinstance(o, np.generic):
         return o.item()
@@ -93,6 +94,12 @@ def _default(o):
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def plain(data):
+    """`data` as write_json stores it and json.load gives it back (tuples as lists, paths as strings, numpy values
+    as Python ones): what a config compares equal to once saved."""
+    return json.loads(json.dumps(data, default=json_default))
 
 
 def _checkout_version() -> str | None:

@@ -46,8 +46,9 @@ class EvalConfig:
     """Evaluate a policy on seeded episodes of every condition and write a run directory (`vla-ladder eval`)."""
 
     policy: str | None = None
-    """policy spec: scripted, ppo:PATH, lerobot:DIR[?n_action_steps=H], nearest, layout-prior, random (required on
-    the command line; the grid and the study set it per model)"""
+    """policy spec: scripted, committed, nearest, layout-prior, random, ppo:PATH, lerobot:DIR[?n_action_steps=H&...]
+    or remote:ws://HOST:PORT[?n_action_steps=H] (required on the command line; the grid and the study set it per
+    model)"""
     out: Path | None = None
     """run directory to write: episodes.parquet, summary.json, config.json, videos/ (required on the command line)"""
     grid: Annotated[ConditionGrid, tyro.conf.arg(name="")] = field(default_factory=ConditionGrid)
@@ -164,7 +165,7 @@ class EvalConfig:
 
     def request(self) -> dict:
         """What decides the run's episodes: config.json without the fields that do not."""
-        return {k: v for k, v in json.loads(json.dumps(asdict(self), default=files._default)).items()
+        return {k: v for k, v in files.plain(asdict(self)).items()
                 if k not in NOT_THE_REQUEST}
 
     def reset_options(self) -> tuple[tuple[str, object], ...]:

@@ -97,20 +97,15 @@ def units(cfg: GridConfig) -> tuple[list[Unit], list[tuple[int, int, int, Unit]]
             model_dir = cfg.out / "runs" / f"b{bs}_c{cs}"
             train = replace(cfg.train, out=model_dir / "train", batch_size=bs, chunk_size=cs, n_action_steps=cs)
             trains.append(Unit(f"train-b{bs}_c{cs}", "train", "vla_ladder.experiments.units:train_unit",
-                               _plain(asdict(train)), cpus=2))
+                               files.plain(asdict(train)), cpus=2))
             for h in cfg.horizons:
                 if h <= cs:
                     spec = f"lerobot:{checkpoint_dir(model_dir / 'train')}?n_action_steps={h}"
                     ev = replace(cfg.eval, policy=spec, out=model_dir / f"eval_h{h}")
                     evals.append((bs, cs, h, Unit(f"eval-b{bs}_c{cs}_h{h}", "eval",
-                                                  "vla_ladder.experiments.units:eval_unit", _plain(asdict(ev)),
+                                                  "vla_ladder.experiments.units:eval_unit", files.plain(asdict(ev)),
                                                   cpus=2, after=[f"train-b{bs}_c{cs}"])))
     return trains, evals
-
-
-def _plain(data: dict) -> dict:
-    """A config as the JSON a unit carries (paths as strings, no derived attributes)."""
-    return {k: v for k, v in json.loads(json.dumps(data, default=files._default)).items()}
 
 
 def run_grid(cfg: GridConfig) -> pd.DataFrame:
@@ -139,7 +134,7 @@ def run(cfg: GridConfig) -> int:
     check_offline_assets(probe.build_config().policy)
     grid = cfg.settings()
     path = out / "grid_settings.json"
-    if path.is_file() and json.loads(path.read_text()) != json.loads(json.dumps(grid, default=files._default)):
+    if path.is_file() and json.loads(path.read_text()) != files.plain(grid):
         raise ValueError(f"{out} holds a grid run with other settings ({path}); use a new --out")
     files.write_json(path, grid)
     log.info("grid over %s", grid)

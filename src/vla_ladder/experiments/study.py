@@ -74,10 +74,6 @@ class StudyCommand:
                              f"checkpoints hold that path; restore it there (docs/study.md) or use a new --out")
 
 
-def _plain(data):
-    return json.loads(json.dumps(data, default=files._default))
-
-
 def _where_it_ran(root: Path) -> Path | None:
     """The directory a study's done units ran in, if not `root` (every unit writes to root/<stage dir>/<name>)."""
     here = root.resolve()
@@ -90,7 +86,7 @@ def _where_it_ran(root: Path) -> Path | None:
 
 def _what_it_runs(study: dict) -> dict:
     """A study config as a request: a preset whose description is reworded still resumes its finished studies."""
-    return {k: v for k, v in _plain(study).items() if k != "description"}
+    return {k: v for k, v in files.plain(study).items() if k != "description"}
 
 
 # ---------------------------------------------------------------------- planning

@@ -58,15 +58,11 @@ def is_done(root: Path, unit: Unit) -> bool:
     """Done means marked done for this very config, process counts aside: any other change runs it again."""
     path = marker(root, unit)
     return path.is_file() and _what_it_computes(json.loads(path.read_text()).get("config")) == \
-        _what_it_computes(_plain(unit.config))
+        _what_it_computes(files.plain(unit.config))
 
 
 def _what_it_computes(config: dict | None) -> dict | None:
     return None if config is None else {k: v for k, v in config.items() if k not in PROCESS_COUNTS}
-
-
-def _plain(data: Any) -> Any:
-    return json.loads(json.dumps(data, default=files._default))
 
 
 def call(function: str, config: dict) -> Any:
@@ -114,7 +110,7 @@ def run_in_child(unit: Unit, root: Path) -> Any:
 
 def mark_done(root: Path, unit: Unit, result: Any, wall_s: float) -> None:
     files.write_json(marker(root, unit), {"id": unit.id, "stage": unit.stage, "function": unit.function,
-                                         "config": _plain(unit.config), "result": result,
+                                         "config": files.plain(unit.config), "result": result,
                                          "wall_s": round(wall_s, 1),
                                          "finished": time.strftime("%Y-%m-%dT%H:%M:%S")})
 

@@ -50,7 +50,7 @@ POLICY_KINDS: dict[str, str] = {
     "committed": "vla_ladder.policies.reference:make_committed",
     "remote": "vla_ladder.policies.remote:make_policy",
 }
-# Kinds that need an argument, and what it is.
+# Kinds that need an argument, and what it is; every other kind takes none.
 NEEDS_ARG = {"ppo": "PATH", "lerobot": "PATH", "remote": "URL"}
 
 
@@ -62,6 +62,8 @@ def parse_spec(spec: str) -> tuple[str, str | None]:
     if kind in NEEDS_ARG and not arg:
         what = "a server" if kind == "remote" else "a path"
         raise ValueError(f"policy {kind!r} needs {what}: {kind}:{NEEDS_ARG[kind]}")
+    if kind not in NEEDS_ARG and arg:
+        raise ValueError(f"policy {kind!r} takes no argument, got {spec!r}; write {kind}")
     return kind, (arg or None)
 
 
@@ -87,16 +89,19 @@ def load_policy(spec: str, **kwargs) -> Policy:
 
 
 def check_spec(spec: str) -> tuple[str, str | None]:
-    """parse_spec, plus: a ppo:/lerobot: spec must name a checkpoint that is there, a remote: spec a server that
-    answers. Commands call it before any long work (a server would otherwise build its simulator and fail every
-    request; an evaluation would write its run directory and fail in its first worker)."""
+    """parse_spec, plus: a ppo: spec must name a checkpoint that is there, a lerobot: spec one whose options fit it
+    and whose inputs the env provides (lerobot.checked_config), a remote: spec a server that answers. Commands call
+    it before any long work (a server would otherwise build its simulator and fail every request; an evaluation
+    would write its run directory and fail in its first worker)."""
     kind, arg = parse_spec(spec)
     if kind == "ppo":
         from vla_ladder.policies.ppo import checkpoint_dir
         checkpoint_dir(arg)
     elif kind == "lerobot":
-        from vla_ladder.policies.lerobot import check_checkpoint, parse_arg
-        check_checkpoint(parse_arg(arg)[0])
+        from vla_ladder.policies.lerobot import check_checkpoint, checked_config, parse_arg
+        path, options = parse_arg(arg)
+        check_checkpoint(path)  # first: a copy without its weights says so before its config is parsed
+        checked_config(path, **{k: v for k, v in options.items() if k in ("n_action_steps", "device", "use_amp")})
     elif kind == "remote":
         from vla_ladder.policies.remote import check_server
         check_server(arg)

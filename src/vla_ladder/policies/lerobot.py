@@ -132,6 +132,34 @@ def check_env_compatible(cfg, rename_map: dict[str, str]) -> None:
                          f"{STATE_KEY} ({STATE_DIM},) and takes action ({ACTION_DIM},){hint}")
 
 
+def checked_config(path: str | Path, n_action_steps: int | None = None, device: str | None = None,
+                   use_amp: bool | None = None):
+    """The checkpoint's LeRobot config with these overrides, once every check that needs no weights loaded has
+    passed: the overrides fit the config, the device is there, the env provides every input it declares at the
+    size it declares, the weights file is there. `check_spec` runs it before any long work; the
+    policy runs it again when it loads."""
+    import lerobot.policies  # noqa: F401  (registers every policy type's config, which from_pretrained looks up)
+    from lerobot.configs.policies import PreTrainedConfig
+
+    path = resolve_checkpoint(path)
+    overrides = [] if n_action_steps is None else [f"--n_action_steps={int(n_action_steps)}"]
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device={device} needs a CUDA GPU and none is visible; use ?device=cpu, or leave "
+                         "device out (cuda when there is one, else cpu)")
+    overrides.append(f"--device={device}")
+    if use_amp is not None:
+        overrides.append(f"--use_amp={str(bool(use_amp)).lower()}")
+    try:
+        with own_tempdir():  # LeRobot leaves a copy of the config in the temp directory otherwise
+            cfg = PreTrainedConfig.from_pretrained(path, cli_overrides=overrides)
+    except Exception as e:  # draccus wraps the config's own checks (e.g. n_action_steps > chunk_size)
+        raise ValueError(f"cannot use the checkpoint {str(path)!r} with {overrides}: {e}") from e
+    check_env_compatible(cfg, _saved_rename_map(path))
+    check_checkpoint(path)  # last: a mismatch is named even where the weights are missing
+    return cfg
+
+
 def _saved_rename_map(path: Path) -> dict[str, str]:
     import json
 
@@ -154,27 +182,10 @@ class LeRobotPolicy(Policy):
         """`instruction` replaces every episode's instruction (an instruction-blind policy is trained and played
         with one fixed text, contract.BLIND_INSTRUCTION). `noise_seed` picks the stream of flow-matching noise (0:
         the one every run before the option used)."""
-        from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
         self.path = resolve_checkpoint(path)
-        overrides = [] if n_action_steps is None else [f"--n_action_steps={int(n_action_steps)}"]
-        device = device or ("cuda" if torch.cuda.is_available() else "cpu")
-        if device.startswith("cuda") and not torch.cuda.is_available():
-            raise ValueError(f"device={device} needs a CUDA GPU and none is visible; use ?device=cpu, or leave "
-                             "device out (cuda when there is one, else cpu)")
-        overrides.append(f"--device={device}")
-        if use_amp is not None:
-            overrides.append(f"--use_amp={str(bool(use_amp)).lower()}")
-        try:
-            with own_tempdir():  # LeRobot leaves a copy of the config in the temp directory otherwise
-                cfg = PreTrainedConfig.from_pretrained(self.path, cli_overrides=overrides)
-        except Exception as e:  # draccus wraps the config's own checks (e.g. n_action_steps > chunk_size)
-            raise ValueError(f"cannot use the checkpoint {str(self.path)!r} with {overrides}: {e}") from e
-        rename_map = _saved_rename_map(self.path)
-        check_env_compatible(cfg, rename_map)
-        check_checkpoint(self.path)
-
+        cfg = checked_config(self.path, n_action_steps, device, use_amp)
         self.policy = get_policy_class(cfg.type).from_pretrained(self.path, config=cfg).eval()
         self.config = self.policy.config
         self.device = torch.device(self.config.device)

@@ -176,27 +176,18 @@ class RandomPolicy(Policy):
         return torch.from_numpy(a).to(self.device)
 
 
-def _no_arg(kind: str, arg: str | None) -> None:
-    if arg:
-        raise ValueError(f"policy {kind!r} takes no argument, got {arg!r}")
-
-
 def make_nearest(arg: str | None = None, **kwargs) -> NearestObjectPolicy:
-    _no_arg("nearest", arg)
     return NearestObjectPolicy(**kwargs)
 
 
 def make_committed(arg: str | None = None, **kwargs) -> CommittedPolicy:
-    _no_arg("committed", arg)
     return CommittedPolicy(**kwargs)
 
 
 def make_layout_prior(arg: str | None = None, **kwargs) -> LayoutPriorPolicy:
-    _no_arg("layout-prior", arg)
     return LayoutPriorPolicy(**kwargs)
 
 
 def make_random(arg: str | None = None, **kwargs) -> RandomPolicy:
-    _no_arg("random", arg)
     return RandomPolicy(**kwargs)
 

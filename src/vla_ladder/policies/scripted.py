@@ -62,8 +62,9 @@ class ScriptedConfig:
     """Distance to the grasp site at which the gripper closes (m)."""
     mug_min_angle_deg: float = 100.0
     """Smallest angle between the handle and the rim point the mug is grasped at (degrees)."""
-    latest_close: int = 42
-    """Step by which the gripper closes whatever the error, so the lift ends inside the episode."""
+    latest_close: int = EPISODE_STEPS - 8
+    """Step by which the gripper closes whatever the error, so the lift ends inside the episode (42 of 50: closing
+    takes close_steps, the lift the last 3)."""
 
     def __post_init__(self):
         for name in ("approach_height", "lift_height", "gain"):
@@ -256,7 +257,5 @@ def _yaw_down(yaw: torch.Tensor) -> torch.Tensor:
 
 
 def make_policy(arg: str | None = None, **kwargs) -> ScriptedPolicy:
-    """Factory for `load_policy("scripted")`; the scripted expert takes no argument."""
-    if arg:
-        raise ValueError(f"policy 'scripted' takes no argument, got {arg!r}")
+    """Factory for `load_policy("scripted")` (parse_spec has checked that it has no argument)."""
     return ScriptedPolicy(**kwargs)

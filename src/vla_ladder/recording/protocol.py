@@ -12,12 +12,15 @@ docs/recording.md is the full specification (message types, fields, close codes,
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass, field
 from typing import Any
 
 import msgpack
 import numpy as np
+
+from vla_ladder.contract import CAMERAS, EPISODE_STEPS
 
 PROTOCOL_VERSION = 2
 SUBPROTOCOL = "vla-ladder.v2"
@@ -34,10 +37,12 @@ CLOSE_UNEXPECTED = 4004
 CLOSE_LIMIT = 4005
 CLOSE_HANDSHAKE_TIMEOUT = 4008
 
-# Limits. Client messages are tiny (a hello, lists of seeds); episodes are ~20 MB (50 frames, two
-# 256x256 RGB cameras), so the two directions get very different bounds.
+# Limits. Client messages are tiny (a hello, lists of seeds); an episode carries every frame of both cameras
+# (~20 MB at 50 steps of 256x256 RGB), so the two directions get very different bounds. The episode bound
+# follows the contract (three times the frames, at least 64 MiB): a larger camera or a longer episode raises it.
 MAX_CLIENT_MESSAGE = 64 * 1024
-MAX_EPISODE_MESSAGE = 64 * 1024 * 1024
+MAX_EPISODE_MESSAGE = max(64 * 1024 * 1024,
+                          3 * (EPISODE_STEPS + 1) * sum(math.prod(c.shape) for c in CAMERAS))
 MAX_SEEDS_PER_REQUEST = 1024
 MAX_HEADER = 1024 * 1024
 HANDSHAKE_TIMEOUT_S = 10.0

@@ -203,7 +203,8 @@ def run(cfg: RecordConfig) -> int:
     except ServerError as e:
         log.error("%s", e)
         log.info("committing the %d episodes received complete%s", store.pending,
-                 "; rerun the same command to continue" if store.next_seed < SEED_LIMIT else "")
+                 # (a server that refused us, e.g. a message limit, refuses a rerun too)
+                 "; rerun the same command to continue" if store.next_seed < SEED_LIMIT and not e.permanent else "")
         store.close()
         return 1
     except BaseException:

@@ -20,6 +20,7 @@ import tyro
 
 import numpy as np
 
+from vla_ladder.conditions import REGIMES
 from vla_ladder.contract import CONTROL_HZ, METRICS
 from vla_ladder.evaluation.metrics import OUTCOME_TEXT, OUTCOMES, outcomes
 from vla_ladder.checks import check_output_file
@@ -145,16 +146,22 @@ def _per_object_table(results: dict[str, dict]) -> str:
             "<p class=note>Success rate (%) by instructed object.</p>")
 
 
-def _paper_tables(results: dict[str, dict]) -> list[tuple[str, tables.Table]]:
+def _paper_tables(results: dict[str, dict]) -> list[tuple[str, tables.Table, dict]]:
+    """The paper's tables that the results can fill, with the keyword arguments of their figure: the ladder (two
+    regimes or more), the pairings (in the first regime, in ladder order, that has them: the paper's is small
+    jitter) and the object count (in full random, as in the paper, else the first regime with two counts)."""
     out = []
     keys = {k for conds in results.values() for k in conds}
     regimes = {k.split("/")[0] for k in keys if k.endswith("/canonical/5")}
     if len(regimes) >= 2:
-        out.append(("ladder", tables.ladder_table(results)))
-    if any("/pairings_" in k for k in keys):
-        out.append(("pairings", tables.pairings_table(results)))
-    if len({k for k in keys if k.startswith("full_random/canonical/")}) >= 2:
-        out.append(("object_count", tables.object_count_table(results)))
+        out.append(("ladder", tables.ladder_table(results), {}))
+    paired = [r for r in REGIMES if any(k.startswith(f"{r}/pairings_") for k in keys)]
+    if paired:
+        out.append(("pairings", tables.pairings_table(results, paired[0]), {"regime": paired[0]}))
+    counted = [r for r in REGIMES if len({k for k in keys if k.startswith(f"{r}/canonical/")}) >= 2]
+    if counted:
+        regime = "full_random" if "full_random" in counted else counted[0]
+        out.append(("object_count", tables.object_count_table(results, regime), {"regime": regime}))
     return out
 
 
@@ -174,10 +181,10 @@ def _md_table_html(t: tables.Table) -> str:
 
 def _figures(results: dict[str, dict], runs: list[Run], tmp: Path, placements: bool) -> list[tuple[str, str]]:
     figs = []
-    for name, table in _paper_tables(results):
+    for name, table, kwargs in _paper_tables(results):
         path = tmp / f"{name}.png"
         {"ladder": plots.plot_ladder, "pairings": plots.plot_pairings,
-         "object_count": plots.plot_object_count}[name](results, path)
+         "object_count": plots.plot_object_count}[name](results, path, **kwargs)
         figs.append((table.caption, _png(path)))
     for label, conds in results.items():
         path = tmp / f"confusion_{len(figs)}.png"
@@ -195,7 +202,6 @@ def _placement_figure(runs: list[Run], tmp: Path) -> tuple[str, str] | None:
         from vla_ladder.report.placements import plot_placements
     except ImportError:
         return None
-    from vla_ladder.conditions import REGIMES
     present = {r for run in runs for r in run.episodes["regime"].unique()}
     regimes = [r for r in REGIMES if r in present] or list(REGIMES)
     path = tmp / "placements.png"
@@ -338,7 +344,7 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
         paper = _paper_tables(results)
         if paper:
             body.append("<h2>The paper's tables</h2>")
-            body += [_md_table_html(t) for _, t in paper]
+            body += [_md_table_html(t) for _, t, _ in paper]
         body.append("<h2>Figures</h2>")
         body += [f"<figure>{img}<figcaption class=note>{html.escape(cap)}</figcaption></figure>" for cap, img in figs]
         body.append(_probe_sections([*runs, *(probe_runs or ())], Path(tmp), samples, with_video))

@@ -142,7 +142,8 @@ def ladder_table(results: dict[str, dict], num_objects: int = 5) -> Table:
 
 
 def pairings_table(results: dict[str, dict], regime: str = "small_jitter", num_objects: int = 5) -> Table:
-    t = Table("pairings", "Compositional generalization to held-out object-region pairings.", "Split")
+    where = "" if regime == "small_jitter" else f" ({REGIME_NAMES[regime].lower()})"  # the paper's is small jitter
+    t = Table("pairings", f"Compositional generalization to held-out object-region pairings{where}.", "Split")
     for model, conds in results.items():
         for split in ("pairings_id", "pairings_ood"):
             c = _find(conds, regime, split, num_objects)
