@@ -197,3 +197,37 @@ def test_a_player_acts_with_one_torch_thread_unless_told_and_gives_the_process_i
         player.close()
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("procs", [["--workers", "2"], ["--num-envs", "2"]])
+def test_an_evaluation_killed_with_minus_9_leaves_no_process_behind(procs, tmp_path):
+    """Worker processes (a process pool's, a vector env's) end with the evaluation that started them: they idled on
+    with ~0.8 GB each after kill -9 of their parent."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    out, children = tmp_path / "run", []
+    proc = subprocess.Popen([sys.executable, "-m", "vla_ladder.cli", "eval", "--policy", "scripted", "--episodes",
+                             "400", "--regimes", "full_random", "--out", str(out), *procs],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 600
+        while not (out / "episodes.parquet").exists():  # the first flush: the workers are playing
+            assert proc.poll() is None and time.monotonic() < deadline, "the evaluation never flushed"
+            time.sleep(0.5)
+        children = psutil.Process(proc.pid).children(recursive=True)
+        assert len(children) >= 2
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        gone, alive = psutil.wait_procs(children, timeout=60)
+        assert not alive, [p.cmdline()[:3] for p in alive]
+    finally:
+        proc.kill()
+        for p in children:  # (reparented once their parent died: not this process's children any more)
+            if p.is_running():
+                p.kill()

@@ -100,7 +100,7 @@ def test_flow_matching_noise_is_drawn_per_episode(smolvla_run):
     stream_1 = actions(first, [11])
     assert (stream_1 - alone).abs().max() > 1e-3
     torch.testing.assert_close(actions(both, [11, 12]), stream_1, atol=1e-5, rtol=0)
-    with pytest.raises(ValueError, match="noise_seed=.-1.* expected an integer >= 0"):
+    with pytest.raises(ValueError, match="noise_seed=.-1.* expected an integer from 0"):
         load_policy(f"lerobot:{smolvla_run}?noise_seed=-1")
 
 

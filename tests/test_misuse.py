@@ -346,12 +346,42 @@ def test_serve_refuses_a_missing_expert_checkpoint(tmp_path, capsys):
                     "has config.json but no model.safetensors", str(ckpt))
 
 
+@pytest.mark.parametrize("command", [["eval", "--policy", "scripted"],
+                                     ["probe", "instruction-swap", "--policy", "nearest"],
+                                     ["diagnose", "--policy", "nearest"]])
+def test_overwrite_replaces_only_a_directory_of_its_own_kind(command, tmp_path, capsys):
+    """--overwrite once deleted any non-empty --out, a folder of someone's own files included."""
+    mine = tmp_path / "thesis"
+    mine.mkdir()
+    (mine / "thesis.tex").write_text("years of work")
+    _one_line_error(capsys, main([*command, "--episodes", "1", "--out", str(mine), "--overwrite"]),
+                    "holds files that are not", "pick a new or empty --out")
+    assert (mine / "thesis.tex").read_text() == "years of work"
+
+
+@pytest.mark.parametrize("query, says", [("n_action_steps=0", "expected an integer >= 1"),
+                                         ("n_action_steps=-1", "expected an integer >= 1"),
+                                         ("device=foo", "expected cpu, cuda, cuda:N or mps"),
+                                         ("noise_seed=99999999999999999999999", "2**63 - 1"),
+                                         ("n_action_steps=2&n_action_steps=3", "given twice")])
+def test_lerobot_options_are_checked_before_the_run_directory(query, says, tmp_path, capsys):
+    out = tmp_path / "run"
+    _one_line_error(capsys, main(["eval", "--policy", f"lerobot:{tmp_path}/ckpt?{query}", "--episodes", "1",
+                                  "--out", str(out)]), says)
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("spec", ["scripted:fast", "random:7", "nearest:x"])
 def test_an_argument_to_a_policy_that_takes_none_is_refused_before_the_run_directory(spec, tmp_path, capsys):
     out = tmp_path / "run"
     _one_line_error(capsys, main(["eval", "--policy", spec, "--episodes", "1", "--out", str(out)]),
                     "takes no argument", spec)
     assert not out.exists()
+
+
+def test_serve_refuses_a_negative_max_outstanding(capsys):
+    _one_line_error(capsys, main(["serve", "--port", "0", "--max-outstanding", "-1"]),
+                    "max_outstanding must be >= 0 (0: 4 x num_envs, at least 8), got -1")
 
 
 def test_train_expert_without_a_gpu_names_the_cpu_flags(tmp_path, capsys):
@@ -401,6 +431,10 @@ def test_a_flag_given_twice_is_refused_not_silently_dropped(argv, flag, capsys, 
     (["--writers", "2", "--workers", "1"], "--writers 2 needs at least 2 local servers, got --workers 1"),
     (["--writers", "3", "--server", "ws://127.0.0.1:1", "ws://127.0.0.1:2"],
      "--writers 3 needs at least 3 --server URLs (each writer draws from its own), got 2"),
+    # Checked here, not by the local servers after they start (a multi-line failure that said to rerun).
+    (["--num-envs", "0"], "--num-envs must be >= 1, got 0"),
+    (["--commit-seconds", "nan"], "--commit-seconds must be > 0, got nan"),
+    (["--commit-seconds", "-5"], "--commit-seconds must be > 0, got -5.0"),
 ])
 def test_record_writers_each_need_a_server(extra, says, tmp_path, capsys):
     rc = main(["record", "--out", str(tmp_path / "rec"), "--episodes", "1", *extra])

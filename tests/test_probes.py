@@ -175,8 +175,9 @@ def test_probe_variants_share_seeds_and_a_probe_dir_refuses_another_request(tmp_
     open_probe_dir(cfg)
     open_probe_dir(cfg)  # the same request resumes
     other = ProbeConfig("instruction-swap", policy="scripted", out=tmp_path / "p")
-    with pytest.raises(ValueError, match="holds another probe request.*--overwrite"):
+    with pytest.raises(ValueError, match="holds another probe request.*--overwrite") as e:
         open_probe_dir(other)
+    assert "it differs in " in str(e.value) and "policy was 'nearest'" in str(e.value)  # what to change
 
 
 def test_run_directories_from_before_the_presentation_fields_still_resume(tmp_path):

@@ -257,6 +257,9 @@ BAD_CLIENTS = {
     "run before hello": ([P.run([1])], P.CLOSE_UNEXPECTED, "expected 'hello'"),
     "client max_size too small": ([P.hello(TOKEN, 1000)], P.CLOSE_LIMIT, "accepts 1000"),
     "malformed seeds": ([GOOD_HELLO, P.encode({"type": "run", "seeds": ["a"]})], P.CLOSE_MALFORMED, "integers"),
+    # A numpy seed: the simulator refuses 2**32, which used to end the connection as the server's own failure.
+    "seed beyond 2**32": ([GOOD_HELLO, P.encode({"type": "run", "seeds": [2**32]})], P.CLOSE_MALFORMED,
+                          "[0, 4294967295]"),
     "too many outstanding": ([GOOD_HELLO, P.run(list(range(9)))], P.CLOSE_LIMIT, "outstanding"),
     "unknown message": ([GOOD_HELLO, P.encode({"type": "dance"})], P.CLOSE_UNEXPECTED, "'dance'"),
 }

@@ -47,6 +47,12 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         "horizons: no horizon in [8] fits a chunk size in [4]": _micro(**{"grid.horizons": [8]}),
         "reference_policies: unknown 'oracle'": _micro(**{"evaluation.reference_policies": ["oracle"]}),
         "the evaluation and probe seeds (0-": _micro(**{"datasets.0.first_seed": 1}),
+        # A name is a folder under --out: it cannot climb out of it.
+        "name '../../etc': use letters": _micro(**{"datasets.0.name": "../../etc"}),
+        "name '': use letters": _micro(**{"policies.0.name": ""}),
+        "lerobot_args: --output_dir is the study's to set": _micro(**{"policies.0.lerobot_args": [
+            "--output_dir=/tmp/elsewhere"]}),
+        "num_workers must be >= 0": _micro(num_workers=-4),
         # Validation starts below the dataset but runs into it; probes reach into the dataset's seeds.
         "the validation (grid.select_first_seed) seeds (999990-": _micro(**{"grid.select_first_seed": 999_990,
                                                                           "grid.select_episodes": 20}),
@@ -64,6 +70,10 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         assert not (tmp_path / "out").exists()
     assert main(["study", "nano", "--out", str(tmp_path / "out")]) == 2
     assert "allowed: " in capsys.readouterr().err
+    for text in (b"{not json", b"\xff\xfe{}"):
+        (tmp_path / "broken.json").write_bytes(text)
+        assert main(["study", str(tmp_path / "broken.json"), "--out", str(tmp_path / "out")]) == 2
+        assert f"{tmp_path / 'broken.json'}: not a JSON study config" in capsys.readouterr().err
     assert main(["study", "micro", "--out", str(tmp_path / "out"), "--num-envs", str(cores() + 1)]) == 2
     assert "--num-envs must be from 1 to the" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()

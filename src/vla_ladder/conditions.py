@@ -8,15 +8,34 @@ regimes x splits x object counts, where "all" stands for every regime. Simulator
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 
-REGIMES: dict[str, tuple[float, float] | None] = {
-    # (x extent, y extent) of each region in metres; None = the whole workspace.
-    "small_jitter": (0.04, 0.06),
-    "medium_jitter": (0.08, 0.12),
-    "large_jitter": (0.12, 0.16),
-    "full_random": None,
+
+@dataclass(frozen=True)
+class Regime:
+    """One rung of the placement ladder: everything the task, the sampler and the report know about it."""
+
+    extent: tuple[float, float] | None
+    """(x, y) extent of each of the five regions in metres; None: anywhere in the workspace (no regions, so no
+    pairing splits)"""
+    yaw: float
+    """objects' yaw is drawn uniformly in [-yaw, yaw] radians"""
+    title: str
+    """the regime as tables and figures name it"""
+    short: str
+    """the same in a narrow column"""
+
+
+LADDER: dict[str, Regime] = {
+    # In ladder order, easiest first: tables, figures and "all" follow it. A new regime here joins "all".
+    "small_jitter": Regime((0.04, 0.06), math.pi / 12, "Small jitter", "Small jitter"),
+    "medium_jitter": Regime((0.08, 0.12), math.pi / 6, "Medium jitter", "Med. jitter"),
+    "large_jitter": Regime((0.12, 0.16), math.pi / 4, "Large jitter", "Lrg. jitter"),
+    "full_random": Regime(None, math.pi, "Full random", "Full random"),
 }
+REGIMES: dict[str, tuple[float, float] | None] = {name: r.extent for name, r in LADDER.items()}
+"""Each regime's region extent (LADDER's, by name): None for the whole workspace."""
 JITTER_REGIMES: tuple[str, ...] = tuple(r for r, e in REGIMES.items() if e is not None)
 SPLITS: tuple[str, ...] = ("canonical", "pairings_id", "pairings_ood")
 MAX_OBJECTS = 5
@@ -28,7 +47,7 @@ class Condition:
     """One evaluation or training condition of GraspObject-v1."""
 
     regime: str = "small_jitter"
-    """placement regime: small_jitter, medium_jitter, large_jitter or full_random"""
+    """placement regime, one of LADDER: small_jitter, medium_jitter, large_jitter or full_random"""
     split: str = "canonical"
     """object-region split: canonical (object i in region i), pairings_id or pairings_ood (held-out pairs)"""
     num_objects: int = MAX_OBJECTS

@@ -52,17 +52,23 @@ def own_tempdir() -> Iterator[Path]:
 
 def claim_dir(out: Path, previous: dict | None, request: dict, overwrite: bool, kind: str, dir_kind: str) -> None:
     """Make directory `out` ready for `request` (what decides a command's results): resumed when `previous`, what
-    it was last asked (None: nothing saved), is the same; another request, or files of something else, refused in
-    one line unless `overwrite`, which starts afresh. `kind` names the request in the error ("probe"), `dir_kind`
-    the directory ("a probe directory")."""
+    it was last asked (None: nothing saved), is the same; another request refused in one line unless `overwrite`,
+    which starts afresh. Files of something else are refused even with `overwrite`: it replaces only a directory
+    of its own kind, never a folder of someone's files. `kind` names the request in the error ("probe"),
+    `dir_kind` the directory ("a probe directory")."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {str(out)!r} is a file; give a directory")
     if out.is_dir() and any(out.iterdir()) and previous != request:
+        if previous is None:
+            raise ValueError(f"{out} holds files that are not {dir_kind} (--overwrite replaces only {dir_kind}); "
+                             "pick a new or empty --out")
         if not overwrite:
-            what = f"another {kind} request" if previous is not None else f"files that are not {dir_kind}"
-            raise ValueError(f"{out} holds {what}; rerun the same command to resume it, pick a new --out, "
-                             "or pass --overwrite")
+            # Name what differs: a default that changed (a regime added to "all") reads like the same command.
+            differ = sorted(k for k in {*previous, *request} if previous.get(k) != request.get(k))
+            raise ValueError(f"{out} holds another {kind} request (it differs in {', '.join(differ)}: "
+                             f"{'; '.join(f'{k} was {previous.get(k)!r}' for k in differ)[:300]}); rerun the "
+                             "command that made it to resume it, pick a new --out, or pass --overwrite")
         shutil.rmtree(out)
 
 

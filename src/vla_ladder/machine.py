@@ -49,6 +49,18 @@ def auto_writers(servers: int, requested: int = 0) -> int:
     return requested if requested > 0 else max(1, servers // 2)
 
 
+def exit_with_parent() -> None:
+    """In a spawned worker (a process pool's, a vector env's): end, with SIGTERM, when the process that started it
+    dies, even by kill -9, instead of idling on with its memory. A no-op in a process that multiprocessing did not
+    start (a vector env builds one env in its caller too). Linux sends it when the thread that started the worker
+    ends: start workers from a thread that lives as long as they should."""
+    import multiprocessing
+    import signal
+
+    if multiprocessing.parent_process() is not None:
+        signal_on_parent_death(signal.SIGTERM)
+
+
 def signal_on_parent_death(sig: int) -> None:
     """Linux: have the kernel send `sig` to this process when its parent dies (prctl PR_SET_PDEATHSIG), so that a
     child does not outlive a parent killed with kill -9. Elsewhere a no-op: the child may outlive it."""

@@ -22,7 +22,7 @@ import numpy as np
 
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import CAMERA_NAMES, CONTROL_HZ, ENV_ID, EPISODE_STEPS
-from vla_ladder.machine import limit_threads
+from vla_ladder.machine import exit_with_parent, limit_threads
 
 PHASES = ("reset", "policy", "env", "film")
 """Where an episode's time goes: reset (env reset with its scene rebuild, the policy's reset, the layouts and
@@ -206,6 +206,7 @@ def _start_worker(spec: str, settings: EnvSettings, threads: int) -> None:
     workers use N cores instead of fighting over them."""
     from vla_ladder.policies import load_policy
 
+    exit_with_parent()  # an evaluation killed with -9 does not leave its workers behind
     limit_threads(threads)
     global _PLAYER
     _PLAYER = Player(load_policy(spec), settings)

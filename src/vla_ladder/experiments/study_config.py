@@ -8,6 +8,7 @@ or a grid that cannot run is refused before any work, with the field's path name
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
@@ -34,6 +35,7 @@ class DatasetSpec:
     """first episode seed; far from the evaluation seeds (0...) so no evaluation layout is trained on"""
 
     def __post_init__(self):
+        _check_name(self.name)
         Condition.parse(self.condition)
         _positive(self, "episodes")
         if self.first_seed < 0:
@@ -46,6 +48,18 @@ class DatasetSpec:
     @property
     def cond(self) -> Condition:
         return Condition.parse(self.condition)
+
+
+NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+STUDY_FLAGS = ("--output_dir", "--job_name", "--steps", "--batch_size", "--seed", "--policy.type", "--policy.path",
+               "--policy.chunk_size", "--policy.n_action_steps", "--resume", "--config_path")
+"""lerobot-train flags the study sets for each training unit (a policy's lerobot_args may not)."""
+
+
+def _check_name(name: str) -> None:
+    # Names become folder names under --out: nothing that climbs out of it or hides.
+    if not isinstance(name, str) or not NAME.fullmatch(name):
+        raise ValueError(f"name {name!r}: use letters, digits, '.', '_' and '-', starting with a letter or digit")
 
 
 @dataclass
@@ -74,6 +88,7 @@ class PolicySpec:
     the instruction-blind control of the same architecture, which scores what the layout alone allows"""
 
     def __post_init__(self):
+        _check_name(self.name)
         from vla_ladder.training.train import policy_types
         allowed = policy_types()
         if self.type not in allowed:
@@ -86,6 +101,12 @@ class PolicySpec:
             raise ValueError(f"vlm: only smolvla has a VLM backbone, not {self.type!r}")
         if not all(isinstance(a, str) and a.startswith("--") for a in self.lerobot_args):
             raise ValueError(f"lerobot_args: expected --flag=value strings, got {self.lerobot_args}")
+        for a in self.lerobot_args:
+            flag = a.split("=", 1)[0]
+            if flag in STUDY_FLAGS or flag.startswith("--dataset."):
+                raise ValueError(f"lerobot_args: {flag} is the study's to set (where each unit writes and what it "
+                                 f"trains on: {', '.join(STUDY_FLAGS)}, --dataset.*); use the study's own fields "
+                                 "(steps, the grid's batch and chunk sizes)")
 
 
 @dataclass
@@ -185,6 +206,8 @@ class StudyConfig:
                                      f"{', '.join(names)}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device: unknown {self.device!r}; allowed: auto, cpu, cuda")
+        if self.num_workers < 0:
+            raise ValueError(f"num_workers must be >= 0, got {self.num_workers}")
         self._check_seeds()
 
     def _check_seeds(self):
@@ -215,7 +238,10 @@ class StudyConfig:
         """A preset name (micro, cpu-mini, gpu-session, gpu-scratch, paper) or a path to a JSON file."""
         path = Path(name_or_path)
         if path.suffix == ".json" and path.is_file():
-            data = json.loads(path.read_text())
+            try:
+                data = json.loads(path.read_text(encoding="utf-8"))
+            except (UnicodeDecodeError, json.JSONDecodeError) as e:
+                raise ValueError(f"{path}: not a JSON study config ({e})") from None
         else:
             known = presets()
             if name_or_path not in known:

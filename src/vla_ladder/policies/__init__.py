@@ -67,14 +67,24 @@ def parse_spec(spec: str) -> tuple[str, str | None]:
     return kind, (arg or None)
 
 
+def positive_int(value: str) -> int:
+    """An option's parser: an integer >= 1 (an execution horizon, say)."""
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"expected an integer >= 1, got {value!r}")
+    return int(value)
+
+
 def parse_options(kind: str, arg: str, allowed: dict[str, Callable[[str], Any]]) -> tuple[str, dict]:
     """"HEAD?key=value&..." -> (HEAD, {key: allowed[key](value)}): a spec's options, each parsed by its own function
-    (whose ValueError names what it expects); an option not in `allowed` names those that are."""
+    (whose ValueError names what it expects); an option not in `allowed` names those that are, and one given twice
+    is refused rather than one of its values silently kept."""
     head, _, query = arg.partition("?")
     options = {}
     for key, value in parse_qsl(query, strict_parsing=bool(query)):
         if key not in allowed:
             raise ValueError(f"unknown option {key!r} in {kind}:{arg}; allowed: {', '.join(allowed)}")
+        if key in options:
+            raise ValueError(f"option {key} given twice in {kind}:{arg}; give it once")
         try:
             options[key] = allowed[key](value)
         except ValueError as e:

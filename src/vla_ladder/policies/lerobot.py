@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import re
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -31,7 +32,7 @@ import torch
 
 from vla_ladder.contract import ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IMAGE_SHAPE, STATE_DIM, STATE_KEY
 from vla_ladder.files import own_tempdir
-from vla_ladder.policies import Policy, parse_options
+from vla_ladder.policies import Policy, parse_options, positive_int
 
 ENV_IMAGE_SHAPE = (IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1])  # CHW, as LeRobot declares visual features
 # Policies that resize every camera image to their own resolution (LeRobot's VLAs): a checkpoint trained on another
@@ -62,12 +63,19 @@ def _bool(value: str) -> bool:
 
 
 def _noise_seed(value: str) -> int:
-    if not value.isdigit():
-        raise ValueError(f"expected an integer >= 0, got {value!r}")
+    if not value.isdigit() or int(value) >= 2**63:
+        raise ValueError(f"expected an integer from 0 to 2**63 - 1, got {value!r}")
     return int(value)
 
 
-QUERY_KEYS = {"n_action_steps": int, "device": str, "instruction": str, "use_amp": _bool, "noise_seed": _noise_seed}
+def _device(value: str) -> str:
+    if not re.fullmatch(r"cpu|mps|cuda(:\d+)?", value):
+        raise ValueError(f"expected cpu, cuda, cuda:N or mps, got {value!r}")
+    return value
+
+
+QUERY_KEYS = {"n_action_steps": positive_int, "device": _device, "instruction": str, "use_amp": _bool,
+              "noise_seed": _noise_seed}
 
 
 def resolve_checkpoint(path: str | Path) -> Path:

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from vla_ladder.contract import ACTION_DIM, CAMERAS, STATE_KEY
-from vla_ladder.policies import Policy, parse_options
+from vla_ladder.policies import Policy, parse_options, positive_int
 
 PROMPT_KEY = "prompt"
 SEED_KEY = "vla_ladder/episode_seed"
@@ -163,14 +163,7 @@ def connect(url: str, timeout_s: float = CONNECT_TIMEOUT_S):
     return ws, metadata
 
 
-def _positive_int(value: str) -> int:
-    n = int(value)
-    if n < 1:
-        raise ValueError(f"expected an integer >= 1, got {value!r}")
-    return n
-
-
-QUERY_KEYS = {"n_action_steps": _positive_int, "instruction": str}
+QUERY_KEYS = {"n_action_steps": positive_int, "instruction": str}
 
 
 def parse_arg(arg: str) -> tuple[str, dict]:

@@ -91,6 +91,14 @@ class RecordConfig:
         self.server = tuple(self.server)
         if self.episodes < 1:
             raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
+        if self.num_envs < 1:
+            raise ValueError(f"--num-envs must be >= 1, got {self.num_envs}")
+        if self.num_envs > 1 and not self.server:  # the local servers' own check, before any of them starts
+            from vla_ladder.task.physx_gpu import check_physx_cuda
+            check_physx_cuda("--num-envs > 1 batches each local server on physx_cuda (a CUDA GPU); on a CPU use "
+                             "--num-envs 1 and --workers N")
+        if not self.commit_seconds > 0:  # (nan too)
+            raise ValueError(f"--commit-seconds must be > 0, got {self.commit_seconds}")
         if self.first_seed < 0 or self.first_seed + self.episodes > SEED_LIMIT:
             raise ValueError(f"--first-seed must be >= 0 and --first-seed + --episodes <= 2**32 (each demo takes "
                              f"a seed of its own, a numpy seed), got {self.first_seed} + {self.episodes}")

@@ -87,7 +87,9 @@ class ServeConfig:
         if not self.token and not is_loopback(self.host):
             raise ValueError(f"binding to {self.host!r} (not loopback) needs --token; allowed without a "
                              "token: 127.0.0.1, ::1, localhost")
-        if self.max_outstanding <= 0:
+        if self.max_outstanding < 0:
+            raise ValueError(f"max_outstanding must be >= 0 (0: 4 x num_envs, at least 8), got {self.max_outstanding}")
+        if self.max_outstanding == 0:
             self.max_outstanding = max(8, 4 * self.num_envs)
         check_port_free(self.host, self.port)  # before the simulator starts, not after
 

@@ -20,7 +20,7 @@ import tyro
 
 import numpy as np
 
-from vla_ladder.conditions import REGIMES
+from vla_ladder.conditions import LADDER, REGIMES
 from vla_ladder.contract import CONTROL_HZ, METRICS
 from vla_ladder.evaluation.metrics import OUTCOME_TEXT, OUTCOMES, outcomes
 from vla_ladder.checks import check_output_file
@@ -50,7 +50,6 @@ SIGNATURES = [
      "Confident reach-and-grasp motions to arbitrary places: the grasping primitive is learned, the "
      "binding of the motion to the instructed object is not."),
 ]
-LADDER = ("small_jitter", "medium_jitter", "large_jitter", "full_random")
 
 
 def reference_data(name: str) -> dict:
@@ -64,7 +63,7 @@ def _ladder_text(label: str, conditions: dict) -> str:
     """"label: success a, b, c, d; grasp-any ...; reach ..." along the ladder, in %."""
     parts = []
     for m, name in (("success", "success"), ("grasp_any", "grasp-any"), ("reach", "reach")):
-        vals = [conditions.get(f"{r}/canonical/5", {}).get(m) for r in LADDER]
+        vals = [conditions.get(f"{r}/canonical/5", {}).get(m) for r in REGIMES]
         parts.append(name + " " + ", ".join("–" if v is None else f"{100 * v:.0f}" for v in vals))
     return f"{label}: " + "; ".join(parts)
 
@@ -262,7 +261,7 @@ def _signatures() -> str:
         "was grasped at some step (the grasping primitive works). <b>Reach</b>: the gripper ends within 5 cm of "
         "the instructed object (the policy at least went to the right object).</p>"
         "<table><tr><th>policy kind</th><th>success</th><th>grasp-any</th><th>reach</th><th>what it means</th>"
-        "<th>measured along the ladder (small → medium → large jitter → full random, %)</th>"
+        f"<th>measured along the ladder ({' → '.join(r.title.lower() for r in LADDER.values())}, %)</th>"
         f"</tr>{rows}</table><p class=note>Reference policies measured with {ref['episodes']} episodes per regime, "
         f"seeds {ref['first_seed']}-{ref['first_seed'] + ref['episodes'] - 1}, five objects (docs/diagnostics.md); "
         "the last row is the paper's Table 2.</p>"

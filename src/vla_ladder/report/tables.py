@@ -10,13 +10,12 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
+from vla_ladder.conditions import LADDER
 from vla_ladder.contract import METRICS
 
 METRIC_NAMES = {"success": "Success", "grasp_any": "Grasp-any", "reach": "Reach"}
-REGIME_NAMES = {"small_jitter": "Small jitter", "medium_jitter": "Medium jitter", "large_jitter": "Large jitter",
-                "full_random": "Full random"}
-REGIME_SHORT = {"small_jitter": "Small jitter", "medium_jitter": "Med. jitter", "large_jitter": "Lrg. jitter",
-                "full_random": "Full random"}
+REGIME_NAMES = {name: r.title for name, r in LADDER.items()}
+REGIME_SHORT = {name: r.short for name, r in LADDER.items()}
 SPLIT_NAMES = {"canonical": "Canonical", "pairings_id": "Pairings (ID)", "pairings_ood": "Pairings (OOD)"}
 
 

@@ -18,7 +18,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from vla_ladder.conditions import REGIMES, Condition
+from vla_ladder.conditions import LADDER, REGIMES, Condition
 from vla_ladder.task.appearance import check_appearance, swap_partner
 from vla_ladder.task.instructions import CANONICAL, check_instruction_set, instruction_text, paraphrase_version
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, OBJECTS, object_index
@@ -31,7 +31,6 @@ REGION_CENTERS = WORKSPACE_CENTER + REGION_OFFSETS
 CENTER_REGION = 2
 
 # Yaw jitter grows with the ladder so that small jitter stays benchmark-like (LIBERO rotates little).
-YAW_RANGE = {"small_jitter": np.pi / 12, "medium_jitter": np.pi / 6, "large_jitter": np.pi / 4, "full_random": np.pi}
 # Object i trains in regions i, i+1, i+2 (mod 5) and is held out of i+3, i+4: every object and every
 # region is seen three times in training, yet 10 of the 25 object-region pairs are never shown.
 TRAIN_REGIONS: tuple[frozenset[int], ...] = tuple(
@@ -348,8 +347,8 @@ def sample_layout(condition: Condition, seed: int = 0, target: str | None = None
     else:  # pragma: no cover - the regions are sized so this cannot happen with the shipped objects
         raise RuntimeError(f"no collision-free layout after {MAX_TRIES} tries ({regime}, seed {seed})")
     xy = np.array(xy)
-    low = -YAW_RANGE[regime]
-    yaw = low + (YAW_RANGE[regime] - low) * rng.random(num_objects)  # rng.uniform(low, high, k), as in _draw
+    low = -LADDER[regime].yaw
+    yaw = low + (LADDER[regime].yaw - low) * rng.random(num_objects)  # rng.uniform(low, high, k), as in _draw
     partner = swap_partner(names, seed) if appearance == "swap" else None
     return Layout(condition, int(seed), names, xy, yaw, regions, instructions,
                   None if partner is None else (names[0], partner))

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from vla_ladder.contract import CAMERA_NAMES, ENV_ID
-from vla_ladder.machine import limit_threads
+from vla_ladder.machine import exit_with_parent, limit_threads
 
 
 class SlotEnv(gym.Wrapper):
@@ -39,7 +39,8 @@ class SlotEnv(gym.Wrapper):
 
 def make_cpu_env(index: int, **make_kwargs) -> gym.Env:
     """Build sub-env `index` in a spawned process (module-level, so it pickles), with one renderer thread and
-    one torch thread."""
+    one torch thread; it ends with the process that started it."""
+    exit_with_parent()
     limit_threads(1)
     from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
 

@@ -15,6 +15,7 @@ import logging
 import os
 import shlex
 import time
+from urllib.error import URLError
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -277,7 +278,12 @@ def train(req: TrainConfig) -> Path:
     log.info("training %s on %s for %d steps (batch %d, chunk %d): %s", req.policy_type, req.dataset,
              req.steps, req.batch_size, req.chunk_size, shlex.join(req.lerobot_command()))
     start = time.time()
-    lerobot_train(cfg)
+    try:
+        lerobot_train(cfg)
+    except URLError as e:  # a download without network (ACT's ImageNet backbone, a tokenizer, a hub checkpoint)
+        raise ValueError(f"lerobot-train tried to download something and could not ({e.reason}); on a machine "
+                         "without network export HF_HUB_OFFLINE=1, so that ACT's backbone trains from scratch and "
+                         "tokenizers and checkpoints are looked up locally") from None
     if int(os.environ.get("RANK", "0")) == 0:
         files.write_json(req.out / "vla_ladder_train.json", {
             "request": asdict(req),
