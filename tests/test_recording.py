@@ -253,6 +253,8 @@ BAD_CLIENTS = {
     "text frame": (["hello"], P.CLOSE_MALFORMED, "text frames"),
     "object dtype": ([_raw({"type": "hello", "arrays": [["x", "object", [1]]]}, b"\x00" * 8)], P.CLOSE_MALFORMED,
                      "not allowed"),
+    "shape whose product overflows int64": ([_raw({"type": "hello", "arrays": [["x", "uint8", [65536] * 4]]})],
+                                            P.CLOSE_MALFORMED, "runs past the end"),
     "oversized message": ([b"\x00" * (P.MAX_CLIENT_MESSAGE + 1)], P.CLOSE_TOO_BIG, ""),
     "run before hello": ([P.run([1])], P.CLOSE_UNEXPECTED, "expected 'hello'"),
     "client max_size too small": ([P.hello(TOKEN, 1000)], P.CLOSE_LIMIT, "accepts 1000"),

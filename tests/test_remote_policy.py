@@ -98,6 +98,8 @@ def test_bad_remote_specs_fail_in_one_line_before_work(tmp_path, capsys):
                           ("remote:http://127.0.0.1:8000", "a remote policy is a WebSocket URL"),
                           ("remote:ws://127.0.0.1:1?horizon=3", "unknown option 'horizon' .*allowed: n_action_steps"),
                           ("remote:ws://127.0.0.1:1?n_action_steps=0", "expected an integer >= 1"),
+                          ("remote:ws://127.0.0.1:99999", "a remote policy is a WebSocket URL"),
+                          ("remote:ws://[::1", "a remote policy is a WebSocket URL"),
                           ("remote:", "policy 'remote' needs a server: remote:URL")]:
         assert main(["eval", "--policy", spec, *EVAL, "--out", str(out)]) == 2
         err = capsys.readouterr().err.strip()

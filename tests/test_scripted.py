@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from vla_ladder.policies.scripted import ScriptedConfig, ScriptedPolicy, make_policy
+from vla_ladder.policies.scripted import ScriptedConfig, ScriptedPolicy
 from vla_ladder.policies import load_policy
 from vla_ladder.conditions import REGIMES
 
@@ -59,8 +59,8 @@ def test_episode_randomness_is_seeded():
 
 
 def test_bad_arguments():
-    with pytest.raises(ValueError, match="no argument"):
-        make_policy("some/path")
+    with pytest.raises(ValueError, match="takes no argument"):  # parse_spec: before any factory runs
+        load_policy("scripted:some/path")
     with pytest.raises(ValueError, match="approach_height"):
         ScriptedConfig(approach_height=(0.1, 0.05))
     policy = ScriptedPolicy()

@@ -75,6 +75,12 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     assert main(["train", "--policy-type", "act", "--dataset", str(tmp_path / "missing"),
                  "--out", str(tmp_path / "run")]) == 2
     assert "does not exist" in capsys.readouterr().err
+    (tmp_path / "afile").write_text("x")
+    assert main(["train", "--policy-type", "act", "--dataset", str(tmp_path / "afile"),
+                 "--out", str(tmp_path / "run")]) == 2
+    assert "is a file, not a dataset directory" in capsys.readouterr().err
+    assert main(base + ["--policy-type", "act", "--device", "tpu"]) == 2
+    assert "--device 'tpu': allowed: cpu, cuda, cuda:N, mps" in capsys.readouterr().err
 
     wrong = tmp_path / "wrong"
     (wrong / "meta").mkdir(parents=True)

@@ -1,9 +1,9 @@
 """Every policy vla-ladder runs, behind one interface: an observation batch and instructions in, actions out.
 
-The interface and the registry live here (the ground floor every stage may import); each kind lives in its
-own module of this package: scripted.py (the scripted expert), reference.py (nearest, layout-prior,
-random, committed), ppo.py (the PPO expert's network, checkpoint format and policy), lerobot.py (any LeRobot
-checkpoint), remote.py (a policy served by another process, in openpi's protocol; serving.py serves one).
+The interface and the registry live here (the policies stage, below recording, evaluation and the experiments);
+each kind lives in its own module of this package: scripted.py (the scripted expert), reference.py (nearest,
+layout-prior, random, committed), ppo.py (the PPO expert's network, checkpoint format and policy), lerobot.py (any
+LeRobot checkpoint), remote.py (a policy served by another process, in openpi's protocol; serving.py serves one).
 Recording and evaluation never care which kind they run. `load_policy("kind[:arg]")` builds one from a
 command-line spec; a kind's module is imported only when that kind is asked for.
 """

@@ -125,7 +125,12 @@ def unpack(data: bytes) -> Any:
 
 
 def check_url(url: str) -> str:
-    parts = urlsplit(url)
+    try:
+        parts = urlsplit(url)
+        parts.port  # noqa: B018  (raises on a port outside 0..65535)
+    except ValueError as e:  # an unclosed IPv6 bracket, a port out of range
+        raise ValueError(f"a remote policy is a WebSocket URL, ws://HOST:PORT or wss://HOST:PORT; got {url!r} "
+                         f"({e})") from None
     if parts.scheme not in ("ws", "wss") or not parts.hostname:
         raise ValueError(f"a remote policy is a WebSocket URL, ws://HOST:PORT or wss://HOST:PORT; got {url!r}")
     return url

@@ -111,7 +111,7 @@ def decode(data: bytes | str) -> Message:
     for spec in specs:
         name, dtype, shape = _check_spec(spec)
         dt = np.dtype(dtype).newbyteorder("<")
-        count = int(np.prod(shape, dtype=np.int64))
+        count = math.prod(shape)  # Python integers: an int64 product of [65536] * 4 wraps to 0
         if offset + count * dt.itemsize > len(view):
             raise ProtocolError(f"array {name!r} runs past the end of the message")
         arrays[name] = np.frombuffer(view, dtype=dt, count=count, offset=offset).reshape(shape)

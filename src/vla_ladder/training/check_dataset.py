@@ -41,7 +41,7 @@ import pandas as pd
 import tyro
 
 from vla_ladder import files
-from vla_ladder.conditions import Condition
+from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.contract import ACTION_KEY, EPISODE_STEPS, STATE_KEY
 from vla_ladder.recordings import read_provenance, read_recording
 from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, layout_from_dict
@@ -252,9 +252,10 @@ class Checker:
 
     def leakage(self) -> None:
         split = self.recording.condition.split
-        if split == "pairings_ood" or self.recording.condition.regime == "full_random":
+        if split == "pairings_ood" or REGIMES[self.recording.condition.regime] is None:
             self.summary["leakage"] = {"checked": False, "note": f"{split} data hold held-out pairs by design"
-                                       if split == "pairings_ood" else "full random has no regions"}
+                                       if split == "pairings_ood" else f"{self.recording.condition.regime} has no "
+                                       "regions"}
             return
         leaks = 0
         for row, layout in zip(self.prov.itertuples(index=False), self.layouts):

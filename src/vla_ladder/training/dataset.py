@@ -14,7 +14,8 @@ def read_info(root: str | Path) -> dict:
     """meta/info.json of the dataset at `root`; ValueError when it is not a LeRobotDataset v3 directory."""
     root = Path(root)
     if not root.is_dir():
-        raise ValueError(f"dataset directory {str(root)!r} does not exist")
+        what = "is a file, not a dataset directory" if root.exists() else "does not exist"
+        raise ValueError(f"dataset directory {str(root)!r} {what}")
     info_path = root / "meta" / "info.json"
     if not info_path.is_file():
         raise ValueError(f"{str(root)!r} is not a LeRobotDataset: {info_path} is missing")

@@ -13,6 +13,7 @@ import dataclasses
 import json
 import logging
 import os
+import re
 import shlex
 import time
 from urllib.error import URLError
@@ -127,6 +128,8 @@ class TrainConfig:
                              f"({self.chunk_size})")
         if self.train_seed < 0:
             raise ValueError(f"--train-seed must be >= 0, got {self.train_seed}")
+        if self.device is not None and not re.fullmatch(r"cpu|mps|cuda(:\d+)?", self.device):
+            raise ValueError(f"--device {self.device!r}: allowed: cpu, cuda, cuda:N, mps")
         # `out` is checked by train(), not here: a grid or study builds configs for runs that already exist.
 
     # ------------------------------------------------------------------ lerobot-train flags
