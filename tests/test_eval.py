@@ -231,3 +231,29 @@ def test_an_evaluation_killed_with_minus_9_leaves_no_process_behind(procs, tmp_p
         for p in children:  # (reparented once their parent died: not this process's children any more)
             if p.is_running():
                 p.kill()
+
+
+def test_a_run_directory_refuses_a_checkpoint_retrained_at_the_same_path(tmp_path):
+    """The request names the checkpoint by its path: a run resumed after the model there was retrained would mix two
+    models' episodes. config.json keeps the weights' sha256 and the resume compares it."""
+    from vla_ladder.evaluation.runner import open_run_dir
+    from vla_ladder.policies import weights_identity
+    from vla_ladder.policies.ppo import Agent, save_agent
+
+    ckpt = tmp_path / "ckpt"
+    save_agent(ckpt / "model.safetensors", Agent(10, 7, (8,)))
+    cfg = EvalConfig(f"ppo:{ckpt}", out=tmp_path / "run", episodes=2)
+    first = weights_identity(cfg.policy)
+    assert open_run_dir(cfg, first) == [] and open_run_dir(cfg, weights_identity(cfg.policy)) == []  # resumes
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["policy_weights"] == first
+
+    torch.manual_seed(1)
+    save_agent(ckpt / "model.safetensors", Agent(10, 7, (8,)))  # retrained in place
+    retrained = weights_identity(cfg.policy)
+    assert retrained["sha256"] != first["sha256"]
+    with pytest.raises(ValueError, match="holds episodes of other weights at ppo:.*retrained.*new --out"):
+        open_run_dir(cfg, retrained)
+    (tmp_path / "run" / "episodes.parquet").write_bytes(b"")  # what --overwrite must clear
+    again = EvalConfig(f"ppo:{ckpt}", out=tmp_path / "run", episodes=2, overwrite=True)
+    assert open_run_dir(again, retrained) == [] and not (tmp_path / "run" / "episodes.parquet").exists()
+    assert weights_identity("scripted") is None

@@ -26,7 +26,7 @@ from vla_ladder.contract import EPISODE_STEPS
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
-from vla_ladder.policies import POLICY_KINDS, Policy, check_spec
+from vla_ladder.policies import POLICY_KINDS, Policy, check_spec, weights_identity
 
 SIM_BACKENDS = ("physx_cpu", "physx_cuda")
 OBJECT_SETS = ("auto", "ycb", "standin")
@@ -34,7 +34,7 @@ ROBOT_MESHES = ("lite", "full")
 FLUSH_SECONDS = 10.0
 # Fields of EvalConfig that do not change which episodes are played or what they give: a run directory
 # written with other values of these is the same request and is resumed.
-NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite")
+NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite", "policy_weights")
 # Fields added after run directories existed, with the value a config.json without them meant; they become env
 # reset options of every episode when not at that value (the probes, experiments/probes.py, set them).
 PRESENTATION = {"instructions": "canonical", "appearance": "original", "instruct": 0, "instruct_absent": None,
@@ -183,14 +183,24 @@ def video_name(condition: Condition, episode: int, seed: int) -> str:
     return f"videos/{condition.slug}-ep{episode:03d}-seed{seed}.mp4"
 
 
-def open_run_dir(cfg: EvalConfig) -> list[dict]:
+def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     """Make cfg.out ready and return the rows it already holds for this request (resume). A directory that
-    holds another request, or is not a run directory, is refused unless cfg.overwrite."""
+    holds another request, or is not a run directory, is refused unless cfg.overwrite; so is one whose episodes
+    were played with other weights at the same path (`weights`: policies.weights_identity, kept in config.json
+    as policy_weights; run directories from before it resume unchecked)."""
     out, saved = cfg.out, cfg.out / "config.json"
-    previous = ({k: v for k, v in {**PRESENTATION, **json.loads(saved.read_text())}.items()
-                 if k not in NOT_THE_REQUEST} if saved.is_file() else None)
+    config = json.loads(saved.read_text()) if saved.is_file() else None
+    previous = ({k: v for k, v in {**PRESENTATION, **config}.items() if k not in NOT_THE_REQUEST}
+                if config is not None else None)
+    before = (config or {}).get("policy_weights")
+    if before and weights and before["sha256"] != weights["sha256"] and previous == cfg.request():
+        if not cfg.overwrite:
+            raise ValueError(f"{out} holds episodes of other weights at {cfg.policy} (sha256 {before['sha256'][:12]}, "
+                             f"now {weights['sha256'][:12]}: retrained?); evaluate into a new --out, or pass "
+                             "--overwrite to start again")
+        previous = {}  # another model: --overwrite starts afresh
     files.claim_dir(out, previous, cfg.request(), cfg.overwrite, "evaluation", "a run directory")
-    files.write_json(saved, asdict(cfg))
+    files.write_json(saved, {**asdict(cfg), **({"policy_weights": weights} if weights else {})})
     path = out / "episodes.parquet"
     if not path.is_file():
         return []
@@ -254,7 +264,8 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
             raise ValueError("--policy SPEC is required; allowed: " + ", ".join(POLICY_KINDS))
         check_spec(cfg.policy)  # an unknown spec or a missing checkpoint fails before any file is written
     spec = cfg.policy or policy.name
-    rows = open_run_dir(cfg) if cfg.out is not None else []
+    weights = weights_identity(cfg.policy) if policy is None and cfg.out is not None else None
+    rows = open_run_dir(cfg, weights) if cfg.out is not None else []
     done = {(r["regime"], r["split"], r["num_objects"], r["episode"]) for r in rows}
     jobs = [j for j in cfg.jobs() if (j.condition.regime, j.condition.split, j.condition.num_objects, j.episode)
             not in done]

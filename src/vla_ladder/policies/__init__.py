@@ -10,8 +10,10 @@ command-line spec; a kind's module is imported only when that kind is asked for.
 
 from __future__ import annotations
 
+import functools
 import importlib
 from abc import ABC, abstractmethod
+from pathlib import Path
 from typing import Any, Callable, Sequence
 from urllib.parse import parse_qsl
 
@@ -96,6 +98,33 @@ def load_policy(spec: str, **kwargs) -> Policy:
     kind, arg = parse_spec(spec)
     module, _, fn = POLICY_KINDS[kind].partition(":")
     return getattr(importlib.import_module(module), fn)(arg, **kwargs)
+
+
+def weights_identity(spec: str) -> dict | None:
+    """The sha256 of the weights file a ppo:/lerobot: spec names, which a run directory keeps so that resuming it
+    with a checkpoint retrained at the same path is refused instead of mixing two models' episodes; None for kinds
+    without a weights file here (the scripted and reference policies, a remote server)."""
+    kind, arg = parse_spec(spec)
+    if kind == "lerobot":
+        from vla_ladder.policies.lerobot import WEIGHTS_FILE, parse_arg, resolve_checkpoint
+        path = resolve_checkpoint(parse_arg(arg)[0]) / WEIGHTS_FILE
+    elif kind == "ppo":
+        from vla_ladder.policies.ppo import checkpoint_dir
+        path = checkpoint_dir(arg) / "model.safetensors"
+    else:
+        return None
+    stat = Path(path).stat()
+    return {"file": str(path), "sha256": _sha256(str(path), stat.st_ino, stat.st_size, stat.st_mtime_ns)}
+
+
+@functools.lru_cache(maxsize=32)
+def _sha256(path: str, inode: int, size: int, mtime_ns: int) -> str:
+    # Keyed by inode, size and mtime too: a probe's variants evaluate one checkpoint several times (a 450M model's
+    # weights take seconds to hash), and a file replaced or rewritten is hashed again.
+    import hashlib
+
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def check_spec(spec: str) -> tuple[str, str | None]:
