@@ -6,7 +6,7 @@ import json
 import pytest
 
 import lerobot_helpers as H
-from vla_ladder.contract import BLIND_INSTRUCTION
+from vla_ladder.contract import BLIND_INSTRUCTION, IMAGE_SHAPE
 from vla_ladder.training.blind import blind_copy
 
 pytestmark = pytest.mark.slow  # records a dataset
@@ -40,7 +40,7 @@ def test_a_lerobot_policy_can_be_played_with_a_fixed_instruction(tmp_path_factor
     policy = load_policy(f"lerobot:{run}?instruction={BLIND_INSTRUCTION}&device=cpu")
     policy.preprocessor_orig, policy.preprocessor = policy.preprocessor, lambda b: seen.append(b["task"]) or \
         policy.preprocessor_orig(b)
-    obs = {"sensor_data": {c: {"rgb": torch.zeros(2, 256, 256, 3, dtype=torch.uint8)}
+    obs = {"sensor_data": {c: {"rgb": torch.zeros(2, *IMAGE_SHAPE, dtype=torch.uint8)}
                            for c in ("hand_camera", "fixed_camera")}, "extra": {"proprio": torch.zeros(2, 15)}}
     policy.reset([0, 1])
     assert policy.act(obs, ["grasp the mug", "grasp the apple"]).shape == (2, 7)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from vla_ladder.contract import ACTION_KEY, CAMERA_KEYS, STATE_KEY
+from vla_ladder.contract import ACTION_KEY, CAMERA_KEYS, IMAGE_SHAPE, STATE_KEY
 
 pytestmark = pytest.mark.slow  # imports LeRobot's policy stack (~30 s on a busy 2-core machine)
 
@@ -46,13 +46,14 @@ def _refusal(path: Path) -> str:
     return str(e.value)
 
 
-ENV_CAMERAS = {HAND: (3, 256, 256), FIXED: (3, 256, 256)}
+CHW = (3, *IMAGE_SHAPE[:2])  # the env's cameras as LeRobot declares images
+ENV_CAMERAS = {HAND: CHW, FIXED: CHW}
 
 
 @pytest.mark.parametrize("kind", TYPES)
 def test_every_mismatch_is_named_for_every_policy_type(kind, tmp_path):
     top = HAND.replace("hand_camera", "top")
-    bad = _checkpoint(tmp_path / "bad", kind, {HAND: (3, 256, 256), top: (3, 256, 256)}, state=(6,), action=(6,))
+    bad = _checkpoint(tmp_path / "bad", kind, {HAND: CHW, top: CHW}, state=(6,), action=(6,))
     msg = _refusal(bad)
     assert f"LeRobot checkpoint ({kind}) does not match GraspObject-v1" in msg
     assert f"camera {top} is not one the env has" in msg
@@ -70,17 +71,17 @@ def test_image_sizes_matter_only_to_policies_that_do_not_resize(kind, tmp_path):
     small = _checkpoint(tmp_path / "small", kind, {HAND: (3, 96, 96), FIXED: (3, 96, 96)})
     msg = _refusal(small)
     if kind == "act":
-        assert f"camera {HAND} has shape (3, 96, 96), the env renders (3, 256, 256)" in msg
+        assert f"camera {HAND} has shape (3, 96, 96), the env renders {CHW}" in msg
     else:  # SmolVLA resizes every image to its own resolution
         assert "no model.safetensors" in msg
 
 
 def test_renames_are_the_saved_ones_and_blank_camera_slots_are_allowed(tmp_path):
     top, side = HAND.replace("hand_camera", "top"), HAND.replace("hand_camera", "side")
-    renamed = _checkpoint(tmp_path / "renamed", "smolvla", {top: (3, 256, 256), side: (3, 256, 256)},
+    renamed = _checkpoint(tmp_path / "renamed", "smolvla", {top: CHW, side: CHW},
                           rename={HAND: top, FIXED: side})
     assert "no model.safetensors" in _refusal(renamed)
-    half = _checkpoint(tmp_path / "half", "smolvla", {top: (3, 256, 256), side: (3, 256, 256)}, rename={HAND: top})
+    half = _checkpoint(tmp_path / "half", "smolvla", {top: CHW, side: CHW}, rename={HAND: top})
     msg = _refusal(half)
     assert f"with the saved rename map {{'{HAND}': '{top}'}}" in msg and f"camera {side} is not one" in msg
     assert "none of its cameras" not in msg
@@ -130,5 +131,5 @@ def test_eval_refuses_a_mismatched_checkpoint_before_its_run_directory(tmp_path)
                            "--episodes", "1", "--out", str(out)], capture_output=True, text=True, timeout=600)
     err = done.stderr.strip().splitlines()
     assert done.returncode == 2 and len(err) == 1, done.stderr[-3000:]
-    assert f"camera {HAND} has shape (3, 96, 96), the env renders (3, 256, 256)" in err[0]
+    assert f"camera {HAND} has shape (3, 96, 96), the env renders {CHW}" in err[0]
     assert not out.exists()

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from vla_ladder.conditions import REGIMES, Condition
-from vla_ladder.contract import INFO_KEYS, METRICS
+from vla_ladder.contract import EPISODE_STEPS, IMAGE_SHAPE, INFO_KEYS, METRICS
 from vla_ladder.task.layouts import sample_layout
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
 
@@ -97,7 +97,7 @@ def test_metrics_target_grasped_and_lifted(make_env):
     assert last["success"].item() and last["grasp_any"].item() and last["reach"].item()
     assert last["lifted"].item() and last["held"].item() == OBJECT_NAMES.index("rubiks_cube")
     assert not any(i["success"].item() for i in infos[:20]), "nothing is grasped before the fingers close"
-    assert infos[-1]["elapsed_steps"].item() == 50
+    assert infos[-1]["elapsed_steps"].item() == EPISODE_STEPS
 
 
 @pytest.mark.slow
@@ -132,7 +132,7 @@ def test_rendering_both_cameras(make_env):
     obs, _ = env.reset(seed=2)
     imgs = {c: obs["sensor_data"][c]["rgb"][0] for c in ("hand_camera", "fixed_camera")}
     for cam, img in imgs.items():
-        assert img.shape == (256, 256, 3) and img.dtype == torch.uint8, cam
+        assert img.shape == IMAGE_SHAPE and img.dtype == torch.uint8, cam
         assert img.float().std() > 10, f"{cam} is blank"
     assert not torch.equal(imgs["hand_camera"], imgs["fixed_camera"])
     assert obs["extra"]["proprio"].shape == (1, 15)
@@ -185,7 +185,7 @@ def test_render_command_writes_both_cameras_and_episode(tmp_path):
     assert main(["render", "--regimes", "small_jitter", "--seed", "5", "--out", str(tmp_path)]) == 0
     for cam in ("hand_camera", "fixed_camera"):
         img = np.asarray(Image.open(tmp_path / f"small_jitter_seed5_{cam}.png"))
-        assert img.shape == (256, 256, 3) and img.std() > 10
+        assert img.shape == IMAGE_SHAPE and img.std() > 10
     ep = json.loads((tmp_path / "small_jitter_seed5.json").read_text())
     assert ep["seed"] == 5 and ep["provenance"]["object_set"] == "standin"
     assert ep["instruction"] == sample_layout(Condition("small_jitter"), seed=5).instruction

@@ -9,6 +9,7 @@ import torch
 
 from vla_ladder.cli import main
 from vla_ladder.conditions import REGIMES, ConditionGrid, parse_regimes
+from vla_ladder.contract import EPISODE_STEPS, IMAGE_SHAPE
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.policies import Policy
@@ -46,7 +47,8 @@ def test_eval_command_writes_run_directory(tmp_path, capsys):
     # Both cameras side by side, the first frame plus one per control step.
     assert df["video"][1] == ""
     frames = iio.imread(out / df["video"][0], plugin="pyav")
-    assert frames.shape == (51, 256, 512, 3)
+    h, w, _ = IMAGE_SHAPE
+    assert frames.shape == (EPISODE_STEPS + 1, h, 2 * w, 3)  # the first frame and one per step, cameras side by side
 
     summary = json.loads((out / "summary.json").read_text())
     assert summary["policy"]["name"] == "scripted"
@@ -132,13 +134,13 @@ def test_batched_cpu_envs_play_the_same_episodes(tmp_path):
     assert runs[1]["success"].any() and not runs[1]["success"].all()
     for video in runs[2]["video"][runs[2]["video"] != ""]:
         frames = iio.imread(tmp_path / "n2" / video)
-        assert frames.shape == (51, 256, 512, 3) and frames.std() > 10
+        assert frames.shape == (EPISODE_STEPS + 1, IMAGE_SHAPE[0], 2 * IMAGE_SHAPE[1], 3) and frames.std() > 10
     with pytest.raises(ValueError, match="choose one"):
         EvalConfig("layout-prior", grid=grid, workers=2, num_envs=2)
     # Where the time went: the 6 episodes are 6 batches of one env, or 3 of two (a batch may mix conditions).
     for n, batches in ((1, 6), (2, 3)):
         t = timing[n]
-        assert t["episodes"] == 6 and t["lockstep_steps"] == 50 * batches
+        assert t["episodes"] == 6 and t["lockstep_steps"] == EPISODE_STEPS * batches
         assert all(t[f"{phase}_s"] > 0 for phase in ("reset", "policy", "env", "film"))
         assert t["reset_s"] + t["policy_s"] + t["env_s"] + t["film_s"] < t["wall_s"]
         assert t["per_step_ms"]["env"] == pytest.approx(1e3 * t["env_s"] / t["lockstep_steps"], abs=0.01)
