@@ -1,6 +1,7 @@
 """`--policy remote:URL` and `vla-ladder serve-policy`: openpi's policy-server protocol over a real loopback WebSocket,
 a real LeRobot checkpoint served by a real `vla-ladder serve-policy` process, episodes in the real simulator."""
 
+import json
 import os
 import pickle
 import re
@@ -230,6 +231,9 @@ def test_a_served_checkpoint_plays_what_it_plays_in_process(served, tmp_path, mo
     assert (batched[["success", "grasp_any", "reach"]] == local[["success", "grasp_any", "reach"]]).all().all()
     np.testing.assert_allclose(batched[["tcp_x", "tcp_y"]], local[["tcp_x", "tcp_y"]], atol=1e-4, rtol=0)
     assert not np.array_equal(remote4[["tcp_x", "tcp_y"]].to_numpy(), local[["tcp_x", "tcp_y"]].to_numpy())
+    # The server names its weights (sha256), so the run directory keeps them as the in-process run does.
+    saved = [json.loads((tmp_path / n / "config.json").read_text())["policy_weights"] for n in ("remote", "local")]
+    assert saved[0]["sha256"] == saved[1]["sha256"] and saved[0]["server"] == url
 
 
 @pytest.mark.slow

@@ -101,10 +101,17 @@ def load_policy(spec: str, **kwargs) -> Policy:
 
 
 def weights_identity(spec: str) -> dict | None:
-    """The sha256 of the weights file a ppo:/lerobot: spec names, which a run directory keeps so that resuming it
-    with a checkpoint retrained at the same path is refused instead of mixing two models' episodes; None for kinds
-    without a weights file here (the scripted and reference policies, a remote server)."""
+    """The sha256 of the weights file a ppo:/lerobot: spec names (for remote:, the one its server's metadata gives
+    as weights_sha256, as `serve-policy` does), which a run directory keeps so that resuming it with a checkpoint
+    retrained at the same path, or another model behind the same URL, is refused instead of mixing two models'
+    episodes; None for kinds without weights (the scripted and reference policies) and servers that do not say."""
     kind, arg = parse_spec(spec)
+    if kind == "remote":
+        from vla_ladder.policies.remote import connect, parse_arg as remote_arg
+        ws, metadata = connect(remote_arg(arg)[0])
+        ws.close()
+        sha = metadata.get("weights_sha256")
+        return {"server": remote_arg(arg)[0], "sha256": sha} if isinstance(sha, str) else None
     if kind == "lerobot":
         from vla_ladder.policies.lerobot import WEIGHTS_FILE, parse_arg, resolve_checkpoint
         path = resolve_checkpoint(parse_arg(arg)[0]) / WEIGHTS_FILE

@@ -153,12 +153,14 @@ class PolicyServer:
     together by its next forward pass (at most --max-batch), so N clients cost one batched pass, not N."""
 
     def __init__(self, cfg: ServePolicyConfig):
-        from vla_ladder.policies import load_policy
+        from vla_ladder.policies import load_policy, weights_identity
 
         self.cfg = cfg
         self.policy = load_policy(cfg.policy)
         self.metadata = {
             "server": "vla-ladder", "policy": self.policy.describe(),
+            # what an evaluation's run directory keeps of the weights, so that it refuses to resume with others
+            "weights_sha256": weights_identity(cfg.policy)["sha256"],
             "n_action_steps": self.policy.n_action_steps, "action_dim": ACTION_DIM, "max_pipelined": cfg.max_batch,
             "observation": {"cameras": {c.key: list(c.shape) for c in CAMERAS}, "state": [STATE_KEY, STATE_DIM],
                             "prompt": PROMPT_KEY, "episode_seed": SEED_KEY, "chunk_index": CHUNK_KEY},
