@@ -15,6 +15,7 @@ from vla_ladder.evaluation import grounding
 from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.experiments.probes import ProbeConfig, ProbeGrid, run_probe
 from vla_ladder.report.html import build_report
+from vla_ladder.stats import paired_difference
 from vla_ladder.task.instructions import parse_instruction
 from vla_ladder.task.layouts import REGION_CENTERS, TRAIN_REGIONS, layout_from_dict, sample_layout, usual_regions
 from vla_ladder.task.objects import OBJECT_NAMES, object_index
@@ -110,6 +111,12 @@ def test_absent_metrics_tell_grounded_shortcut_and_blind_policies_apart():
     assert g["grasp_absent"]["method"] == "wilson over scenes (every play alike)"
     assert g["grasp_absent"]["ci95"][1] == pytest.approx(0.278, abs=1e-3)
     assert g["usual_regions"]["mug"] == [3]
+    assert g["grasp_change"]["method"] == "bootstrap over scenes"  # two absent plays a scene: a share minus a 0/1
+    # With four objects, one absent play a scene: the change is a paired binary difference (Newcombe's interval).
+    four = grounding.absent_object(*absent_plays(grounded, k=4), resamples=300)["small_jitter/canonical/4"]
+    assert four["grasp_change"]["value"] == -1 and four["grasp_change"]["method"] == "newcombe paired score"
+    assert four["grasp_change"]["ci95"] == pytest.approx(list(paired_difference(np.ones(10, bool),
+                                                                                 np.zeros(10, bool))))
     s = grounding.absent_object(*absent_plays(shortcut), resamples=300)[key]
     assert s["shortcut_reach"]["value"] == 1 and s["grasp_absent"]["value"] == 0 and s["same_grasp"]["value"] == 0
     b = grounding.absent_object(*absent_plays(blind), resamples=300)[key]

@@ -7,23 +7,23 @@ on what the instruction says:
 - instruction swap: per scene, which object is held under each instruction. Instruction sensitivity (the held
   object is not the same under all instructions) and scene accuracy (the instructed object is held under every
   instruction) are scene-level proportions: Wilson intervals. Grounded accuracy P(held = instructed | something
-  held), success over all plays and the normalised mutual information I(instructed; held) / H(instructed) pool
-  correlated plays of a scene: percentile intervals of a bootstrap over scenes (Wilson over scenes where every
-  play counts or none does, which no resample can leave).
+  held) and success over all plays pool correlated plays of a scene: Wilson on their design-effect sample size
+  (pooled_rate). The normalised mutual information I(instructed; held | objects) / H(instructed | objects): a
+  percentile bootstrap over scenes, beside its permutation null (nmi_null: the plug-in estimate is biased up).
 - paraphrases and appearance swaps: rates of each variant on the same scenes (Wilson), their paired difference
-  (bootstrap over scenes) and McNemar's exact test.
+  (Newcombe's paired interval, stats.paired_difference) and McNemar's exact test.
 - absent object: the same scenes instructing an object that is not on the table. The grasp rate (something held)
   and the share of plays whose gripper ends at the named object's usual place (shortcut reach), pooled over a
-  scene's absent plays (bootstrap over scenes), next to the scene's ordinary play (Wilson); the named x held
-  matrix.
+  scene's absent plays (Wilson on their design-effect sample size), next to the scene's ordinary play (Wilson);
+  the named x held matrix.
 - position swap: the same scenes with the instructed object and one distractor (its partner) exchanging places.
   What is held in each play (instructed, partner, other, none) over the scenes that had a swap: shares (Wilson),
-  follows-object and follows-place in both plays and their paired changes (bootstrap over scenes, McNemar's exact
-  p), the transition table original -> swapped.
+  follows-object and follows-place in both plays and their paired changes (Newcombe's paired interval, McNemar's
+  exact p), the transition table original -> swapped.
 - instruction switch: the same scenes with the instruction switching mid-episode, at control step K, from the
   instructed object A to a distractor B. What is held at the end (B: follows the new instruction, A: stays with
   the old one, another, none) and where the gripper ends, per K, next to the unswitched play: shares (Wilson),
-  paired changes (bootstrap over scenes, McNemar's exact p), the transition table original -> switched.
+  paired changes (Newcombe's paired interval, McNemar's exact p), the transition table original -> switched.
 
 An object "held" is the one grasped at the final step ("none" when nothing is), as for success.
 """
@@ -227,7 +227,7 @@ def transitions(before: list[str], after: list[str], outcomes: tuple[str, ...]) 
 
 
 def paired(a: pd.DataFrame, b: pd.DataFrame, metrics=METRICS) -> dict:
-    """Per condition: both variants' rates (Wilson), and per metric the paired difference b - a with a bootstrap
+    """Per condition: both variants' rates (Wilson), and per metric the paired difference b - a with Newcombe's paired
     interval over scenes and McNemar's exact p-value. Episodes pair on condition and episode index."""
     keys = [*CONDITION_KEYS, "episode"]
     merged = a.merge(b, on=keys, suffixes=("_a", "_b"))
@@ -279,7 +279,7 @@ def held_outcome(held: str, first: str, second: str, names: tuple[str, ...] = CO
 def appearance_swap(original: pd.DataFrame, swapped: pd.DataFrame) -> dict:
     """Per condition, on the scenes whose instructed object had a swap partner: what is held under the swap and
     without it (the same scenes), as shares of COLOUR_OUTCOMES with Wilson intervals; the transition table
-    original -> swap; follows-shape minus its no-swap value with a bootstrap interval and McNemar's p."""
+    original -> swap; follows-shape minus its no-swap value with Newcombe's paired interval and McNemar's p."""
     keys = [*CONDITION_KEYS, "episode"]
     merged = original.merge(swapped, on=keys, suffixes=("_o", "_s"))
     merged["partner"] = [(json.loads(lay).get("colour_swap") or [None, None])[1] for lay in merged["layout_s"]]
@@ -331,7 +331,8 @@ def absent_object(present: pd.DataFrame, absent: pd.DataFrame, resamples: int = 
     absent plays (episodes.parquet rows with an `absent` column, the named object's rank among the absent ones;
     `target` is the named object), `present`: the same scenes' ordinary plays (their own target instructed).
     Scenes missing a play are left out. Rates over the present plays (one a scene) are Wilson; rates pooled over a
-    scene's absent plays get the bootstrap over scenes, as does the paired change absent - present."""
+    scene's absent plays get pooled_rate's interval; the change absent - present Newcombe's paired interval with one
+    absent play a scene (four objects), a bootstrap over scenes with several."""
     out = {}
     for key, g in _by_condition(absent):
         cond = Condition.parse(key)
@@ -351,15 +352,19 @@ def absent_object(present: pd.DataFrame, absent: pd.DataFrame, resamples: int = 
         plays = np.full(n, float(missing))
         shortcut = at_usual_place(full, cond)
         change = held.mean(1) - held_present if n else np.zeros(0)
-        lo, hi = bootstrap(lambda idx: change[idx].mean(1), n, resamples)
+        if missing == 1:  # one absent play a scene: a paired binary difference
+            grasp_change = paired_change(held_present, held[:, 0])
+        else:  # a share of the scene's absent plays minus a 0/1
+            grasp_change = {"value": float(change.mean()) if n else float("nan"),
+                            "ci95": list(bootstrap(lambda idx: change[idx].mean(1), n, resamples)),
+                            "method": "bootstrap over scenes", "n": n}
         regions = {o: usual_regions(o, cond) for o in OBJECT_NAMES}  # all None in full random
         out[key] = {
             "scenes": n, "absent_plays": int(n * missing),
             "usual_regions": None if None in regions.values() else {o: list(r) for o, r in regions.items()},
             "grasp_present": wilson_rate(int(held_present.sum()), n),
             "grasp_absent": pooled_rate(held.sum(1).astype(float), plays),
-            "grasp_change": {"value": float(change.mean()) if n else float("nan"), "ci95": [lo, hi],
-                             "method": "bootstrap over scenes", "n": n},
+            "grasp_change": grasp_change,
             "shortcut_reach": None if shortcut is None else
             pooled_rate(shortcut[1].reshape(n, missing).sum(1).astype(float),
                         shortcut[0].reshape(n, missing).sum(1).astype(float)),
@@ -427,7 +432,7 @@ def position_swap(original: pd.DataFrame, swapped: pd.DataFrame) -> dict:
     follows_object: the instructed object is held; follows_place: the partner is held (in the swapped play it
     stands at the instructed object's original place; in the original play it is a wrong grasp like any other).
     reaches_object / reaches_place: the TCP ends at the instructed object / at the partner (`ends_near`), whatever
-    is held. Their paired changes swapped - original get a bootstrap interval over scenes and McNemar's exact p."""
+    is held. Their paired changes swapped - original get Newcombe's paired interval and McNemar's exact p."""
     keys = [*CONDITION_KEYS, "episode"]
     merged = original.merge(swapped, on=keys, suffixes=("_o", "_s"))
     if (merged["seed_o"] != merged["seed_s"]).any() or (merged["target_o"] != merged["target_s"]).any():
@@ -461,7 +466,7 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
     switching at step K from A to B (`switched[K]`; its rows' target is B, their layout's "switch" says K and B,
     its "target" A). What is held at the end, as shares of SWITCH_OUTCOMES in each play (Wilson over scenes);
     follows_new (B held) and stays_old (A held) in both plays with their paired changes switched - original
-    (bootstrap over scenes, McNemar's exact p); where the gripper ends, at B or at A (`ends_near`: within 5 cm
+    (Newcombe's paired interval, McNemar's exact p); where the gripper ends, at B or at A (`ends_near`: within 5 cm
     horizontally of the footprint, nearer it than the other); the transition table original -> switched. Each
     condition holds them per K under "by_step", and at its top, like every probe's flat metrics (the study's probe
     table lists those), the switched play's follows_new_at_K and stays_old_at_K."""
