@@ -379,6 +379,11 @@ def test_an_argument_to_a_policy_that_takes_none_is_refused_before_the_run_direc
     assert not out.exists()
 
 
+def test_placements_bounds_its_layout_count(capsys):
+    for n in ("0", "100000000"):  # a hundred million layouts a regime ran for minutes toward a JSON of gigabytes
+        _one_line_error(capsys, main(["placements", "--n", n]), "--n must be from 1 to 100000 (layouts per regime)")
+
+
 def test_serve_refuses_a_negative_max_outstanding(capsys):
     _one_line_error(capsys, main(["serve", "--port", "0", "--max-outstanding", "-1"]),
                     "max_outstanding must be >= 0 (0: 4 x num_envs, at least 8), got -1")

@@ -62,6 +62,9 @@ def plot_placements(regimes: Sequence[str], n: int, seed: int, path: str | Path,
                         path)
 
 
+MAX_LAYOUTS = 100_000
+
+
 @dataclass
 class PlacementsConfig:
     """Sample layouts of the placement ladder (no simulator): print them, write JSON, draw the paper's Figure 1."""
@@ -89,8 +92,8 @@ class PlacementsConfig:
         if self.target is not None:
             from vla_ladder.task.objects import object_index
             object_index(self.target)
-        if self.n < 1:
-            raise ValueError(f"--n must be at least 1, got {self.n}")
+        if not 1 <= self.n <= MAX_LAYOUTS:  # ~0.1 ms and ~1 KB of JSON a layout: 10^5 a regime is a minute
+            raise ValueError(f"--n must be from 1 to {MAX_LAYOUTS} (layouts per regime), got {self.n}")
         if self.first_seed < 0:
             raise ValueError(f"--first-seed must be >= 0, got {self.first_seed}")
 
