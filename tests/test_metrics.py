@@ -60,8 +60,9 @@ def test_paired_difference_is_newcombes_interval():
 
 
 def test_paired_difference_covers_its_level():
-    """Simulated pairs of correlated outcomes on 30 scenes: the interval holds the true difference in ~95% of
-    draws (Newcombe's 1998 evaluation found 93-97% at such sizes)."""
+    """Simulated pairs of correlated outcomes on 30 scenes: the interval holds the true difference in about 95% of
+    draws (a percentile bootstrap over scenes held it in 61% at 10 scenes and 87% at 20, by the same kind of
+    simulation)."""
     rng = np.random.default_rng(1)
     cover, trials = 0, 2000
     for _ in range(trials):
