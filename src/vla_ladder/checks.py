@@ -11,6 +11,7 @@ import dataclasses
 import errno
 import ipaddress
 import os
+import re
 import socket
 import typing
 from pathlib import Path
@@ -20,6 +21,10 @@ SEED_SUFFIX = "seed"
 seeds say which seed they are, docs/architecture.md), whatever the command."""
 SEED_LIMIT = 2**32
 """Seeds are numpy RandomState seeds in the simulator (ManiSkill seeds each episode with one): 0 <= seed < 2**32."""
+
+
+TORCH_DEVICE = re.compile(r"cpu|mps|cuda(:\d+)?")
+"""The torch devices a policy or a training run may be put on (`--device`, `lerobot:...?device=`)."""
 
 
 # ---------------------------------------------------------------------------------------------- seeds

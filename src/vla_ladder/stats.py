@@ -17,11 +17,12 @@ from vla_ladder.contract import METRICS
 CONFIDENCE = 0.95
 
 
-def wilson(k: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
-    """Wilson score interval of k successes in n trials (nan, nan for n = 0)."""
+def wilson(k: float, n: float, confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """Wilson score interval of k successes in n trials (nan, nan for n = 0); n may be an effective number of
+    trials, not a whole one (grounding.pooled_rate's)."""
     if n == 0:
         return float("nan"), float("nan")
-    lo, hi = proportion_confint(int(k), int(n), alpha=1 - confidence, method="wilson")
+    lo, hi = proportion_confint(k, n, alpha=1 - confidence, method="wilson")
     # At k = 0 statsmodels' lower bound comes out a rounding error above 0 (5.6e-17 for n = 3): keep the rate inside.
     return min(float(lo), k / n), max(float(hi), k / n)
 

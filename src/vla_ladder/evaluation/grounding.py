@@ -35,7 +35,6 @@ from typing import Callable
 
 import numpy as np
 import pandas as pd
-from statsmodels.stats.proportion import proportion_confint
 
 from vla_ladder.conditions import MAX_OBJECTS, Condition
 from vla_ladder.contract import METRICS, REACH_THRESHOLD
@@ -104,9 +103,7 @@ def pooled_rate(num: np.ndarray, den: np.ndarray) -> dict:
     independent = rate * (1 - rate) / total
     effective = total if between <= 0 else total * min(1.0, independent / between)
     effective = min(max(effective, float(scenes)), total)
-    lo, hi = proportion_confint(rate * effective, effective, alpha=1 - CONFIDENCE, method="wilson")
-    return _interval(rate, min(float(lo), rate), max(float(hi), rate), "wilson, design effect over scenes",
-                     int(total))
+    return _interval(rate, *wilson(rate * effective, effective), "wilson, design effect over scenes", int(total))
 
 
 def normalised_mutual_information(joint: np.ndarray) -> np.ndarray:

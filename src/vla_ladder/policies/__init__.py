@@ -108,10 +108,11 @@ def weights_identity(spec: str) -> dict | None:
     kind, arg = parse_spec(spec)
     if kind == "remote":
         from vla_ladder.policies.remote import connect, parse_arg as remote_arg
-        ws, metadata = connect(remote_arg(arg)[0])
+        url = remote_arg(arg)[0]
+        ws, metadata = connect(url)
         ws.close()
         sha = metadata.get("weights_sha256")
-        return {"server": remote_arg(arg)[0], "sha256": sha} if isinstance(sha, str) else None
+        return {"server": url, "sha256": sha} if isinstance(sha, str) else None
     if kind == "lerobot":
         from vla_ladder.policies.lerobot import WEIGHTS_FILE, parse_arg, resolve_checkpoint
         path = resolve_checkpoint(parse_arg(arg)[0]) / WEIGHTS_FILE
@@ -144,10 +145,10 @@ def check_spec(spec: str) -> tuple[str, str | None]:
         from vla_ladder.policies.ppo import checkpoint_dir
         checkpoint_dir(arg)
     elif kind == "lerobot":
-        from vla_ladder.policies.lerobot import check_checkpoint, checked_config, parse_arg
+        from vla_ladder.policies.lerobot import CONFIG_OPTIONS, check_checkpoint, checked_config, parse_arg
         path, options = parse_arg(arg)
         check_checkpoint(path)  # first: a copy without its weights says so before its config is parsed
-        checked_config(path, **{k: v for k, v in options.items() if k in ("n_action_steps", "device", "use_amp")})
+        checked_config(path, **{k: v for k, v in options.items() if k in CONFIG_OPTIONS})
     elif kind == "remote":
         from vla_ladder.policies.remote import check_server
         check_server(arg)

@@ -23,13 +23,13 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import re
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 import torch
 
+from vla_ladder.checks import TORCH_DEVICE
 from vla_ladder.contract import ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IMAGE_SHAPE, STATE_DIM, STATE_KEY
 from vla_ladder.files import own_tempdir
 from vla_ladder.policies import Policy, parse_options, positive_int
@@ -69,13 +69,15 @@ def _noise_seed(value: str) -> int:
 
 
 def _device(value: str) -> str:
-    if not re.fullmatch(r"cpu|mps|cuda(:\d+)?", value):
+    if not TORCH_DEVICE.fullmatch(value):
         raise ValueError(f"expected cpu, cuda, cuda:N or mps, got {value!r}")
     return value
 
 
 QUERY_KEYS = {"n_action_steps": positive_int, "device": _device, "instruction": str, "use_amp": _bool,
               "noise_seed": _noise_seed}
+CONFIG_OPTIONS = ("n_action_steps", "device", "use_amp")
+"""The options that override the checkpoint's own config (checked_config); the others are the policy's."""
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -296,5 +298,5 @@ def make_policy(arg: str | None, **kwargs) -> LeRobotPolicy:
     if not arg:
         raise ValueError("policy 'lerobot' needs a checkpoint: lerobot:CHECKPOINT_DIR[?n_action_steps=H]")
     path, options = parse_arg(arg)
-    options.update({k: v for k, v in kwargs.items() if k in ("n_action_steps", "device", "use_amp") and v is not None})
+    options.update({k: v for k, v in kwargs.items() if k in CONFIG_OPTIONS and v is not None})
     return LeRobotPolicy(path, **options)

@@ -13,7 +13,6 @@ import dataclasses
 import json
 import logging
 import os
-import re
 import shlex
 import time
 from urllib.error import URLError
@@ -21,6 +20,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from vla_ladder import files
+from vla_ladder.checks import TORCH_DEVICE
 from vla_ladder.contract import CAMERA_KEYS
 from vla_ladder.training.dataset import check_features, dataset_condition, read_info
 
@@ -128,7 +128,7 @@ class TrainConfig:
                              f"({self.chunk_size})")
         if self.train_seed < 0:
             raise ValueError(f"--train-seed must be >= 0, got {self.train_seed}")
-        if self.device is not None and not re.fullmatch(r"cpu|mps|cuda(:\d+)?", self.device):
+        if self.device is not None and not TORCH_DEVICE.fullmatch(self.device):
             raise ValueError(f"--device {self.device!r}: allowed: cpu, cuda, cuda:N, mps")
         # `out` is checked by train(), not here: a grid or study builds configs for runs that already exist.
 
