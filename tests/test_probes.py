@@ -15,7 +15,7 @@ from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.evaluation import grounding
 from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.evaluation.runner import EvalConfig, open_run_dir
-from vla_ladder.experiments.probes import ProbeConfig, open_probe_dir, rescore_probe, run_probe
+from vla_ladder.experiments.probes import PROBES, Probe, ProbeConfig, open_probe_dir, rescore_probe, run_probe
 from vla_ladder.files import write_json
 from vla_ladder.report import probes as probe_report
 from vla_ladder.report.html import build_report
@@ -178,6 +178,50 @@ def test_probe_variants_share_seeds_and_a_probe_dir_refuses_another_request(tmp_
     with pytest.raises(ValueError, match="holds another probe request.*--overwrite") as e:
         open_probe_dir(other)
     assert "it differs in " in str(e.value) and "policy was 'nearest'" in str(e.value)  # what to change
+
+
+def test_a_probe_is_one_entry_in_probes_and_one_view_in_the_report(tmp_path, monkeypatch):
+    assert list(PROBES) == list(probe_report.VIEWS)  # every probe can be shown, in the same order
+    assert PROBES["absent-object"].fit(5) == 4 and PROBES["instruction-swap"].fit(1) == 2  # nearest playable count
+    assert PROBES["paraphrase"].fit(3) == 3
+    # A newcomer's probe: the same scenes in the canonical and a held-out wording, scored by how many scenes each
+    # variant succeeds in. Registering it is all the CLI, the request, the rescoring and the report need.
+    seen = {}
+
+    def results(runs, resamples):
+        seen["resamples"] = resamples
+        return {"small_jitter/canonical/2": {name: int(r.episodes["success"].sum()) for name, r in runs.items()}}
+
+    monkeypatch.setitem(PROBES, "wording-pair", Probe(
+        lambda cfg: {"plain": dict(grid=cfg.grid), "heldout": dict(grid=cfg.grid, instructions="paraphrase-heldout")},
+        results, objects=(2, 3), needs="two or three objects", default_objects=2, options=("switch_steps",)))
+    monkeypatch.setitem(probe_report.VIEWS, "wording-pair", probe_report.ProbeView(
+        "Canonical against held-out wording.", lambda conds: (["condition", "plain", "held out"], [
+            [k, str(c["plain"]), str(c["heldout"])] for k, c in conds.items()]),
+        lambda key, c: [f"{key}: {c['plain']} -> {c['heldout']}"], lambda data, path: path))
+    cfg = ProbeConfig("wording-pair", policy="nearest", out=tmp_path / "p", episodes=3)
+    assert cfg.grid.num_objects == (2,) and list(cfg.variants()) == ["plain", "heldout"]
+    assert cfg.variants()["heldout"].jobs()[0].options == (("instructions", "paraphrase-heldout"),)
+    assert "switch_steps" in cfg.request()  # its own option is part of its request, and of no other probe's
+    assert "switch_steps" not in ProbeConfig("position-swap", policy="nearest").request()
+    with pytest.raises(ValueError, match=r"wording-pair needs two or three objects; got --num-objects 4 "
+                                         r"\(allowed: 2-3\)"):
+        ProbeConfig("wording-pair", policy="nearest", grid=ConditionGrid(num_objects=(4,)))
+    with pytest.raises(ValueError, match="unknown probe 'nope'; allowed: .*wording-pair"):
+        ProbeConfig("nope")
+    for name, kinds in (("plain", ["success", "success", "wrong_object"]), ("heldout", ["success"] * 3)):
+        make_run(tmp_path / "p" / name, "nearest", [("small_jitter", "canonical", 2)], kinds)
+    write_json(tmp_path / "p" / "probe.json", {"probe": "wording-pair", "policy": {"spec": "nearest"},
+                                               "variants": {"plain": "plain", "heldout": "heldout"},
+                                               "config": {"resamples": 321}, "conditions": {}})
+    data = rescore_probe(tmp_path / "p")
+    assert data["conditions"] == {"small_jitter/canonical/2": {"plain": 2, "heldout": 3}} and seen["resamples"] == 321
+    assert probe_report.summary_lines(data) == ["small_jitter/canonical/2: 2 -> 3"]
+    assert "<td>small_jitter/canonical/2</td><td>2</td><td>3</td>" in probe_report.table_html(data)
+    assert "Canonical against held-out wording." in probe_report.section(data, [], "here")
+    monkeypatch.delitem(probe_report.VIEWS, "wording-pair")
+    with pytest.raises(ValueError, match="the report does not know the probe 'wording-pair'; allowed: "):
+        probe_report.table_html(data)
 
 
 def test_run_directories_from_before_the_presentation_fields_still_resume(tmp_path):

@@ -44,11 +44,12 @@ from typing import Annotated
 import tyro
 
 from vla_ladder import files
-from vla_ladder.conditions import MAX_OBJECTS, REGIMES, Condition, ConditionGrid
+from vla_ladder.conditions import REGIMES, Condition, ConditionGrid
 from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
 from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
-from vla_ladder.experiments.probes import ONE_ENV_PROBES, ProbeConfig, run_probe
+from vla_ladder.experiments.probes import PROBES as PROBE_KINDS
+from vla_ladder.experiments.probes import ProbeConfig, run_probe
 from vla_ladder.policies import check_spec, parse_spec
 from vla_ladder.report.diagnosis import answer_lines, diagnosis_html
 from vla_ladder.stats import paired_difference
@@ -152,9 +153,9 @@ class DiagnoseConfig:
         probes = {}
         for name in PROBES:
             # absent-object needs an object off the table: five-object policies are probed with four, as a study does
-            n = min(cond.num_objects, MAX_OBJECTS - 1) if name == "absent-object" else cond.num_objects
+            n = PROBE_KINDS[name].fit(cond.num_objects)
             # the appearance swap paints each scene's objects: one env per scene, in worker processes
-            plays = dict(workers=self.workers) if name in ONE_ENV_PROBES else players
+            plays = dict(workers=self.workers) if PROBE_KINDS[name].one_env else players
             probes[name] = ProbeConfig(name, policy=spec, out=root / "probes" / name,
                                        grid=ConditionGrid((cond.regime,), (cond.split,), (n,)),
                                        episodes=self.probe_episodes, first_seed=self.first_seed, videos=videos,

@@ -32,6 +32,7 @@ Rerunning the same command resumes every variant; another request into DIR is re
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -49,13 +50,6 @@ from vla_ladder.policies import POLICY_KINDS, Policy, check_spec, parse_spec
 from vla_ladder.task.appearance import SWAPS, SWAPS_VERSION
 from vla_ladder.task.instructions import INSTRUCTION_SETS, paraphrase_version
 
-PROBES = ("instruction-swap", "paraphrase", "appearance-swap", "absent-object", "position-swap",
-          "instruction-switch")
-PROBE_OBJECTS = {"absent-object": 3}
-"""Objects on the table when --num-objects is not given, where a probe's differ from five: absent-object needs
-objects off the table (with three, two are absent in every scene)."""
-# Probes that paint each scene's objects, so play one env per copy of the policy (never --num-envs > 1).
-ONE_ENV_PROBES = ("appearance-swap",)
 PROBE_FILE = "probe.json"
 CONFIG_FILE = "probe_config.json"
 FORMAT_VERSION = 1
@@ -65,6 +59,116 @@ SWITCH_STEPS = (5, 25)
 closes its gripper in every scene measured (it closes at step 8-14, rarely later, docs/probes.md), so a policy that
 re-reads its instruction can still go to the new object; 25 (1.25 s) comes after it has closed and lifted in almost
 every scene, so even a re-reading expert has committed: the contrast separates reading from committing."""
+
+
+@dataclass(frozen=True)
+class Probe:
+    """What makes a grounding probe: the variants it plays of every scene and the metrics it draws from their
+    episodes. Its table, figure and text live in report/probes.py under the same name (VIEWS)."""
+
+    variants: Callable[[ProbeConfig], dict[str, dict]]
+    """the probe's config -> variant name -> the EvalConfig fields (beyond policy, seeds, players and out) that play
+    it; each variant is an ordinary run directory"""
+    results: Callable[[dict[str, Run], int], dict]
+    """(the finished variant runs, resamples) -> the metrics per condition (evaluation/grounding.py)"""
+    objects: tuple[int, int] = (1, MAX_OBJECTS)
+    """the least and most objects on the table it can probe"""
+    needs: str = ""
+    """what it needs of the table, for the error when --num-objects falls outside `objects`"""
+    default_objects: int = MAX_OBJECTS
+    """objects on the table when --num-objects is not given"""
+    one_env: bool = False
+    """it paints each scene's objects, so plays one env per copy of the policy (never --num-envs > 1)"""
+    options: tuple[str, ...] = ()
+    """ProbeConfig fields only this probe reads: part of its request only, so other probes' directories (written
+    before the field existed) still resume"""
+    check: Callable[[ProbeConfig], None] | None = None
+    """raises ValueError on a bad value of one of its options"""
+
+    def fit(self, num_objects: int) -> int:
+        """The object count nearest to `num_objects` that the probe can play (a study's or diagnosis's training
+        condition with five objects is probed with four for absent-object: the nearest scenes that leave one to
+        name)."""
+        return min(max(num_objects, self.objects[0]), self.objects[1])
+
+
+def _index(name: str) -> int:
+    """k of a variant named like "instruct-k", "absent-k" or "switch-k"."""
+    return int(name.rsplit("-", 1)[1])
+
+
+def _swap_variants(cfg: ProbeConfig) -> dict[str, dict]:
+    g = cfg.grid  # instruct-0 is the layout's own target, instruct-k its k-th distractor (scenes with more than k)
+    return {f"instruct-{r}": dict(grid=ConditionGrid(g.regimes, g.splits, tuple(k for k in g.num_objects if k > r)),
+                                  instruct=r) for r in range(max(g.num_objects))}
+
+
+def _swap_results(runs: dict[str, Run], resamples: int) -> dict:
+    plays = pd.concat([r.episodes.assign(instruct=_index(name)) for name, r in runs.items()], ignore_index=True)
+    return grounding.instruction_swap(plays, resamples)
+
+
+def _paraphrase_variants(cfg: ProbeConfig) -> dict[str, dict]:
+    g = cfg.grid  # with the distractor-free control: one object on the table
+    control = ConditionGrid(g.regimes, g.splits, tuple(sorted({*g.num_objects, 1}, reverse=True)))
+    return {s: dict(grid=control, instructions=s) for s in INSTRUCTION_SETS}
+
+
+def _absent_variants(cfg: ProbeConfig) -> dict[str, dict]:
+    g = cfg.grid  # absent-k names the k-th object off the table (fewer objects: more of them)
+    return {"present": dict(grid=g), **{
+        f"absent-{k}": dict(grid=ConditionGrid(g.regimes, g.splits, tuple(n for n in g.num_objects
+                                                                          if n < MAX_OBJECTS - k)), instruct_absent=k)
+        for k in range(MAX_OBJECTS - min(g.num_objects))}}
+
+
+def _absent_results(runs: dict[str, Run], resamples: int) -> dict:
+    absent = pd.concat([r.episodes.assign(absent=_index(name)) for name, r in runs.items() if name != "present"],
+                       ignore_index=True)
+    return grounding.absent_object(runs["present"].episodes, absent, resamples)
+
+
+def _switch_variants(cfg: ProbeConfig) -> dict[str, dict]:
+    # original: exactly `vla-ladder eval`
+    return {"original": dict(grid=cfg.grid), **{f"switch-{k}": dict(grid=cfg.grid, switch_at=k)
+                                                for k in sorted(cfg.switch_steps)}}
+
+
+def _switch_results(runs: dict[str, Run], resamples: int) -> dict:
+    return grounding.instruction_switch(runs["original"].episodes, {_index(name): r.episodes for name, r in runs.items()
+                                                                    if name != "original"})
+
+
+def _check_switch(cfg: ProbeConfig) -> None:
+    if (not cfg.switch_steps or len(set(cfg.switch_steps)) != len(cfg.switch_steps)
+            or any(isinstance(k, bool) or not isinstance(k, int) or not 1 <= k < EPISODE_STEPS
+                   for k in cfg.switch_steps)):
+        raise ValueError(f"--switch-steps must be distinct control steps from 1 to {EPISODE_STEPS - 1} (the "
+                         f"episode has {EPISODE_STEPS}), got {' '.join(map(str, cfg.switch_steps)) or 'none'}")
+
+
+TWO = dict(objects=(2, MAX_OBJECTS), needs="at least two objects on the table")
+PROBES: dict[str, Probe] = {
+    "instruction-swap": Probe(_swap_variants, _swap_results, **TWO),
+    "paraphrase": Probe(_paraphrase_variants, lambda runs, _: grounding.paraphrase(
+        {name: r.episodes for name, r in runs.items()})),
+    "appearance-swap": Probe(lambda cfg: {a: dict(grid=cfg.grid, appearance=a) for a in ("original", "swap")},
+                             lambda runs, _: grounding.appearance_swap(runs["original"].episodes,
+                                                                       runs["swap"].episodes),
+                             **TWO, one_env=True),
+    # with three objects on the table, two are absent in every scene
+    "absent-object": Probe(_absent_variants, _absent_results, objects=(1, MAX_OBJECTS - 1),
+                           needs="an object off the table", default_objects=3),
+    # scenes without a collision-free swap play unswapped (left out of the metrics)
+    "position-swap": Probe(lambda cfg: {"original": dict(grid=cfg.grid),
+                                        "swapped": dict(grid=cfg.grid, swap_positions=True)},
+                           lambda runs, _: grounding.position_swap(runs["original"].episodes,
+                                                                   runs["swapped"].episodes), **TWO),
+    "instruction-switch": Probe(_switch_variants, _switch_results, **TWO, options=("switch_steps",),
+                                check=_check_switch),
+}
+"""The probes by name, in the order the CLI and reports list them."""
+OPTIONS = {o for p in PROBES.values() for o in p.options}
 
 
 @dataclass(frozen=True)
@@ -125,56 +229,30 @@ class ProbeConfig:
     def __post_init__(self):
         if self.name not in PROBES:
             raise ValueError(f"unknown probe {self.name!r}; allowed: {', '.join(PROBES)}")
+        probe = PROBES[self.name]
         self.out = None if self.out is None else Path(self.out)
         if not isinstance(self.grid, ConditionGrid):
             self.grid = ProbeGrid(**self.grid)
         g = self.grid
-        self.grid = ConditionGrid(g.regimes, g.splits, g.num_objects or (PROBE_OBJECTS.get(self.name, MAX_OBJECTS),))
+        self.grid = ConditionGrid(g.regimes, g.splits, g.num_objects or (probe.default_objects,))
         if self.policy is not None:
             parse_spec(self.policy)
         if self.resamples < 100:
             raise ValueError(f"--resamples must be >= 100, got {self.resamples}")
-        counts = self.grid.num_objects
-        if self.name in ("instruction-swap", "appearance-swap", "position-swap", "instruction-switch") \
-                and min(counts) < 2:
-            raise ValueError(f"{self.name} needs at least two objects on the table; got --num-objects "
-                             f"{' '.join(map(str, counts))} (allowed: 2-5)")
-        if self.name == "absent-object" and max(counts) == MAX_OBJECTS:
-            raise ValueError(f"absent-object needs an object off the table; got --num-objects "
-                             f"{' '.join(map(str, counts))} (allowed: 1-4)")
+        counts, (least, most) = self.grid.num_objects, probe.objects
+        if min(counts) < least or max(counts) > most:
+            raise ValueError(f"{self.name} needs {probe.needs}; got --num-objects {' '.join(map(str, counts))} "
+                             f"(allowed: {least}-{most})")
         self.switch_steps = tuple(self.switch_steps)
-        if self.name == "instruction-switch" and (
-                not self.switch_steps or len(set(self.switch_steps)) != len(self.switch_steps)
-                or any(isinstance(k, bool) or not isinstance(k, int) or not 1 <= k < EPISODE_STEPS
-                       for k in self.switch_steps)):
-            raise ValueError(f"--switch-steps must be distinct control steps from 1 to {EPISODE_STEPS - 1} (the "
-                             f"episode has {EPISODE_STEPS}), got {' '.join(map(str, self.switch_steps)) or 'none'}")
-        if self.name in ONE_ENV_PROBES and self.num_envs != 1:
-            raise ValueError(f"appearance-swap paints each scene's objects and needs --num-envs 1, got {self.num_envs}")
+        if probe.check is not None:
+            probe.check(self)
+        if probe.one_env and self.num_envs != 1:
+            raise ValueError(f"{self.name} paints each scene's objects and needs --num-envs 1, got {self.num_envs}")
         self.variants()  # every evaluation is configured, and so checked, before a simulator starts
 
     def variants(self) -> dict[str, EvalConfig]:
         """Variant name -> the evaluation that plays it (its run directory is out/<name>)."""
-        g = self.grid
-        if self.name == "instruction-swap":
-            plays = {f"instruct-{r}": dict(grid=ConditionGrid(g.regimes, g.splits, tuple(k for k in g.num_objects
-                                                                                        if k > r)), instruct=r)
-                     for r in range(max(g.num_objects))}
-        elif self.name == "absent-object":  # absent-k names the k-th object off the table (fewer objects: more)
-            plays = {"present": dict(grid=g)}
-            plays.update({f"absent-{k}": dict(grid=ConditionGrid(g.regimes, g.splits, tuple(
-                n for n in g.num_objects if n < MAX_OBJECTS - k)), instruct_absent=k)
-                for k in range(MAX_OBJECTS - min(g.num_objects))})
-        elif self.name == "position-swap":  # scenes without a collision-free swap play unswapped (left out)
-            plays = {"original": dict(grid=g), "swapped": dict(grid=g, swap_positions=True)}
-        elif self.name == "instruction-switch":  # original: exactly `vla-ladder eval`
-            plays = {"original": dict(grid=g)}
-            plays.update({f"switch-{k}": dict(grid=g, switch_at=k) for k in sorted(self.switch_steps)})
-        elif self.name == "paraphrase":  # with the distractor-free control: one object on the table
-            control = ConditionGrid(g.regimes, g.splits, tuple(sorted({*g.num_objects, 1}, reverse=True)))
-            plays = {s: dict(grid=control, instructions=s) for s in INSTRUCTION_SETS}
-        else:
-            plays = {a: dict(grid=g, appearance=a) for a in ("original", "swap")}
+        plays = PROBES[self.name].variants(self)
         return {name: EvalConfig(policy=self.policy, out=None if self.out is None else self.out / name,
                                  episodes=self.episodes, first_seed=self.first_seed, workers=self.workers,
                                  num_envs=self.num_envs, sim_backend=self.sim_backend, videos=self.videos,
@@ -186,10 +264,10 @@ class ProbeConfig:
 
 
 def the_request(config: dict, name: str) -> dict:
-    """What decides probe `name`'s episodes: its config without the fields that do not. switch_steps is part of the
-    instruction switch's request only: other probes' directories, written before it existed, still resume."""
+    """What decides probe `name`'s episodes: its config without the fields that do not, and without other probes'
+    own options (Probe.options: so directories written before such an option existed still resume)."""
     return {k: v for k, v in config.items()
-            if k not in NOT_THE_REQUEST and (k != "switch_steps" or name == "instruction-switch")}
+            if k not in NOT_THE_REQUEST and (k not in OPTIONS or k in PROBES[name].options)}
 
 
 def open_probe_dir(cfg: ProbeConfig) -> None:
@@ -202,25 +280,9 @@ def open_probe_dir(cfg: ProbeConfig) -> None:
 
 def probe_results(probe: str, runs: dict[str, Run], resamples: int) -> dict:
     """The probe's metrics per condition from its finished variant runs."""
-    if probe == "instruction-swap":
-        plays = pd.concat([r.episodes.assign(instruct=int(name.rsplit("-", 1)[1])) for name, r in runs.items()],
-                          ignore_index=True)
-        return grounding.instruction_swap(plays, resamples)
-    if probe == "absent-object":
-        absent = pd.concat([r.episodes.assign(absent=int(name.rsplit("-", 1)[1])) for name, r in runs.items()
-                            if name != "present"], ignore_index=True)
-        return grounding.absent_object(runs["present"].episodes, absent, resamples)
-    if probe == "position-swap":
-        return grounding.position_swap(runs["original"].episodes, runs["swapped"].episodes)
-    if probe == "instruction-switch":
-        return grounding.instruction_switch(runs["original"].episodes, {int(name.rsplit("-", 1)[1]): r.episodes
-                                                                        for name, r in runs.items()
-                                                                        if name != "original"})
-    if probe == "appearance-swap":
-        return grounding.appearance_swap(runs["original"].episodes, runs["swap"].episodes)
-    if probe == "paraphrase":
-        return grounding.paraphrase({name: r.episodes for name, r in runs.items()})
-    raise ValueError(f"unknown probe {probe!r}; allowed: {', '.join(PROBES)}")
+    if probe not in PROBES:
+        raise ValueError(f"unknown probe {probe!r}; allowed: {', '.join(PROBES)}")
+    return PROBES[probe].results(runs, resamples)
 
 
 def rescore_probe(out: Path) -> dict:

@@ -23,7 +23,7 @@ from pathlib import Path
 import tyro
 
 from vla_ladder import files
-from vla_ladder.conditions import MAX_OBJECTS, parse_regimes
+from vla_ladder.conditions import parse_regimes
 from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
 from vla_ladder.machine import cores
@@ -191,8 +191,8 @@ class Study:
     def players(self, probe: str = "") -> dict:
         """How evaluations and probes play their episodes: --workers policy copies or one on --num-envs envs
         (not the probes that paint each scene: they play one env per policy copy)."""
-        from vla_ladder.experiments.probes import ONE_ENV_PROBES
-        if self.cmd.num_envs > 1 and probe not in ONE_ENV_PROBES:
+        from vla_ladder.experiments.probes import PROBES
+        if self.cmd.num_envs > 1 and not (probe and PROBES[probe].one_env):
             return {"workers": 1, "num_envs": self.cmd.num_envs}
         return {"workers": self.cmd.workers}
 
@@ -273,6 +273,7 @@ class Study:
         return units
 
     def probe_units(self, chosen: dict) -> list[Unit]:
+        from vla_ladder.experiments.probes import PROBES
         ev = self.cfg.evaluation
         units = []
         for p, d, _ in self.models():
@@ -282,7 +283,7 @@ class Study:
             for name in ev.probes:
                 # In the training condition; absent-object needs an object off the table, so five-object data are
                 # probed with four, the nearest scenes to training that leave one to name.
-                n = min(d.cond.num_objects, MAX_OBJECTS - 1) if name == "absent-object" else d.cond.num_objects
+                n = PROBES[name].fit(d.cond.num_objects)
                 own = {"regimes": [d.cond.regime], "splits": [d.cond.split], "num_objects": [n]}
                 cfg = {"name": name, "policy": self.spec(p, best["model"], best["horizon"]),
                        "out": str(self.root / "probes" / f"{p.name}-{d.name}-{name}"), "grid": own,

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import html
 import json
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -154,79 +156,88 @@ def _two_play_cells(c: dict, follows: tuple[str, ...], second: tuple[str, str], 
                     f"{_cell(c[f'{m}_original'])} → {_cell(c[f'{m}_{suffix}'])}" for m in ends]
 
 
+def _swap_table(conds: dict) -> tuple[list[str], list[list[str]]]:
+    head = ["condition", "scenes", *SWAP_METRICS.values()]
+    return head, [[html.escape(k), str(c["scenes"])] + [_nmi(c[m]) if m == "nmi" else _cell(c[m]) for m in SWAP_METRICS]
+                  for k, c in conds.items()]
+
+
+def _paraphrase_table(conds: dict) -> tuple[list[str], list[list[str]]]:
+    head = ["condition", "wording", "n", "success", "grasp-any", "reach", "wrong object", "Δ success vs canonical",
+            "success by novelty"]
+    rows = []
+    for key, variants in conds.items():
+        for wording in [w for w in WORDINGS if w in variants]:
+            c = variants[wording]
+            novelty = ", ".join(f"{k} {_pct(v['value'])} (n={v['n']})" for k, v in c.get("by_novelty", {}).items())
+            rows.append([html.escape(key), wording, str(c["n"]), _rate(c, "success"), _rate(c, "grasp_any"),
+                         _rate(c, "reach"), _cell(c["wrong_object"]),
+                         _delta(c["vs_canonical"]["success"]) if "vs_canonical" in c else "", novelty])
+    return head, rows
+
+
+def _appearance_table(conds: dict) -> tuple[list[str], list[list[str]]]:
+    head = ["condition", "swapped scenes", *(f"{COLOUR_NAMES[o]}: no swap → swap" for o in COLOUR_OUTCOMES),
+            "Δ follows shape"]
+    return head, [[html.escape(k), f"{c['swapped']} of {c['scenes']}"]
+                  + [f"{_cell(c['original'][o])} → {_cell(c['swap'][o])}" for o in COLOUR_OUTCOMES]
+                  + [_delta(c["shape_change"])] for k, c in conds.items()]
+
+
+def _absent_table(conds: dict) -> tuple[list[str], list[list[str]]]:
+    head = ["condition", "scenes (absent plays)", "success, own target named", "grasp: present → absent",
+            "Δ grasp", "shortcut reach", "usual place empty", "same grasp as present"]
+    return head, [[html.escape(k), f"{c['scenes']} ({c['absent_plays']})", _cell(c["success_present"]),
+                   f"{_cell(c['grasp_present'])} → {_cell(c['grasp_absent'])}", _signed(c["grasp_change"]),
+                   *(["n/a (no usual place)"] * 2 if c["shortcut_reach"] is None else
+                     [_cell(c["shortcut_reach"]), _cell(c["usual_place_empty"])]), _cell(c["same_grasp"])]
+                  for k, c in conds.items()]
+
+
+def _position_table(conds: dict) -> tuple[list[str], list[list[str]]]:
+    head = ["condition", "swapped scenes", "follows object: original → swapped", "Δ follows object",
+            "follows place: original → swapped", "Δ follows place",
+            *(f"{PLACE_NAMES[o]}: original → swapped" for o in ("other", "none")),
+            "gripper ends at the object: original → swapped", "gripper ends at the place: original → swapped"]
+    return head, [[html.escape(k), f"{c['swapped']} of {c['scenes']}",
+                   *_two_play_cells(c, ("follows_object", "follows_place"), ("swap", "swapped"),
+                                    ("reaches_object", "reaches_place"))] for k, c in conds.items()]
+
+
+def _switch_table(conds: dict) -> tuple[list[str], list[list[str]]]:
+    head = ["condition", "switch at", "scenes", "follows new: original → switched", "Δ follows new",
+            "stays with old: original → switched", "Δ stays with old",
+            *(f"{SWITCH_NAMES[o]}: original → switched" for o in ("other", "none")),
+            "gripper ends at B: original → switched", "gripper ends at A: original → switched"]
+    return head, [[html.escape(k), f"step {c['switch_step']} ({c['switch_step'] / CONTROL_HZ:.2f} s)", str(c["scenes"]),
+                   *_two_play_cells(c, ("follows_new", "stays_old"), ("switched", "switched"),
+                                    ("reaches_new", "reaches_old"))]
+                  for k, cond in conds.items() for c in cond["by_step"].values()]
+
+
+def _switch_tables(conds: dict) -> list[tuple[str, dict]]:
+    """The instruction switch's per-table entries: one per condition and switch step."""
+    return [(f"{key}, switch at step {k}", c) for key, cond in conds.items() for k, c in cond["by_step"].items()]
+
+
 def table_html(data: dict) -> str:
-    """The probe's table: one row per condition (and wording for the paraphrase probe)."""
-    conds, name = data["conditions"], data["probe"]
-    if name == "instruction-swap":
-        head = ["condition", "scenes", *SWAP_METRICS.values()]
-        rows = [[html.escape(k), str(c["scenes"])] + [_nmi(c[m]) if m == "nmi" else _cell(c[m])
-                                                      for m in SWAP_METRICS] for k, c in conds.items()]
-    elif name == "paraphrase":
-        head = ["condition", "wording", "n", "success", "grasp-any", "reach", "wrong object", "Δ success vs canonical",
-                "success by novelty"]
-        rows = []
-        for key, variants in conds.items():
-            for wording in [w for w in WORDINGS if w in variants]:
-                c = variants[wording]
-                novelty = ", ".join(f"{k} {_pct(v['value'])} (n={v['n']})" for k, v in c.get("by_novelty", {}).items())
-                rows.append([html.escape(key), wording, str(c["n"]), _rate(c, "success"), _rate(c, "grasp_any"),
-                             _rate(c, "reach"), _cell(c["wrong_object"]),
-                             _delta(c["vs_canonical"]["success"]) if "vs_canonical" in c else "", novelty])
-    elif name == "absent-object":
-        head = ["condition", "scenes (absent plays)", "success, own target named", "grasp: present → absent",
-                "Δ grasp", "shortcut reach", "usual place empty", "same grasp as present"]
-        rows = [[html.escape(k), f"{c['scenes']} ({c['absent_plays']})", _cell(c["success_present"]),
-                 f"{_cell(c['grasp_present'])} → {_cell(c['grasp_absent'])}", _signed(c["grasp_change"]),
-                 *(["n/a (no usual place)"] * 2 if c["shortcut_reach"] is None else
-                   [_cell(c["shortcut_reach"]), _cell(c["usual_place_empty"])]), _cell(c["same_grasp"])]
-                for k, c in conds.items()]
-    elif name == "position-swap":
-        head = ["condition", "swapped scenes", "follows object: original → swapped", "Δ follows object",
-                "follows place: original → swapped", "Δ follows place",
-                *(f"{PLACE_NAMES[o]}: original → swapped" for o in ("other", "none")),
-                "gripper ends at the object: original → swapped", "gripper ends at the place: original → swapped"]
-        rows = [[html.escape(k), f"{c['swapped']} of {c['scenes']}",
-                 *_two_play_cells(c, ("follows_object", "follows_place"), ("swap", "swapped"),
-                                  ("reaches_object", "reaches_place"))] for k, c in conds.items()]
-    elif name == "instruction-switch":
-        head = ["condition", "switch at", "scenes", "follows new: original → switched", "Δ follows new",
-                "stays with old: original → switched", "Δ stays with old",
-                *(f"{SWITCH_NAMES[o]}: original → switched" for o in ("other", "none")),
-                "gripper ends at B: original → switched", "gripper ends at A: original → switched"]
-        rows = [[html.escape(k), f"step {c['switch_step']} ({c['switch_step'] / CONTROL_HZ:.2f} s)", str(c["scenes"]),
-                 *_two_play_cells(c, ("follows_new", "stays_old"), ("switched", "switched"),
-                                  ("reaches_new", "reaches_old"))]
-                for k, cond in conds.items() for c in cond["by_step"].values()]
-    elif name == "appearance-swap":
-        head = ["condition", "swapped scenes", *(f"{COLOUR_NAMES[o]}: no swap → swap" for o in COLOUR_OUTCOMES),
-                "Δ follows shape"]
-        rows = [[html.escape(k), f"{c['swapped']} of {c['scenes']}"]
-                + [f"{_cell(c['original'][o])} → {_cell(c['swap'][o])}" for o in COLOUR_OUTCOMES]
-                + [_delta(c["shape_change"])] for k, c in conds.items()]
-    else:
-        raise ValueError(f"no table for the probe {name!r}; allowed: {', '.join(EXPLAIN)}")
-    unit = {"instruction-swap": " (NMI on [0, 1])", "absent-object": "; Δ in points",
-            "position-swap": "; Δ in points", "instruction-switch": "; Δ in points"}.get(name, "")
-    return _table(head, rows) + f"<p class=note>In %, 95% intervals in brackets{unit}.</p>"
+    """The probe's table: one row per condition (and wording for the paraphrase probe, step for the switch)."""
+    view = _view(data["probe"])
+    head, rows = view.table(data["conditions"])
+    return _table(head, rows) + f"<p class=note>In %, 95% intervals in brackets{view.unit}.</p>"
 
 
 def matrices_html(data: dict) -> str:
-    """The pooled instructed x held matrices (instruction swap) or transition tables (appearance swap)."""
-    key = {"instruction-swap": "matrix", "appearance-swap": "transitions", "absent-object": "matrix",
-           "position-swap": "transitions", "instruction-switch": "transitions"}.get(data["probe"])
-    if key is None:
+    """The pooled count tables: instructed x held (instruction swap), named x held (absent object), what is held
+    in the first play x the second (the appearance and position swaps, the instruction switch)."""
+    view = _view(data["probe"])
+    if view.counts is None:
         return ""
+    key, corner = view.counts
     parts = []
-    tables = data["conditions"].items() if data["probe"] != "instruction-switch" else [
-        (f"{key}, switch at step {k}", c) for key, cond in data["conditions"].items()
-        for k, c in cond["by_step"].items()]
-    for cond, c in tables:
+    for cond, c in view.tables(data["conditions"]):
         m = c[key]
         rows = [[f"<b>{html.escape(r)}</b>", *map(str, counts)] for r, counts in zip(m["rows"], m["counts"])]
-        corner = {"instruction-swap": "instructed \\ held", "appearance-swap": "no swap \\ swap",
-                  "absent-object": "named (absent) \\ held",
-                  "position-swap": "held: original \\ swapped",
-                  "instruction-switch": "held: original \\ switched"}[data["probe"]]
         parts.append(f"<p>{html.escape(cond)}</p>" + _table([corner, *map(html.escape, m["columns"])], rows))
     return "<details><summary>Counts</summary>" + "".join(parts) + "</details>"
 
@@ -236,22 +247,20 @@ def section(data: dict, figures: list[str], where: str) -> str:
     spec = data["policy"].get("spec", "?")
     done = "" if data.get("complete", True) else " <b>(incomplete: rerun the probe command to finish it)</b>"
     return (f"<h3>{html.escape(data['probe'])}: {html.escape(spec)} <span class=ci>{html.escape(where)}</span></h3>"
-            f"<p class=note>{EXPLAIN[data['probe']]}{done}</p>" + table_html(data) + "".join(figures)
+            f"<p class=note>{_view(data['probe']).explain}{done}</p>" + table_html(data) + "".join(figures)
             + matrices_html(data))
 
 
 # ---------------------------------------------------------------------- figures
 def plot_probe(data: dict, path: str | Path) -> list[Path]:
-    """The probe's figure at `path` (and, for the instruction swap, its matrices next to it)."""
-    path = Path(path)
-    draw = {"instruction-swap": _plot_swap, "paraphrase": _plot_paraphrase, "appearance-swap": _plot_appearance,
-            "absent-object": _plot_absent, "position-swap": _plot_position, "instruction-switch": _plot_switch}
-    out = [draw[data["probe"]](data, path)]
-    if data["probe"] in ("instruction-swap", "absent-object"):
+    """The probe's figure at `path` (and, for the instruction swap and the absent object, its matrices next to
+    it)."""
+    path, view = Path(path), _view(data["probe"])
+    out = [view.plot(data, path)]
+    if view.matrix_label is not None:
         # (absent-object: the rows are the named objects, all absent, so every grasp counted is a substitute)
         panels = {k: {"confusion": c["matrix"]} for k, c in data["conditions"].items()}
-        out.append(plot_confusion(panels, path.with_name(path.stem + "_matrix.png"),
-                                  "named (not on the table)" if data["probe"] == "absent-object" else "instructed"))
+        out.append(plot_confusion(panels, path.with_name(path.stem + "_matrix.png"), view.matrix_label))
     return out
 
 
@@ -383,36 +392,89 @@ def _plot_outcomes(data: dict, path: Path, names: dict[str, str], plays: tuple[s
     return _save(fig, path)
 
 
+def _swap_lines(key: str, c: dict) -> list[str]:
+    return [f"{key}: scenes={c['scenes']} sensitivity={c['instruction_sensitivity']['value']:.2f} "
+            f"grounded_accuracy={c['grounded_accuracy']['value']:.2f} nmi={c['nmi']['value']:.2f} "
+            f"success={c['success']['value']:.2f}"]
+
+
+def _paraphrase_lines(key: str, c: dict) -> list[str]:
+    return [f"{key}: success " + ", ".join(f"{w} {c[w]['success']:.2f}" for w in WORDINGS if w in c)]
+
+
+def _appearance_lines(key: str, c: dict) -> list[str]:
+    return [f"{key}: swapped={c['swapped']} follows_shape={c['follows_shape']['value']:.2f} "
+            f"(no swap {c['original']['instructed']['value']:.2f}) follows_colour={c['follows_colour']['value']:.2f}"]
+
+
+def _absent_lines(key: str, c: dict) -> list[str]:
+    reach = "n/a" if c["shortcut_reach"] is None else f"{c['shortcut_reach']['value']:.2f}"
+    return [f"{key}: scenes={c['scenes']} grasp present={c['grasp_present']['value']:.2f} "
+            f"absent={c['grasp_absent']['value']:.2f} shortcut_reach={reach} same_grasp={c['same_grasp']['value']:.2f}"]
+
+
+def _position_lines(key: str, c: dict) -> list[str]:
+    return [f"{key}: swapped={c['swapped']}/{c['scenes']} follows_object "
+            f"{c['follows_object_original']['value']:.2f} -> {c['follows_object_swapped']['value']:.2f} "
+            f"follows_place {c['follows_place_original']['value']:.2f} -> {c['follows_place_swapped']['value']:.2f}"]
+
+
+def _switch_lines(key: str, c: dict) -> list[str]:
+    return [f"{key} switch@{k}: scenes={e['scenes']} follows_new "
+            f"{e['follows_new_original']['value']:.2f} -> {e['follows_new_switched']['value']:.2f} "
+            f"stays_old {e['stays_old_original']['value']:.2f} -> {e['stays_old_switched']['value']:.2f}"
+            for k, e in c["by_step"].items()]
+
+
 def summary_lines(data: dict) -> list[str]:
-    """One line per condition for the terminal."""
-    lines, name = [], data["probe"]
-    for key, c in data["conditions"].items():
-        if name == "instruction-swap":
-            lines.append(f"{key}: scenes={c['scenes']} sensitivity={c['instruction_sensitivity']['value']:.2f} "
-                         f"grounded_accuracy={c['grounded_accuracy']['value']:.2f} nmi={c['nmi']['value']:.2f} "
-                         f"success={c['success']['value']:.2f}")
-        elif name == "paraphrase":
-            lines.append(f"{key}: success " + ", ".join(f"{w} {c[w]['success']:.2f}" for w in WORDINGS if w in c))
-        elif name == "absent-object":
-            reach = "n/a" if c["shortcut_reach"] is None else f"{c['shortcut_reach']['value']:.2f}"
-            lines.append(f"{key}: scenes={c['scenes']} grasp present={c['grasp_present']['value']:.2f} "
-                         f"absent={c['grasp_absent']['value']:.2f} shortcut_reach={reach} "
-                         f"same_grasp={c['same_grasp']['value']:.2f}")
-        elif name == "position-swap":
-            lines.append(f"{key}: swapped={c['swapped']}/{c['scenes']} follows_object "
-                         f"{c['follows_object_original']['value']:.2f} -> {c['follows_object_swapped']['value']:.2f} "
-                         f"follows_place {c['follows_place_original']['value']:.2f} -> "
-                         f"{c['follows_place_swapped']['value']:.2f}")
-        elif name == "instruction-switch":
-            for k, e in c["by_step"].items():
-                lines.append(f"{key} switch@{k}: scenes={e['scenes']} follows_new "
-                             f"{e['follows_new_original']['value']:.2f} -> {e['follows_new_switched']['value']:.2f} "
-                             f"stays_old {e['stays_old_original']['value']:.2f} -> "
-                             f"{e['stays_old_switched']['value']:.2f}")
-        elif name == "appearance-swap":
-            lines.append(f"{key}: swapped={c['swapped']} follows_shape={c['follows_shape']['value']:.2f} "
-                         f"(no swap {c['original']['instructed']['value']:.2f}) "
-                         f"follows_colour={c['follows_colour']['value']:.2f}")
-        else:
-            raise ValueError(f"no summary for the probe {name!r}; allowed: {', '.join(EXPLAIN)}")
-    return lines
+    """One line per condition (and switch step) for the terminal."""
+    lines = _view(data["probe"]).lines
+    return [line for key, c in data["conditions"].items() for line in lines(key, c)]
+
+
+# ---------------------------------------------------------------------- the probes
+@dataclass(frozen=True)
+class ProbeView:
+    """How the report shows one probe's probe.json (the probe itself: experiments/probes.py PROBES)."""
+
+    explain: str
+    """what it measures and how each metric reads (HTML)"""
+    table: Callable[[dict], tuple[list[str], list[list[str]]]]
+    """conditions -> (the table's head, its rows of HTML cells)"""
+    lines: Callable[[str, dict], list[str]]
+    """(condition key, its metrics) -> the terminal's lines"""
+    plot: Callable[[dict, Path], Path]
+    """(probe.json, path) -> the figure written there"""
+    unit: str = ""
+    """what the table's note adds after "In %, 95% intervals in brackets" (units)"""
+    counts: tuple[str, str] | None = None
+    """(the key of each condition's count table, its corner label), if it has one"""
+    tables: Callable[[dict], list[tuple[str, dict]]] = lambda conds: list(conds.items())
+    """conditions -> (label, metrics) per count table"""
+    matrix_label: str | None = None
+    """the rows' label of the confusion figure drawn beside the probe's own, if one is"""
+
+
+POINTS = "; Δ in points"
+VIEWS: dict[str, ProbeView] = {
+    "instruction-swap": ProbeView(EXPLAIN["instruction-swap"], _swap_table, _swap_lines, _plot_swap,
+                                  unit=" (NMI on [0, 1])", counts=("matrix", "instructed \\ held"),
+                                  matrix_label="instructed"),
+    "paraphrase": ProbeView(EXPLAIN["paraphrase"], _paraphrase_table, _paraphrase_lines, _plot_paraphrase),
+    "appearance-swap": ProbeView(EXPLAIN["appearance-swap"], _appearance_table, _appearance_lines, _plot_appearance,
+                                 counts=("transitions", "no swap \\ swap")),
+    "absent-object": ProbeView(EXPLAIN["absent-object"], _absent_table, _absent_lines, _plot_absent, unit=POINTS,
+                               counts=("matrix", "named (absent) \\ held"), matrix_label="named (not on the table)"),
+    "position-swap": ProbeView(EXPLAIN["position-swap"], _position_table, _position_lines, _plot_position,
+                               unit=POINTS, counts=("transitions", "held: original \\ swapped")),
+    "instruction-switch": ProbeView(EXPLAIN["instruction-switch"], _switch_table, _switch_lines, _plot_switch,
+                                    unit=POINTS, counts=("transitions", "held: original \\ switched"),
+                                    tables=_switch_tables),
+}
+"""The probes the report can show, by name (each name of experiments/probes.py PROBES has one)."""
+
+
+def _view(name: str) -> ProbeView:
+    if name not in VIEWS:
+        raise ValueError(f"the report does not know the probe {name!r}; allowed: {', '.join(VIEWS)}")
+    return VIEWS[name]

@@ -13,7 +13,7 @@ from pathlib import Path
 from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.contract import METRICS
 from vla_ladder.files import atomic_path
-from vla_ladder.report.probes import EXPLAIN
+from vla_ladder.report.probes import VIEWS
 from vla_ladder.report.tables import METRIC_NAMES, REGIME_NAMES, SPLIT_NAMES, tex_escape
 
 SHORT = {"success": "S", "grasp_any": "G", "reach": "R"}
@@ -196,7 +196,7 @@ def probes_markdown(probes: dict[str, dict]) -> str:
 
 def probes_html(probes: dict[str, dict]) -> str:
     rows = "".join("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in r) + "</tr>" for r in probe_rows(probes))
-    kinds = [k for k in EXPLAIN if any(d["probe"] == k for d in probes.values())]
-    notes = "".join(f"<p class=note><b>{k}</b>. {EXPLAIN[k]}</p>" for k in kinds)
+    kinds = [k for k in VIEWS if any(d["probe"] == k for d in probes.values())]
+    notes = "".join(f"<p class=note><b>{k}</b>. {VIEWS[k].explain}</p>" for k in kinds)
     return ("<table><tr><th>model</th><th>probe</th><th>condition</th><th>metric</th><th>value [95% CI]</th>"
             f"<th>n</th></tr>{rows}</table><p class=note>Rates in %.</p>{notes}")
