@@ -10,7 +10,9 @@ import pytest
 
 from vla_ladder.cli import main
 from vla_ladder.conditions import Condition
-from vla_ladder.recordings import PROVENANCE_DIR
+from vla_ladder.contract import EPISODE_STEPS
+from vla_ladder.files import write_json
+from vla_ladder.recordings import PROVENANCE_DIR, RECORDING_FILE, read_recording_state
 from vla_ladder.task.layouts import HELD_OUT_REGIONS, sample_layout
 from vla_ladder.task.objects import OBJECT_NAMES
 from vla_ladder.training.check_dataset import CheckDatasetConfig, Checker, occupancy, pair_probabilities
@@ -51,9 +53,9 @@ def check(root: Path, tmp_path: Path, capsys, *flags) -> tuple[int, dict, list[s
 def test_a_recorded_dataset_passes(recorded, tmp_path, capsys):
     rc, summary, lines = check(recorded, tmp_path, capsys)
     assert rc == 0 and summary["ok"] and lines == [] and summary["violations"] == []
-    assert summary["episodes"] == 3 and summary["frames"] == 150
+    assert summary["episodes"] == 3 and summary["frames"] == 3 * EPISODE_STEPS
     checks = summary["checks"]
-    assert checks["frames"]["per_episode"] == [50] and checks["layouts"] == {"checked": 3, "mismatched": 0}
+    assert checks["frames"]["per_episode"] == [EPISODE_STEPS] and checks["layouts"] == {"checked": 3, "mismatched": 0}
     assert np.array(checks["coverage"]["counts"]).sum() == 6  # two objects in each of three episodes
     assert checks["leakage"]["checked"] and checks["leakage"]["episodes_with_held_out_pairs"] == 0
     assert sum(checks["balance"]["counts"].values()) == 3 and checks["balance"]["p_value"] is None
@@ -87,12 +89,15 @@ def test_a_leaky_dataset_built_on_purpose_is_caught(recorded, tmp_path, capsys):
     action = data.at[7, "action"].copy()
     action[2] = 1.5  # outside the normalised action box
     data.at[7, "action"] = action
-    data = data.drop(index=data.index[(data["episode_index"] == 2) & (data["frame_index"] == 49)])
+    data = data.drop(index=data.index[(data["episode_index"] == 2) & (data["frame_index"] == EPISODE_STEPS - 1)])
     # Episode 1's actions stored one frame late (the classic off-by-one between an observation and its action):
     # every other check passes them, only a replay sees that they did not produce the recorded states.
     ep1 = data.index[data["episode_index"] == 1]
     data.loc[ep1, "action"] = pd.Series([data.at[ep1[0], "action"], *data.loc[ep1[:-1], "action"]], index=ep1)
     data.to_parquet(data_path, index=False)
+    state = read_recording_state(leaky)  # and recorded when the episode was 10 steps longer
+    state["contract"]["episode_steps"] = EPISODE_STEPS + 10
+    write_json(leaky / RECORDING_FILE, state)
 
     rc, summary, lines = check(leaky, tmp_path, capsys)
     assert rc == 1 and not summary["ok"] and lines == summary["violations"]
@@ -102,7 +107,10 @@ def test_a_leaky_dataset_built_on_purpose_is_caught(recorded, tmp_path, capsys):
     assert any(line.startswith(f"seeds: seed {int(prov.loc[0, 'seed'])} recorded 2 times (episodes 0, 2)")
                for line in lines)
     assert any(line.startswith("actions: episode 0: 1 frames with actions outside [-1, 1]") for line in lines)
-    assert any(line.startswith("frames: episode 2: 49 frames, the contract has 50") for line in lines)
+    frames = f"frames: episode 2: {EPISODE_STEPS - 1} frames, the contract has {EPISODE_STEPS}"
+    assert any(line.startswith(frames) for line in lines)
+    assert (f"structure: recorded under another task contract: episode_steps was {EPISODE_STEPS + 10}, now "
+            f"{EPISODE_STEPS}") in lines
     assert summary["checks"]["leakage"]["episodes_with_held_out_pairs"] == 1
     replayed = {e["episode_index"]: e for e in summary["checks"]["replay"]["episodes"]}
     assert 2 not in replayed  # its missing frame is the frames check's to report

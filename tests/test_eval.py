@@ -12,6 +12,7 @@ from vla_ladder.conditions import REGIMES, ConditionGrid, parse_regimes
 from vla_ladder.contract import EPISODE_STEPS, IMAGE_SHAPE
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
+from vla_ladder.files import write_json
 from vla_ladder.policies import Policy
 
 
@@ -233,6 +234,28 @@ def test_an_evaluation_killed_with_minus_9_leaves_no_process_behind(procs, tmp_p
         for p in children:  # (reparented once their parent died: not this process's children any more)
             if p.is_running():
                 p.kill()
+
+
+def test_a_run_directory_played_under_another_task_contract_is_not_resumed(tmp_path):
+    """config.json keeps contract.fingerprint(): a run resumed after the task's episode length, cameras, state or
+    action changed would mix episodes of two tasks. Run directories from before it resume."""
+    from vla_ladder.contract import CONTROL_HZ, fingerprint
+    from vla_ladder.evaluation.runner import open_run_dir
+
+    cfg = EvalConfig("scripted", out=tmp_path / "run", episodes=2)
+    assert open_run_dir(cfg) == []
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert config["contract"] == fingerprint()
+    write_json(tmp_path / "run" / "config.json", {**config, "contract": {**config["contract"], "control_hz": 10}})
+    with pytest.raises(ValueError, match=rf"holds episodes of another task contract \(control_hz was 10, now "
+                                         rf"{CONTROL_HZ}\); evaluate into a new --out, or pass --overwrite"):
+        open_run_dir(cfg)
+    (tmp_path / "run" / "episodes.parquet").write_bytes(b"")  # what --overwrite must clear
+    assert open_run_dir(EvalConfig("scripted", out=tmp_path / "run", episodes=2, overwrite=True)) == []
+    assert not (tmp_path / "run" / "episodes.parquet").exists()
+    write_json(tmp_path / "run" / "config.json", {k: v for k, v in config.items() if k != "contract"})
+    assert open_run_dir(cfg) == []  # from before the contract was kept: resumes, and keeps it from now on
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["contract"] == fingerprint()
 
 
 def test_a_run_directory_refuses_a_checkpoint_retrained_at_the_same_path(tmp_path):

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from vla_ladder.cli import main
+from vla_ladder.contract import EPISODE_STEPS, IMAGE_SHAPE
 from vla_ladder.recording import protocol as P
 from vla_ladder.recording.client import Episode
 from vla_ladder.recordings import read_provenance, read_recording_state
@@ -101,9 +102,9 @@ def recorded(tmp_path_factory):
 def test_killed_writer_leaves_a_loadable_dataset_and_resumes(recorded):
     root, after_kill = recorded
     assert 1 <= after_kill["saved"] < EPISODES + 1
-    assert after_kill["dataset"] == 50 * after_kill["saved"]  # whole episodes only
+    assert after_kill["dataset"] == EPISODE_STEPS * after_kill["saved"]  # whole episodes only
     ds = _load(root)
-    assert ds.meta.total_episodes == EPISODES and len(ds) == 50 * EPISODES
+    assert ds.meta.total_episodes == EPISODES and len(ds) == EPISODE_STEPS * EPISODES
     prov = read_provenance(root)
     assert prov["episode_index"].tolist() == list(range(EPISODES))
     assert after_kill["seeds"] <= set(prov["seed"]), "an episode reported saved was lost"
@@ -123,10 +124,10 @@ def test_dataset_format_and_contents(recorded):
     assert ds.meta.robot_type == "panda" and ds.fps == 20
     for cam in ("hand_camera", "fixed_camera"):
         feat = ds.features[f"observation.images.{cam}"]
-        assert feat["dtype"] == "video" and tuple(feat["shape"]) == (256, 256, 3)
+        assert feat["dtype"] == "video" and tuple(feat["shape"]) == IMAGE_SHAPE
     assert ds.features["observation.state"]["dtype"] == "float32"
     assert tuple(ds.features["observation.state"]["shape"]) == (15,)
-    assert tuple(ds.features["action"]["shape"]) == (7,) and info.total_frames == 50 * EPISODES
+    assert tuple(ds.features["action"]["shape"]) == (7,) and info.total_frames == EPISODE_STEPS * EPISODES
     prov = read_provenance(root)
     assert prov["success"].all(), "a failed episode was written"
     for _, row in prov.iterrows():
@@ -135,13 +136,13 @@ def test_dataset_format_and_contents(recorded):
         assert layout["instruction"] == row["instruction"] and row["held"] == row["target"]
         assert row["regime"] == "small_jitter" and row["num_objects"] == 2 and row["policy"] == "scripted"
         assert json.loads(row["expert"])["name"] == "scripted" and row["object_set"] == "standin"
-        for frame_index in (0, 49):
-            item = ds[int(row["episode_index"]) * 50 + frame_index]
+        for frame_index in (0, EPISODE_STEPS - 1):
+            item = ds[int(row["episode_index"]) * EPISODE_STEPS + frame_index]
             assert item["task"] == row["instruction"]
             assert item["episode_index"].item() == row["episode_index"]
             for cam in ("hand_camera", "fixed_camera"):
                 img = item[f"observation.images.{cam}"]
-                assert img.shape == (3, 256, 256) and img.dtype.is_floating_point
+                assert img.shape == (IMAGE_SHAPE[2], *IMAGE_SHAPE[:2]) and img.dtype.is_floating_point
                 assert 0.05 < img.mean() < 0.95 and img.std() > 0.05, f"{cam} looks blank"
             assert item["observation.state"].shape == (15,) and item["action"].shape == (7,)
             assert item["action"].abs().max() <= 1.0 + 1e-6
@@ -170,10 +171,10 @@ def test_recorded_seeds_replay_bit_for_bit(recorded, make_env):
         obs, _ = env.reset(seed=int(row["seed"]))
         expert.reset([int(row["seed"])])
         assert env.unwrapped.instructions == [row["instruction"]]
-        first = int(row["episode_index"]) * 50
-        recorded_states = frames[first:first + 50]["observation.state"]
+        first = int(row["episode_index"]) * EPISODE_STEPS
+        recorded_states = frames[first:first + EPISODE_STEPS]["observation.state"]
         states = []
-        for _ in range(50):
+        for _ in range(EPISODE_STEPS):
             states.append(obs["extra"]["proprio"][0].numpy())
             obs, _, _, _, info = env.step(expert.act(obs, env.unwrapped.instructions).to(torch.float32))
         np.testing.assert_array_equal(np.stack(states), recorded_states)
@@ -308,7 +309,7 @@ def test_server_dropped_mid_episode_leaves_no_partial_episode(server, recorded, 
     ds = _load(root)
     prov = read_provenance(root)
     n = ds.meta.total_episodes
-    assert n >= EPISODES + 1 and len(ds) == 50 * n and len(prov) == n
+    assert n >= EPISODES + 1 and len(ds) == EPISODE_STEPS * n and len(prov) == n
     assert prov.iloc[:len(before)].equals(before) and prov["seed"].is_unique and prov["success"].all()
     # Its episodes were simulated on a reused scene: the dataset says they do not promise a bit-exact replay.
     assert before["replayable"].all() and not prov["replayable"].iloc[len(before):].any()

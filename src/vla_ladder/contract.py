@@ -96,3 +96,25 @@ def dataset_features(video: bool = True) -> dict[str, dict]:
         STATE_KEY: {"dtype": "float32", "shape": (STATE_DIM,), "names": list(STATE_NAMES)},
         ACTION_KEY: {"dtype": "float32", "shape": (ACTION_DIM,), "names": list(ACTION_NAMES)},
     }
+
+
+def fingerprint() -> dict:
+    """This contract as plain values. Run directories and recordings keep it, so that resuming one made under
+    another contract (an episode length, a rate, a camera, the state or the action changed here) is refused instead
+    of mixing episodes of two tasks (contract_changes names what differs)."""
+    return {"env_id": ENV_ID, "robot": ROBOT, "control_mode": CONTROL_MODE, "sim_hz": SIM_HZ,
+            "control_hz": CONTROL_HZ, "episode_steps": EPISODE_STEPS,
+            "cameras": {c.name: {"fov_deg": c.fov_deg, "height": c.height, "width": c.width} for c in CAMERAS},
+            "state": list(STATE_NAMES), "action": list(ACTION_NAMES), "metrics": list(METRICS),
+            "reach_threshold": REACH_THRESHOLD, "blind_instruction": BLIND_INSTRUCTION}
+
+
+def contract_changes(saved: dict | None) -> list[str]:
+    """How a saved fingerprint() differs from this contract, one "name was X, now Y" per field; none when nothing
+    was saved (files written before fingerprints were kept resume unchecked)."""
+    if saved is None:
+        return []
+    now = fingerprint()
+    return [f"{k} was {saved.get(k)!r}, now {now.get(k)!r}"[:200] for k in sorted({*saved, *now})
+            if saved.get(k) != now.get(k)]
+

@@ -22,7 +22,7 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import MAX_OBJECTS, Condition, ConditionGrid
-from vla_ladder.contract import EPISODE_STEPS
+from vla_ladder.contract import EPISODE_STEPS, contract_changes, fingerprint
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
@@ -34,7 +34,7 @@ ROBOT_MESHES = ("lite", "full")
 FLUSH_SECONDS = 10.0
 # Fields of EvalConfig that do not change which episodes are played or what they give: a run directory
 # written with other values of these is the same request and is resumed.
-NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite", "policy_weights")
+NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite", "policy_weights", "contract")
 # Fields added after run directories existed, with the value a config.json without them meant; they become env
 # reset options of every episode when not at that value (the probes, experiments/probes.py, set them).
 PRESENTATION = {"instructions": "canonical", "appearance": "original", "instruct": 0, "instruct_absent": None,
@@ -187,20 +187,27 @@ def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     """Make cfg.out ready and return the rows it already holds for this request (resume). A directory that
     holds another request, or is not a run directory, is refused unless cfg.overwrite; so is one whose episodes
     were played with other weights at the same path (`weights`: policies.weights_identity, kept in config.json
-    as policy_weights; run directories from before it resume unchecked)."""
+    as policy_weights) or under another task contract (contract.fingerprint, kept as contract); run directories
+    from before either was kept resume unchecked on it."""
     out, saved = cfg.out, cfg.out / "config.json"
     config = json.loads(saved.read_text()) if saved.is_file() else None
     previous = ({k: v for k, v in {**PRESENTATION, **config}.items() if k not in NOT_THE_REQUEST}
                 if config is not None else None)
     before = (config or {}).get("policy_weights")
-    if before and weights and before["sha256"] != weights["sha256"] and previous == cfg.request():
+    other = []
+    if before and weights and before["sha256"] != weights["sha256"]:
+        other.append(f"other weights at {cfg.policy} (sha256 {before['sha256'][:12]}, now {weights['sha256'][:12]}: "
+                     "retrained?)")
+    if changed := contract_changes((config or {}).get("contract")):
+        other.append(f"another task contract ({'; '.join(changed)})")
+    if other and previous == cfg.request():
         if not cfg.overwrite:
-            raise ValueError(f"{out} holds episodes of other weights at {cfg.policy} (sha256 {before['sha256'][:12]}, "
-                             f"now {weights['sha256'][:12]}: retrained?); evaluate into a new --out, or pass "
+            raise ValueError(f"{out} holds episodes of {' and '.join(other)}; evaluate into a new --out, or pass "
                              "--overwrite to start again")
-        previous = {}  # another model: --overwrite starts afresh
+        previous = {}  # another model or task: --overwrite starts afresh
     files.claim_dir(out, previous, cfg.request(), cfg.overwrite, "evaluation", "a run directory")
-    files.write_json(saved, {**asdict(cfg), **({"policy_weights": weights} if weights else {})})
+    files.write_json(saved, {**asdict(cfg), **({"policy_weights": weights} if weights else {}),
+                             "contract": fingerprint()})
     path = out / "episodes.parquet"
     if not path.is_file():
         return []

@@ -111,7 +111,7 @@ def _derived_state(states: list[dict], episodes: int, sources: list) -> dict:
             "counters": {"saved": episodes, **counters, "commits": 0},
             "object_set": first.get("object_set"),
             "updated": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "provenance": first.get("provenance", {}),
+            "provenance": first.get("provenance", {}), "contract": first.get("contract"),
             "derived_from": [str(Path(s).resolve()) for s in sources]}
 
 

@@ -46,7 +46,8 @@ from vla_ladder.checks import SEED_LIMIT
 from vla_ladder.conditions import Condition
 from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, Recording, read_provenance,
                                    read_recording_state)
-from vla_ladder.contract import CAMERAS, CONTROL_HZ, EPISODE_STEPS, STATE_KEY, ACTION_KEY, dataset_features
+from vla_ladder.contract import (ACTION_KEY, CAMERAS, CONTROL_HZ, EPISODE_STEPS, STATE_KEY, contract_changes,
+                                  dataset_features, fingerprint)
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +112,9 @@ class DatasetStore:
         if diff:
             raise ValueError(f"{self.root} was recorded with " + ", ".join(diff) +
                              "; resume with the same arguments or record into a new --out")
+        if changed := contract_changes(state.get("contract")):
+            raise ValueError(f"{self.root} was recorded under another task contract ({'; '.join(changed)}); "
+                             "record into a new --out")
         info = json.loads((self.root / "meta/info.json").read_text())
         if info["total_episodes"] != state["counters"]["saved"]:
             raise ValueError(f"{self.root}: info.json has {info['total_episodes']} episodes but the recording "
@@ -234,6 +238,9 @@ class DatasetStore:
             diff = self.config.differences(Recording.from_dict(states[s]["config"], states[s]["format"]))
             if diff:
                 raise ValueError(f"shard {s} was recorded with " + ", ".join(diff) + f"; it cannot join {self.root}")
+            if changed := contract_changes(states[s].get("contract")):
+                raise ValueError(f"shard {s} was recorded under another task contract ({'; '.join(changed)}); it "
+                                 f"cannot join {self.root}")
             if states[s]["object_set"] != (self.object_set or states[s]["object_set"]):
                 raise ValueError(f"shard {s} used object set {states[s]['object_set']!r} but {self.root} holds "
                                  f"{self.object_set!r}")
@@ -303,7 +310,7 @@ class DatasetStore:
         return {"format": FORMAT_VERSION, "config": self.config.to_dict(), "next_seed": self.next_seed,
                 "counters": self.counters, "object_set": self.object_set,
                 "updated": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                "provenance": files.provenance(self.object_set)}
+                "provenance": files.provenance(self.object_set), "contract": fingerprint()}
 
     def close(self, commit: bool = True) -> None:
         """Commit what is pending (or drop it) and release the dataset. Episodes pending when an exception

@@ -42,8 +42,8 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import REGIMES, Condition
-from vla_ladder.contract import ACTION_KEY, EPISODE_STEPS, STATE_KEY
-from vla_ladder.recordings import read_provenance, read_recording
+from vla_ladder.contract import ACTION_KEY, EPISODE_STEPS, STATE_KEY, contract_changes
+from vla_ladder.recordings import read_provenance, read_recording, read_recording_state
 from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, layout_from_dict
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
 from vla_ladder.task.replay import Replayer
@@ -139,6 +139,8 @@ class Checker:
             check_features(self.info, self.root)
         except ValueError as e:
             self.flag("structure", str(e))
+        for change in contract_changes(read_recording_state(self.root).get("contract")):
+            self.flag("structure", f"recorded under another task contract: {change}")
         total = int(self.info.get("total_episodes", 0))
         indices = self.prov["episode_index"].tolist() if len(self.prov) else []
         if indices != list(range(total)):
