@@ -11,7 +11,8 @@ rebuild, so that episodes replay bit for bit; --no-rebuild-scenes reuses the sce
   render   - the server's Simulator.run (physics + expert + both 256x256 cameras) minus physics;
   transfer - a real episode message: protocol.encode -> WebSocket over 127.0.0.1 -> decode;
   encode   - DatasetStore.add: LeRobot add_frame/save_episode, --vcodec video (and PNG images for comparison), and
-             the video encoder alone on the same frames (what LeRobot's per-frame work around it costs);
+             the video encoder alone on the same frames (what LeRobot's per-frame work around it costs); the video
+             writer again with LeRobot's own per-frame image statistics instead of recording/image_stats.py's;
   write    - DatasetStore commit (finalize, statistics, card, fsync, atomic swap), per episode it held.
 The servers run in parallel and each writer is one process (`--writers K`), so the pipeline runs at its slowest
 stage, with simulation divided among N workers and writing among K writers, and no faster than the cores
@@ -203,28 +204,40 @@ def transfer(episode, repeats: int = 5) -> dict:
     return {"message_bytes": size, "s_per_episode": per, "MB_per_s": size / per / 1e6}
 
 
-def encode_and_write(args: Args, episodes: list, work: Path, video: bool) -> dict:
-    """DatasetStore.add for every episode (encode), then one commit of them all (write)."""
+def encode_and_write(args: Args, episodes: list, work: Path, video: bool, lerobot_stats: bool = False) -> dict:
+    """DatasetStore.add for every episode (encode), then one commit of them all (write); `lerobot_stats`: with
+    LeRobot's own RunningQuantileStats for the cameras instead of recording/image_stats.py's."""
+    from lerobot.datasets import compute_stats
+
+    from vla_ladder.recording import image_stats
     from vla_ladder.recording.store import DatasetStore
     from vla_ladder.recordings import Recording
 
     recording = Recording(policy="scripted", condition=Condition(args.regime, "canonical", args.num_objects),
                           video=video, robot_mesh=args.robot_mesh, vcodec=args.vcodec if video else DEFAULT_VCODEC)
-    store = DatasetStore(work / ("video" if video else "images"), recording, commit_every=10**6,
-                         encoder_threads=args.encoder_threads[0] or None)
-    t0, cpu0 = time.perf_counter(), _cpu_s()
-    for e in episodes:
-        store.count(True)
-        store.add(e)
-    added, added_cpu = time.perf_counter() - t0, _cpu_s() - cpu0
-    t = time.perf_counter()
-    store.close()
-    commit, writer_cpu = time.perf_counter() - t, _cpu_s() - cpu0
+    store = DatasetStore(work / f"{'video' if video else 'images'}{'_lerobot_stats' if lerobot_stats else ''}",
+                         recording, commit_every=10**6, encoder_threads=args.encoder_threads[0] or None)
+    install = image_stats.install
+    if lerobot_stats:  # (the store installs the counting class when it opens a dataset)
+        image_stats.uninstall()
+        image_stats.install = lambda: False
+    try:
+        t0, cpu0 = time.perf_counter(), _cpu_s()
+        for e in episodes:
+            store.count(True)
+            store.add(e)
+        added, added_cpu = time.perf_counter() - t0, _cpu_s() - cpu0
+        used = compute_stats.RunningQuantileStats.__name__
+        t = time.perf_counter()
+        store.close()
+        commit, writer_cpu = time.perf_counter() - t, _cpu_s() - cpu0
+    finally:
+        image_stats.install = install
     size = sum(f.stat().st_size for f in store.root.rglob("*") if f.is_file())
     n = len(episodes)
     return {"encode_s_per_episode": added / n, "encode_cpu_s_per_episode": added_cpu / n,
             "write_s_per_episode": commit / n, "commit_s": commit, "writer_cpu_s_per_episode": writer_cpu / n,
-            "episodes_per_commit": n, "bytes_per_episode": size / n}
+            "episodes_per_commit": n, "bytes_per_episode": size / n, "image_statistics": used}
 
 
 def encode_mp4(dest, frames: Iterable[np.ndarray], config, threads: int = 0) -> None:
@@ -378,6 +391,7 @@ def main(args: Args) -> None:
         trans = transfer(ok[0])
         encoder = encoder_alone(ok, args.encoder_threads[0], args.vcodec)
         video = encode_and_write(args, ok, work, video=True)
+        video_lerobot_stats = encode_and_write(args, ok, work, video=True, lerobot_stats=True)
         images = encode_and_write(args, ok, work, video=False)
         scaling = [writer_scaling(ok, work, k, t, args.vcodec) for k in args.writers for t in args.encoder_threads]
     success = stages[False]["simulator"]["success_rate"] or 1 / args.stage_episodes
@@ -394,7 +408,8 @@ def main(args: Args) -> None:
                        if k <= n]
     result.update({
         "stages": {"no_rebuild": stages[False], "rebuild": stages[True]}, "transfer": trans,
-        "encode_and_write_video": video, "encode_and_write_images": images, "video_encoder_alone": encoder,
+        "encode_and_write_video": video, "encode_and_write_video_lerobot_stats": video_lerobot_stats,
+        "encode_and_write_images": images, "video_encoder_alone": encoder,
         "writer_scaling": scaling,
         "stage_s_per_episode": per_episode, "expert_success_rate": success,
         "steady_state_bounds": bounds,
@@ -410,7 +425,8 @@ def main(args: Args) -> None:
     out = args.out or RESULTS / f"record_speed_{'cuda' if gpu else 'cpu'}{codec}.json"
     files.write_json(out, result)
     print(f"encode: {video['encode_cpu_s_per_episode']:.2f} CPU s per episode in LeRobot's writer, of which the "
-          f"{encoder['codec']} encoder alone {encoder['cpu_s_per_episode']:.2f}")
+          f"{encoder['codec']} encoder alone {encoder['cpu_s_per_episode']:.2f}; with LeRobot's own image statistics "
+          f"{video_lerobot_stats['encode_cpu_s_per_episode']:.2f}")
     for key, stage in per_episode.items():
         print(f"{key}: s per episode: " + ", ".join(f"{k} {v:.2f}" for k, v in stage.items()))
         for b in bounds[key]:

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from vla_ladder.conditions import Condition
+from vla_ladder.files import write_json
 from vla_ladder.recording.store import DatasetStore
 from vla_ladder.recordings import Recording, read_provenance, read_recording_state
 
@@ -201,6 +202,55 @@ def test_attempts_after_the_last_commit_are_counted(tmp_path):
     again = DatasetStore(root, Recording(**CONFIG, video=False))
     assert again.counters["attempted"] == 3 and again.saved == 1
     again.close()
+
+
+def test_a_recording_made_under_another_task_contract_is_not_resumed(tmp_path):
+    """The recording state keeps contract.fingerprint(): episodes of a task whose length, cameras, state or action
+    changed since must not join it (old recordings, without it, resume)."""
+    from vla_ladder.contract import EPISODE_STEPS, fingerprint
+    from vla_ladder.recordings import RECORDING_FILE
+
+    root = tmp_path / "contract"
+    store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=1)
+    (seed,) = store.reserve_seeds(1)
+    store.add(synthetic_episode(seed))
+    store.close()
+    state = read_recording_state(root)
+    assert state["contract"] == fingerprint()
+    write_json(root / RECORDING_FILE, {**state, "contract": {**state["contract"], "episode_steps": 2 * EPISODE_STEPS}})
+    with pytest.raises(ValueError, match=rf"recorded under another task contract \(episode_steps was "
+                                         rf"{2 * EPISODE_STEPS}, now {EPISODE_STEPS}\); record into a new --out"):
+        DatasetStore(root, Recording(**CONFIG, video=False))
+    write_json(root / RECORDING_FILE, {k: v for k, v in state.items() if k != "contract"})  # from before it was kept
+    again = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=1)
+    assert again.saved == 1
+    (seed,) = again.reserve_seeds(1)
+    again.add(synthetic_episode(seed))  # its commit keeps the contract from now on
+    again.close()
+    assert read_recording_state(root)["contract"] == fingerprint() and len(read_provenance(root)) == 2
+
+
+def test_the_writer_computes_the_cameras_statistics_by_counting(tmp_path):
+    """LeRobot's encoder thread takes its statistics class from lerobot.datasets.compute_stats when an episode
+    starts: the per-episode std it stores is CountingQuantileStats', not LeRobot's (several percent off on these
+    narrow-range frames, tests/test_image_stats.py)."""
+    import pandas as pd
+    from test_image_stats import LEROBOTS, camera_frames, run
+
+    from vla_ladder.recording.image_stats import CountingQuantileStats
+
+    root = tmp_path / "stats"
+    store = DatasetStore(root, Recording(**CONFIG), commit_every=1)
+    (seed,) = store.reserve_seeds(1)
+    episode = synthetic_episode(seed)
+    frames = camera_frames(seed, 100, 110, n=FRAMES)
+    episode.images["hand_camera"] = np.stack([f.reshape(episode.images["hand_camera"].shape[1:]) for f in frames])
+    store.add(episode)
+    store.close()
+    meta = pd.concat(pd.read_parquet(p) for p in sorted((root / "meta/episodes").glob("*/*.parquet")))
+    stored = np.concatenate([np.ravel(c) for c in meta["stats/observation.images.hand_camera/std"].iloc[0]]) * 255
+    mine, theirs = run(CountingQuantileStats, frames)[1]["std"], run(LEROBOTS, frames)[1]["std"]
+    assert np.allclose(stored, mine, rtol=1e-6) and not np.allclose(stored, theirs, rtol=1e-2)
 
 
 def test_an_object_the_expert_never_grasps_is_named(tmp_path, caplog):

@@ -7,8 +7,9 @@ so every episode's q10 sits at one of the two values and their average lands in 
 0.73 from the quantile over all frames. pi0.5 normalises state and action with q01/q99 (its QUANTILES
 normalisation), so those numbers decide what the model sees. The recorder therefore rewrites the quantiles of
 every numeric feature at each commit from all frames in data/ (exact, numpy's linear interpolation);
-min/max/mean/std/count are exact in LeRobot's aggregation and left as they are. Camera features keep
-LeRobot's sampled per-episode image statistics (policies use mean/std or nothing for images, never quantiles).
+min/max/mean/std/count are exact in LeRobot's aggregation and left as they are. Camera features keep the
+per-episode image statistics LeRobot's writer computes over every frame (recording/image_stats.py), aggregated by
+LeRobot (policies use mean/std or nothing for images, never quantiles).
 """
 
 from __future__ import annotations

@@ -181,6 +181,8 @@ class DatasetStore:
         from lerobot.configs.video import RGBEncoderConfig
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+        from vla_ladder.recording import image_stats
+        image_stats.install()  # the cameras' per-frame statistics, ten times cheaper (image_stats.py)
         self._batch_started = time.monotonic()
         shutil.rmtree(self.staging, ignore_errors=True)
         # Episodes are whole when they reach the writer, so the encoder queue may take a full episode at
