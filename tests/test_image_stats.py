@@ -31,8 +31,8 @@ def run(cls, frames) -> tuple:
     return stats, stats.get_statistics()
 
 
-@pytest.mark.parametrize("low,high", [(0, 255), (100, 110)])
-def test_counting_statistics_are_lerobots_with_a_truer_std(low, high):
+@pytest.mark.parametrize("low,high", [(0, 255), (100, 110), (200, 201)])
+def test_counting_statistics_are_lerobots_with_an_exact_std(low, high):
     frames = camera_frames(low, low, high)
     theirs, a = run(LEROBOTS, frames)
     mine, b = run(CountingQuantileStats, frames)
@@ -43,17 +43,29 @@ def test_counting_statistics_are_lerobots_with_a_truer_std(low, high):
     assert np.allclose(a["mean"], b["mean"], rtol=1e-6, atol=0) and a["mean"].dtype == b["mean"].dtype
     pixels = np.concatenate(frames).astype(np.float64)
     truth = pixels.std(axis=0)
-    assert np.allclose(b["std"], truth, rtol=2e-4, atol=0)
-    if high - low == 10:  # LeRobot's float32 mean of squares: its std is off by several percent on a narrow range
+    assert np.allclose(b["std"], truth, rtol=1e-6, atol=0) and np.allclose(b["mean"], pixels.mean(0), rtol=1e-7)
+    if high - low <= 10:  # LeRobot's float32 mean of squares: its std is off by several percent on a narrow range
         assert np.abs(a["std"] / truth - 1).max() > 0.03
 
 
+@pytest.mark.filterwarnings("ignore:Mean of empty slice", "ignore:invalid value encountered")
 def test_other_inputs_take_lerobots_own_update():
     rng = np.random.default_rng(0)
     batches = [rng.normal(size=(200, 7)).astype(np.float32) for _ in range(3)]
     _, a = run(LEROBOTS, batches)
     _, b = run(CountingQuantileStats, batches)
     assert all(np.array_equal(a[k], b[k]) for k in a)
+    for cls in (LEROBOTS, CountingQuantileStats):  # an empty batch is refused as LeRobot refuses it
+        with pytest.raises(ValueError, match="zero-size array"):
+            cls().update(np.zeros((0, 3), np.uint8))
+    # uint8 frames after a float batch: LeRobot's running moments from then on, the same as LeRobot's class
+    frames = camera_frames(3, 0, 255, n=3)
+    mixed = [frames[0].astype(np.float32), *frames[1:]]
+    _, a = run(LEROBOTS, mixed)
+    _, b = run(CountingQuantileStats, mixed)
+    assert np.array_equal(a["min"], b["min"]) and np.array_equal(a["q50"], b["q50"])
+    truth = np.concatenate(mixed).astype(np.float64).std(axis=0)
+    assert np.allclose(b["std"], truth, rtol=2e-3) and np.allclose(a["std"], truth, rtol=2e-3)
 
 
 def test_install_puts_it_where_the_encoder_threads_look_and_uninstall_takes_it_back():

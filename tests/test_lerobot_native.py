@@ -19,9 +19,12 @@ import pytest
 
 from test_recording_store import synthetic_episode
 from vla_ladder.conditions import Condition
+from vla_ladder.contract import fingerprint
+from vla_ladder.files import write_json
 from vla_ladder.recording import provenance
 from vla_ladder.recording.store import DatasetStore
-from vla_ladder.recordings import PROVENANCE_DIR, RECORDING_FILE, Recording, read_provenance, read_recording
+from vla_ladder.recordings import (PROVENANCE_DIR, RECORDING_FILE, Recording, read_provenance, read_recording,
+                                   read_recording_state)
 
 pytestmark = pytest.mark.slow  # LeRobot datasets, video encoding, subprocess CLIs
 
@@ -136,9 +139,17 @@ def test_delete_episodes_drops_provenance_and_rebuild_restores_it(recorded, tmp_
     assert provenance.missing(root) == [] and read_recording(root) == CONFIG
     np.testing.assert_allclose(_stats(root)["action"]["q90"], exact, atol=1e-6)
     assert "**Episodes**: 3 (60 frames)" in (root / "README.md").read_text()
+    assert read_recording_state(root)["contract"] == read_recording_state(old)["contract"] == fingerprint()
     # A dataset that is not made of the source's episodes is refused, naming the episode.
     with pytest.raises(ValueError, match="episode 1 matches no episode"):
         provenance.rebuild(old, [root])
+    # Sources recorded under two task contracts are no one recording: the provenance comes back, the state not.
+    other = tmp_path / "other_contract"
+    shutil.copytree(old, other)
+    state = read_recording_state(other)
+    write_json(other / RECORDING_FILE, {**state, "contract": {**state["contract"], "control_hz": 10}})
+    provenance.rebuild(root, [old, other])
+    assert len(read_provenance(root)) == 3 and read_recording(root) is None
 
 
 def test_lerobot_dataset_viz_saves_an_rrd(recorded, tmp_path):

@@ -104,14 +104,16 @@ def fingerprint() -> dict:
     of mixing episodes of two tasks (contract_changes names what differs)."""
     return {"env_id": ENV_ID, "robot": ROBOT, "control_mode": CONTROL_MODE, "sim_hz": SIM_HZ,
             "control_hz": CONTROL_HZ, "episode_steps": EPISODE_STEPS,
-            "cameras": {c.name: {"fov_deg": c.fov_deg, "height": c.height, "width": c.width} for c in CAMERAS},
-            "state": list(STATE_NAMES), "action": list(ACTION_NAMES), "metrics": list(METRICS),
+            "cameras": [{"key": c.key, "fov_deg": c.fov_deg, "height": c.height, "width": c.width} for c in CAMERAS],
+            "state": {"key": STATE_KEY, "names": list(STATE_NAMES)},
+            "action": {"key": ACTION_KEY, "names": list(ACTION_NAMES)}, "metrics": list(METRICS),
             "reach_threshold": REACH_THRESHOLD, "blind_instruction": BLIND_INSTRUCTION}
 
 
 def contract_changes(saved: dict | None) -> list[str]:
-    """How a saved fingerprint() differs from this contract, one "name was X, now Y" per field; none when nothing
-    was saved (files written before fingerprints were kept resume unchecked)."""
+    """How a saved fingerprint() differs from this contract, one "name was X, now Y" per field (each cut to 200
+    characters); none when nothing was saved (files written before fingerprints were kept resume unchecked, and
+    keep this contract's from then on)."""
     if saved is None:
         return []
     now = fingerprint()

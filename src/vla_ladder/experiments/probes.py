@@ -168,15 +168,17 @@ PROBES: dict[str, Probe] = {
                                 check=_check_switch),
 }
 """The probes by name, in the order the CLI and reports list them."""
-OPTIONS = {o for p in PROBES.values() for o in p.options}
+_OWN_COUNTS = "".join(f"; {name}: {p.default_objects}" for name, p in PROBES.items()
+                      if p.default_objects != MAX_OBJECTS)
 
 
 @dataclass(frozen=True)
 class ProbeGrid(ConditionGrid):
-    """A ConditionGrid whose object counts, left out, are the probe's own (PROBE_OBJECTS, else five): ProbeConfig
+    """A ConditionGrid whose object counts, left out, are the probe's own (Probe.default_objects): ProbeConfig
     resolves it to a plain ConditionGrid once it knows the probe."""
 
-    num_objects: Annotated[tuple[int, ...], tyro.conf.arg(help_behavior_hint="(default: 5; absent-object: 3)")] = ()
+    num_objects: Annotated[tuple[int, ...], tyro.conf.arg(
+        help_behavior_hint=f"(default: {MAX_OBJECTS}{_OWN_COUNTS})")] = ()
     """objects on the table, 1-5 (several give several conditions)"""
 
     def __post_init__(self):
@@ -188,8 +190,7 @@ class ProbeGrid(ConditionGrid):
 class ProbeConfig:
     """Probe instruction grounding on the same seeded scenes (`vla-ladder probe NAME --policy SPEC --out DIR`)."""
 
-    name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
-    """the probe: instruction-swap, paraphrase, appearance-swap, absent-object, position-swap or instruction-switch"""
+    name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME", help=f"the probe: {', '.join(PROBES)}")]
     policy: str | None = None
     """policy spec, as `vla-ladder eval --policy`: scripted, committed, nearest, layout-prior, random, ppo:PATH,
     lerobot:DIR[?...] or remote:ws://HOST:PORT (required on the command line)"""
@@ -266,8 +267,8 @@ class ProbeConfig:
 def the_request(config: dict, name: str) -> dict:
     """What decides probe `name`'s episodes: its config without the fields that do not, and without other probes'
     own options (Probe.options: so directories written before such an option existed still resume)."""
-    return {k: v for k, v in config.items()
-            if k not in NOT_THE_REQUEST and (k not in OPTIONS or k in PROBES[name].options)}
+    others = {o for p in PROBES.values() for o in p.options} - set(PROBES[name].options)
+    return {k: v for k, v in config.items() if k not in NOT_THE_REQUEST and k not in others}
 
 
 def open_probe_dir(cfg: ProbeConfig) -> None:

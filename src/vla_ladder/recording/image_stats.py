@@ -11,12 +11,16 @@ A frame's pixels are uint8, so everything RunningQuantileStats keeps follows fro
 values 0-255 (np.bincount): min and max, the mean and the mean of squares, and the histogram (each value's
 count added to the bin np.histogram would put it in). CountingQuantileStats keeps the same state that way, about
 ten times faster: the histograms, bin edges, min and max, and so the quantiles, are LeRobot's bit for bit, the
-mean agrees to float32 rounding (tests/test_recording_store.py). Its std is closer to the truth: LeRobot's mean
-of squares accumulates float32 rounding that std = sqrt(E[x^2] - E[x]^2) turns into a relative error (9% on
-frames whose values span ten levels; these sums are exact). Any other input goes to LeRobot's own update.
+mean agrees to float32 rounding (tests/test_image_stats.py). Its mean and std come from exact integer sums of x
+and x^2: LeRobot's float32 running mean of squares leaves std = sqrt(E[x^2] - E[x]^2) to cancellation, 9-13% off
+on frames whose values span ten grey levels, all of it (0 for 0.5) on frames of two adjacent levels. Any other
+input (not uint8, or empty) goes to LeRobot's own update, and a statistic that has seen one keeps LeRobot's
+running moments from then on.
 
 `install()` puts it where the encoder thread looks the class up (lerobot.datasets.compute_stats, read at each
-episode's start); the recorder's writer processes call it before they open a dataset.
+episode's start); the recorder's writer processes call it before they open a dataset. In those processes it also
+serves LeRobot's other users of the class (compute_stats.get_feature_stats: the sampled images of an image-mode
+recording, and the numeric features), which hand it float arrays, so LeRobot's update.
 """
 
 from __future__ import annotations
@@ -30,16 +34,24 @@ from lerobot.datasets.compute_stats import RunningQuantileStats
 log = logging.getLogger(__name__)
 
 _VALUES = np.arange(256, dtype=np.float64)
+_SQUARES = _VALUES**2
+_INTEGERS = np.arange(256, dtype=object)  # Python ints: sums of squares over a long recording stay exact
 _LEROBOTS = RunningQuantileStats
 # What CountingQuantileStats relies on of LeRobot's class; without it, install() leaves LeRobot's in place.
-_RELIED_ON = ("_update_histograms", "_adjust_histograms", "_compute_quantiles", "get_statistics")
+_RELIED_ON = ("_adjust_histograms", "_compute_quantiles", "get_statistics")
+_STATE = ("_count", "_mean", "_mean_of_squares", "_min", "_max", "_histograms", "_bin_edges", "_num_quantile_bins")
 
 
 class CountingQuantileStats(RunningQuantileStats):
     """RunningQuantileStats whose update of uint8 batches works from per-channel value counts (module docstring)."""
 
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._sums: list | None = [0, 0]  # exact sums of x and x^2 per channel while every batch was uint8
+
     def update(self, batch: np.ndarray) -> None:
-        if batch.dtype != np.uint8:
+        if batch.dtype != np.uint8 or batch.size == 0:
+            self._sums = None
             return super().update(batch)
         batch = batch.reshape(-1, batch.shape[-1])
         num_elements, vector_length = batch.shape
@@ -49,7 +61,10 @@ class CountingQuantileStats(RunningQuantileStats):
         high = (255 - present[:, ::-1].argmax(axis=1)).astype(np.float32)
         # float32 like LeRobot's np.mean of float32 pixels, so the running state keeps its dtypes
         batch_mean = (counts @ _VALUES / num_elements).astype(np.float32)
-        batch_mean_of_squares = (counts @ _VALUES**2 / num_elements).astype(np.float32)
+        batch_mean_of_squares = (counts @ _SQUARES / num_elements).astype(np.float32)
+        if self._sums is not None:
+            exact = counts.astype(object)
+            self._sums = [self._sums[0] + exact @ _INTEGERS, self._sums[1] + exact @ (_INTEGERS * _INTEGERS)]
         if self._count == 0:
             self._mean, self._mean_of_squares, self._min, self._max = batch_mean, batch_mean_of_squares, low, high
             self._histograms = [np.zeros(self._num_quantile_bins) for _ in range(vector_length)]
@@ -69,6 +84,15 @@ class CountingQuantileStats(RunningQuantileStats):
         for i in range(vector_length):
             # the 256 values weighted by their counts fall in the bins the pixels themselves would
             self._histograms[i] += np.histogram(_VALUES, bins=self._bin_edges[i], weights=counts[i])[0]
+
+    def get_statistics(self) -> dict[str, np.ndarray]:
+        stats = super().get_statistics()
+        if self._sums is not None:  # mean and std from the exact sums (n * sum x^2 - (sum x)^2 is an integer)
+            n, total, squares = self._count, self._sums[0], self._sums[1]
+            stats["mean"] = np.array([t / n for t in total], dtype=np.float32)
+            stats["std"] = np.array([np.sqrt((n * q - t * t) / (n * n)) for t, q in zip(total, squares)],
+                                    dtype=np.float32)
+        return stats
 
     def _adjust_histograms(self) -> None:
         """LeRobot's rebinning (each old bin's count to the new bin holding its centre), vectorised: np.add.at
@@ -91,7 +115,8 @@ def install() -> bool:
     left in place) when the installed LeRobot's class lacks what it relies on."""
     if compute_stats.RunningQuantileStats is CountingQuantileStats:
         return True
-    missing = [name for name in _RELIED_ON if not hasattr(_LEROBOTS, name)]
+    state = vars(_LEROBOTS())
+    missing = [name for name in _RELIED_ON if not hasattr(_LEROBOTS, name)] + [s for s in _STATE if s not in state]
     if missing or compute_stats.RunningQuantileStats is not _LEROBOTS:
         log.warning("LeRobot's RunningQuantileStats changed (%s): its own image statistics stay in use",
                     ", ".join(missing) or "replaced by another class")
@@ -101,5 +126,7 @@ def install() -> bool:
 
 
 def uninstall() -> None:
-    """LeRobot's own class back (benchmarks/record_speed.py measures the writer with both)."""
-    compute_stats.RunningQuantileStats = _LEROBOTS
+    """LeRobot's own class back where install() put this one (benchmarks/record_speed.py measures the writer
+    with both)."""
+    if compute_stats.RunningQuantileStats is CountingQuantileStats:
+        compute_stats.RunningQuantileStats = _LEROBOTS

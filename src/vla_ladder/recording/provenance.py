@@ -90,7 +90,8 @@ def rebuild(root: str | Path, sources: list[str | Path]) -> pd.DataFrame:
     prov = pd.DataFrame(rows)
     shutil.rmtree(root / PROVENANCE_DIR, ignore_errors=True)
     files.write_parquet(root / PROVENANCE_DIR / REBUILT_SHARD, prov)
-    configs = {json.dumps(s["config"], sort_keys=True) for s in states}
+    # one recording only if the sources agree on what they record, and under which task contract
+    configs = {json.dumps([s["config"], s.get("contract")], sort_keys=True) for s in states}
     if len(configs) == 1:
         files.write_json(root / RECORDING_FILE, _derived_state(states, len(prov), sources))
     else:

@@ -70,7 +70,8 @@ class RecordConfig:
     token: str | None = None  # read from the environment in __post_init__, so that --help never prints it
     """server token (default: $VLA_LADDER_TOKEN)"""
     commit_every: int = 50
-    """commit to the dataset every N saved episodes"""
+    """commit to the dataset every N saved episodes (each commit starts new video files; within a batch LeRobot
+    rewrites its file for every episode, so thousands cost more than they save: docs/recording.md)"""
     commit_seconds: float = 600.0
     """... or, at the next saved episode, when the open batch is older than this"""
     writers: int = 0
