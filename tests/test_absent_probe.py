@@ -103,7 +103,7 @@ def blind(lay, j):  # the same object whatever is said
 
 def test_absent_metrics_tell_grounded_shortcut_and_blind_policies_apart():
     key = "small_jitter/canonical/3"
-    g = grounding.absent_object(*absent_plays(grounded), resamples=300)[key]
+    g = grounding.absent_object(*absent_plays(grounded))[key]
     assert g["scenes"] == 10 and g["absent_plays"] == 20
     assert g["grasp_present"]["value"] == 1 and g["grasp_absent"]["value"] == 0 and g["grasp_change"]["value"] == -1
     assert g["shortcut_reach"]["value"] == 0 and g["usual_place_empty"]["value"] == 1  # canonical: always empty
@@ -111,16 +111,20 @@ def test_absent_metrics_tell_grounded_shortcut_and_blind_policies_apart():
     assert g["grasp_absent"]["method"] == "wilson over scenes (every play alike)"
     assert g["grasp_absent"]["ci95"][1] == pytest.approx(0.278, abs=1e-3)
     assert g["usual_regions"]["mug"] == [3]
-    assert g["grasp_change"]["method"] == "bootstrap over scenes"  # two absent plays a scene: a share minus a 0/1
+    # Two absent plays a scene: a share minus a 0/1, from the two rates' own intervals (Wilson, and Wilson over
+    # scenes here, every play alike): nothing held absent, everything present, 10 scenes.
+    assert g["grasp_change"]["method"].startswith("mover")
+    assert g["grasp_change"]["ci95"] == pytest.approx([-1, -1 + (2 * 0.2775 ** 2) ** 0.5], abs=1e-3)
     # With four objects, one absent play a scene: the change is a paired binary difference (Newcombe's interval).
-    four = grounding.absent_object(*absent_plays(grounded, k=4), resamples=300)["small_jitter/canonical/4"]
+    four = grounding.absent_object(*absent_plays(grounded, k=4))["small_jitter/canonical/4"]
     assert four["grasp_change"]["value"] == -1 and four["grasp_change"]["method"] == "newcombe paired score"
     assert four["grasp_change"]["ci95"] == pytest.approx(list(paired_difference(np.ones(10, bool),
                                                                                  np.zeros(10, bool))))
-    s = grounding.absent_object(*absent_plays(shortcut), resamples=300)[key]
+    s = grounding.absent_object(*absent_plays(shortcut))[key]
     assert s["shortcut_reach"]["value"] == 1 and s["grasp_absent"]["value"] == 0 and s["same_grasp"]["value"] == 0
-    b = grounding.absent_object(*absent_plays(blind), resamples=300)[key]
+    b = grounding.absent_object(*absent_plays(blind))[key]
     assert b["grasp_absent"]["value"] == b["grasp_present"]["value"] == 1 and b["grasp_change"]["value"] == 0
+    assert b["grasp_change"]["ci95"] == pytest.approx([-0.2775, 0.2775], abs=1e-3)  # a width, not the point [0, 0]
     assert b["same_grasp"]["value"] == 1 and b["shortcut_reach"]["value"] == 0
     counts = np.array(b["matrix"]["counts"])
     assert counts.sum() == 20 and counts[:, -1].sum() == 0  # the named absent object x what was held instead
@@ -129,22 +133,22 @@ def test_absent_metrics_tell_grounded_shortcut_and_blind_policies_apart():
     # Pairing splits: the named object's three training regions often hold present objects. Going to one of those
     # is grasping what stands there, not a shortcut: only empty usual places count.
     key = "small_jitter/pairings_id/3"
-    e = grounding.absent_object(*absent_plays(empty_place, split="pairings_id", scenes=30), resamples=300)[key]
-    b = grounding.absent_object(*absent_plays(blind, split="pairings_id", scenes=30), resamples=300)[key]
+    e = grounding.absent_object(*absent_plays(empty_place, split="pairings_id", scenes=30))[key]
+    b = grounding.absent_object(*absent_plays(blind, split="pairings_id", scenes=30))[key]
     assert e["shortcut_reach"]["value"] == 1 and b["shortcut_reach"]["value"] == 0
     assert e["usual_place_empty"]["value"] == b["usual_place_empty"]["value"] == 0.9  # 54 of 60 plays have one
     assert e["shortcut_reach"]["n"] == 54 and e["usual_regions"]["apple"] == [0, 1, 2]
     key = "small_jitter/canonical/3"
     # Full random has no usual place: shortcut reach is undefined, not 0.
-    f = grounding.absent_object(*absent_plays(shortcut, "full_random"), resamples=300)["full_random/canonical/3"]
+    f = grounding.absent_object(*absent_plays(shortcut, "full_random"))["full_random/canonical/3"]
     assert f["shortcut_reach"] is None and f["usual_regions"] is None and f["grasp_absent"]["value"] == 0
     # A scene missing one of its absent plays is left out; so is one missing its present play.
     present, absent = absent_plays(grounded)
     absent = absent[~((absent["episode"] == 3) & (absent["absent"] == 1))]
-    assert grounding.absent_object(present[present["episode"] != 5], absent, 300)[key]["scenes"] == 8
+    assert grounding.absent_object(present[present["episode"] != 5], absent)[key]["scenes"] == 8
     # Runs from before tcp_x/tcp_y were kept read as NaN: shortcut reach is then unknown, not 0.
     present, absent = absent_plays(shortcut)
-    old = grounding.absent_object(present, absent.assign(tcp_x=np.nan), 300)[key]
+    old = grounding.absent_object(present, absent.assign(tcp_x=np.nan))[key]
     assert old["shortcut_reach"] is None and old["grasp_absent"]["value"] == 0
 
 

@@ -46,9 +46,20 @@ def paired_difference(x: np.ndarray, y: np.ndarray, confidence: float = CONFIDEN
     # The correlation of the two rates, with Newcombe's continuity correction of a positive one.
     a = both * neither - only_y * only_x
     psi = 0.0 if margins == 0 or 0 <= a <= n / 2 else (a - n / 2 if a > 0 else a) / math.sqrt(margins)
+    return difference_interval((px, lx, ux), (py, ly, uy), psi)
+
+
+def difference_interval(x: tuple[float, float, float], y: tuple[float, float, float],
+                        correlation: float) -> tuple[float, float]:
+    """Interval of y - x from each rate's own (value, lo, hi) and the correlation of the two estimates: the MOVER
+    construction (Zou and Donner, Statistical Methods in Medical Research 2008), which recovers the variance of
+    each rate near its limits from its own interval. Newcombe's paired interval (paired_difference) is this with
+    Wilson intervals and a continuity-corrected phi; the absent object's grasp change uses it with a rate pooled
+    over each scene's plays (grounding.absent_object). Clipped to [-1, 1]."""
+    (px, lx, ux), (py, ly, uy) = x, y
     diff = py - px
-    lo = diff - math.sqrt(max((py - ly) ** 2 + (ux - px) ** 2 - 2 * psi * (py - ly) * (ux - px), 0.0))
-    hi = diff + math.sqrt(max((px - lx) ** 2 + (uy - py) ** 2 - 2 * psi * (px - lx) * (uy - py), 0.0))
+    lo = diff - math.sqrt(max((py - ly) ** 2 + (ux - px) ** 2 - 2 * correlation * (py - ly) * (ux - px), 0.0))
+    hi = diff + math.sqrt(max((px - lx) ** 2 + (uy - py) ** 2 - 2 * correlation * (px - lx) * (uy - py), 0.0))
     return max(lo, -1.0), min(hi, 1.0)
 
 

@@ -125,7 +125,7 @@ def _absent_variants(cfg: ProbeConfig) -> dict[str, dict]:
 def _absent_results(runs: dict[str, Run], resamples: int) -> dict:
     absent = pd.concat([r.episodes.assign(absent=_index(name)) for name, r in runs.items() if name != "present"],
                        ignore_index=True)
-    return grounding.absent_object(runs["present"].episodes, absent, resamples)
+    return grounding.absent_object(runs["present"].episodes, absent)
 
 
 def _switch_variants(cfg: ProbeConfig) -> dict[str, dict]:
@@ -218,8 +218,7 @@ class ProbeConfig:
     videos: int = 0
     """film the first K scenes of each condition in every variant"""
     resamples: int = grounding.RESAMPLES
-    """resamples for the intervals without a closed form (instruction swap's NMI and its permutation null, the
-    absent object's grasp change)"""
+    """resamples for the intervals without a closed form (the instruction swap's NMI and its permutation null)"""
     report: bool = True
     """write report.html (the variants' results and the probe's section)"""
     overwrite: bool = False
