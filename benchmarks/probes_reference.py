@@ -1,7 +1,8 @@
 """The reference policies under the grounding probes: the calibration docs/probes.md quotes.
 
     .venv/bin/python benchmarks/probes_reference.py [--swap-scenes 20] [--scenes 10] [--absent-scenes 20]
-        [--position-scenes 20] [--switch-scenes 20] [--switch-steps 5 25] [--probes P ...] [--out DIR]
+        [--position-scenes 20] [--switch-scenes 20] [--removal-scenes 20] [--switch-steps 5 25] [--probes P ...]
+        [--out DIR]
 
 Runs `vla-ladder probe` (CPU, state only, five objects, small jitter and full random) for
 - instruction-swap: scripted, nearest, layout-prior, random;
@@ -11,6 +12,7 @@ Runs `vla-ladder probe` (CPU, state only, five objects, small jitter and full ra
   jitter; full random has no pairing split),
 - position-swap: scripted, nearest, layout-prior, random,
 - instruction-switch: scripted, committed, nearest, layout-prior, random (at --switch-steps),
+- distractor-removal: scripted, nearest, layout-prior, random,
 and writes every probe's per-condition results to benchmarks/results/probes_reference.json; with --probes, only
 those probes, to probes_reference_<probe>[+<probe>...].json beside it (the full file stays as it was measured).
 With --out the probe directories are kept there and a second run resumes them (only probe.json is recomputed).
@@ -38,7 +40,8 @@ PLAN = {"instruction-swap": ("scripted", "nearest", "layout-prior", "random"),
         "appearance-swap": ("scripted", "layout-prior"),
         "absent-object": ("scripted", "nearest", "layout-prior", "random"),
         "position-swap": ("scripted", "nearest", "layout-prior", "random"),
-        "instruction-switch": ("scripted", "committed", "nearest", "layout-prior", "random")}
+        "instruction-switch": ("scripted", "committed", "nearest", "layout-prior", "random"),
+        "distractor-removal": ("scripted", "nearest", "layout-prior", "random")}
 REGIMES = ("small_jitter", "full_random")
 ABSENT_GRID = ProbeGrid(REGIMES, ("canonical", "pairings_id"), (3,))
 
@@ -55,6 +58,8 @@ class Args:
     """scenes per condition of the position-swap probe (each played as it is and swapped)"""
     switch_scenes: int = 20
     """scenes per condition of the instruction-switch probe (each played as it is and once per switch step)"""
+    removal_scenes: int = 20
+    """scenes per condition of the distractor-removal probe (each played as it is and alone)"""
     switch_steps: tuple[int, ...] = SWITCH_STEPS
     """the instruction-switch probe's switch steps"""
     probes: tuple[str, ...] = tuple(PLAN)
@@ -75,7 +80,7 @@ def main(args: Args) -> None:
     results: dict = {}
     scenes = {"instruction-swap": args.swap_scenes, "paraphrase": args.scenes, "appearance-swap": args.scenes,
               "absent-object": args.absent_scenes, "position-swap": args.position_scenes,
-              "instruction-switch": args.switch_scenes}
+              "instruction-switch": args.switch_scenes, "distractor-removal": args.removal_scenes}
     with tempfile.TemporaryDirectory() as tmp:
         base = args.out or Path(tmp)
         for probe, policies in ((p, PLAN[p]) for p in args.probes):

@@ -31,7 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("vla_ladder.report.html:ReportConfig", "write a self-contained HTML report of runs"),
     "probe": ("vla_ladder.experiments.probes:ProbeConfig",
               "probe instruction grounding: instruction swap, paraphrases, appearance swap, absent object, "
-              "position swap, instruction switch"),
+              "position swap, instruction switch, distractor removal"),
     "rebuild-provenance": ("vla_ladder.recording.provenance:RebuildProvenanceConfig",
                            "give a dataset made by lerobot-edit-dataset its vla-ladder provenance back"),
     "check-dataset": ("vla_ladder.training.check_dataset:CheckDatasetConfig",

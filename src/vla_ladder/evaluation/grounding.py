@@ -24,6 +24,9 @@ on what the instruction says:
   instructed object A to a distractor B. What is held at the end (B: follows the new instruction, A: stays with
   the old one, another, none) and where the gripper ends, per K, next to the unswitched play: shares (Wilson),
   paired changes (Newcombe's paired interval, McNemar's exact p), the transition table original -> switched.
+- distractor removal: the same scenes with every distractor taken off the table. Success in both plays (Wilson)
+  and its paired change (Newcombe, McNemar), and the original play's failures split into those the distractors
+  caused (it succeeds alone) and those it makes alone too.
 
 An object "held" is the one grasped at the final step ("none" when nothing is), as for success.
 """
@@ -512,4 +515,38 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
             cond[f"follows_new_at_{step}"] = entry["follows_new_switched"]
             cond[f"stays_old_at_{step}"] = entry["stays_old_switched"]
             cond["by_step"][str(step)] = entry
+    return out
+
+
+# ---------------------------------------------------------------------- distractor removal
+REMOVAL_OUTCOMES = ("instructed", "distractor", "none")
+
+
+def distractor_removal(original: pd.DataFrame, alone: pd.DataFrame) -> dict:
+    """Per condition: the same scenes played as they are and with every distractor taken off the table (the
+    instructed object alone where it stood). What is held in the original play (the instructed object, a
+    distractor, nothing: Wilson), success in each play and its paired change alone - original (Newcombe's paired
+    interval, McNemar's exact p), and the original play's failures split by what the alone play did: distractor
+    failures (it succeeds alone: with the others on the table the policy chose or was drawn to something else)
+    and failures alone (it fails with nothing to choose between: reaching, grasping, or going to a place where
+    the object is not). Both as shares of all scenes (Wilson)."""
+    keys = [*CONDITION_KEYS, "episode"]
+    merged = original.merge(alone, on=keys, suffixes=("_o", "_a"))
+    if (merged["seed_o"] != merged["seed_a"]).any() or (merged["target_o"] != merged["target_a"]).any():
+        raise ValueError("the variants played different seeds or instructions; a probe compares the same scenes")
+    out = {}
+    for key, g in _by_condition(merged):
+        n = len(g)
+        x, y = g["success_o"].astype(bool).to_numpy(), g["success_a"].astype(bool).to_numpy()
+        held = ["none" if h == NONE else "instructed" if h == t else "distractor"
+                for h, t in zip(g["held_o"], g["target_o"])]
+        out[key] = {
+            "scenes": n,
+            "success_original": wilson_rate(int(x.sum()), n), "success_alone": wilson_rate(int(y.sum()), n),
+            "success_change": paired_change(x, y),
+            "held_original": {o: wilson_rate(held.count(o), n) for o in REMOVAL_OUTCOMES},
+            "distractor_failures": wilson_rate(int((~x & y).sum()), n),
+            "failures_alone": wilson_rate(int((~y).sum()), n),
+            "grasp_any_alone": wilson_rate(int(g["grasp_any_a"].astype(bool).sum()), n),
+        }
     return out

@@ -38,7 +38,7 @@ NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite", "policy_weights", 
 # Fields added after run directories existed, with the value a config.json without them meant; they become env
 # reset options of every episode when not at that value (the probes, experiments/probes.py, set them).
 PRESENTATION = {"instructions": "canonical", "appearance": "original", "instruct": 0, "instruct_absent": None,
-                "swap_positions": False, "switch_at": None}
+                "swap_positions": False, "switch_at": None, "alone": False}
 
 
 @dataclass
@@ -95,6 +95,9 @@ class EvalConfig:
     the seed, which success is then judged against (the instruction-switch probe; task/layouts.py Layout.switched;
     needs 2+ objects): episodes.parquet's target and instruction are the new ones, the layout's "switch" says
     when and what came first; None: the instruction never changes"""
+    alone: bool = False
+    """take every distractor off the table, the instructed object staying where the seed put it (the
+    distractor-removal probe; task/layouts.py Layout.alone): the layout's "removed" names what stood there"""
 
     def __post_init__(self):
         self.out = None if self.out is None else Path(self.out)
@@ -149,10 +152,14 @@ class EvalConfig:
                                            or not 1 <= self.switch_at < EPISODE_STEPS):
             raise ValueError(f"switch_at must be a control step from 1 to {EPISODE_STEPS - 1} (the episode has "
                              f"{EPISODE_STEPS}), got {self.switch_at!r}")
-        # Both act on a present distractor beside the instructed object, which must itself be on the table.
+        # Each acts on a present distractor beside the instructed object, which must itself be on the table.
+        if self.alone and (self.swap_positions or self.switch_at is not None):
+            raise ValueError("alone takes the distractors off the table, which swap_positions and switch_at need; "
+                             "give one")
         for name, active, does in (("swap_positions", self.swap_positions, "moves the instructed object"),
                                    ("switch_at", self.switch_at is not None,
-                                    "switches from the instructed object to another present one")):
+                                    "switches from the instructed object to another present one"),
+                                   ("alone", self.alone, "leaves the instructed object alone")):
             if active and min(self.grid.num_objects) < 2:
                 raise ValueError(f"{name} needs at least two objects on the table; got --num-objects "
                                  f"{' '.join(map(str, self.grid.num_objects))} (allowed: 2-5)")

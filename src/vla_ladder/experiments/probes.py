@@ -25,6 +25,9 @@ DIR/probe.json (metrics with 95% intervals, evaluation/grounding.py), DIR/<probe
   instructing its target A and at control step K the instruction (and the target success is judged against)
   switches to a distractor B drawn from the seed. A policy that keeps reading its instruction goes to B when the
   switch comes early; one that commits to its first reading goes on to A; one that ignores it plays the same.
+- distractor-removal: each scene as it is (original) and with every distractor taken off the table (alone; the
+  instructed object where it stood). A failure that turns into success alone was the distractors' doing (the
+  policy chose, or was drawn to, another object); one that stays is the policy's own, with nothing to choose.
 
 Rerunning the same command resumes every variant; another request into DIR is refused unless --overwrite.
 """
@@ -166,6 +169,9 @@ PROBES: dict[str, Probe] = {
                                                                    runs["swapped"].episodes), **TWO),
     "instruction-switch": Probe(_switch_variants, _switch_results, **TWO, options=("switch_steps",),
                                 check=_check_switch),
+    "distractor-removal": Probe(lambda cfg: {"original": dict(grid=cfg.grid), "alone": dict(grid=cfg.grid, alone=True)},
+                                lambda runs, _: grounding.distractor_removal(runs["original"].episodes,
+                                                                             runs["alone"].episodes), **TWO),
 }
 """The probes by name, in the order the CLI and reports list them."""
 _OWN_COUNTS = "".join(f"; {name}: {p.default_objects}" for name, p in PROBES.items()

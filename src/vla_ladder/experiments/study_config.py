@@ -156,10 +156,10 @@ class EvaluationSpec:
     learning curve; 0: none)"""
     probes: list[str] = field(default_factory=list)
     """grounding probes (vla-ladder probe) run on every instruction-reading model in its training condition:
-    instruction-swap, paraphrase, appearance-swap, absent-object, position-swap, instruction-switch; each plays
-    the object count nearest the training data's that it can (absent-object four where the data have five, so that
-    one is off the table; the swaps and the switch two where the data have one); blind models are skipped: they
-    cannot follow an instruction"""
+    instruction-swap, paraphrase, appearance-swap, absent-object, position-swap, instruction-switch,
+    distractor-removal; each plays the object count nearest the training data's that it can (absent-object four
+    where the data have five, so that one is off the table; the swaps, the switch and the removal two where the
+    data have one); blind models are skipped: they cannot follow an instruction"""
     probe_episodes: int = 20
     """scenes per probe"""
 

@@ -32,6 +32,8 @@ PLACE_NAMES = {"instructed": "instructed object (follows the object)",
 SWITCH_NAMES = {"new": "switched-to object B (follows the new instruction)",
                 "old": "first-named object A (stays with the old one)", "other": "another object", "none": "nothing"}
 WORDINGS = ("canonical", "paraphrase-train", "paraphrase-heldout")
+REMOVAL_SERIES = {"success_original": "success, as it is", "success_alone": "success, distractors removed",
+                  "distractor_failures": "fails only among distractors", "failures_alone": "fails alone too"}
 ABSENT_SERIES = {"grasp_present": "grasp, own target named", "grasp_absent": "grasp, absent object named",
                  "shortcut_reach": "ends at an empty usual place of the absent object",
                  "same_grasp": "grasps what it grasps when its own target is named"}
@@ -85,6 +87,16 @@ EXPLAIN = {
     "than the other, whatever is held. A policy that re-reads its instruction follows the new one when K is early "
     "and, having grasped, stays with the old one when K is late; one that commits from its first frames stays with "
     "the old one at every K; one that ignores the instruction plays the same in both plays.",
+    "distractor-removal": "The same scenes played as they are and with every distractor taken off the table, the "
+    "instructed object alone where it stood, with the same wording, colours and robot start (task/layouts.py "
+    "Layout.alone). <b>Success</b> in each play and its paired change (Newcombe's paired interval, McNemar's exact "
+    "p). <b>Fails only among distractors</b>: the scene fails as it is and succeeds alone, so the other objects "
+    "were the problem (the policy chose, or was drawn to, something else); <b>fails alone too</b>: the scene fails "
+    "with nothing to choose between (reaching, grasping, or a place where the object is not). <b>Held, as it "
+    "is</b>: the instructed object, a distractor, or nothing. A grounded policy with sound control fails neither "
+    "way; one that picks objects by something other than the instruction (the nearest, its usual object) fails "
+    "among distractors and succeeds alone; a location shortcut under full random fails alone too, its usual place "
+    "being empty.",
 }
 
 
@@ -215,6 +227,16 @@ def _switch_table(conds: dict) -> tuple[list[str], list[list[str]]]:
                   for k, cond in conds.items() for c in cond["by_step"].values()]
 
 
+def _removal_table(conds: dict) -> tuple[list[str], list[list[str]]]:
+    head = ["condition", "scenes", "success: as it is → alone", "Δ success", "fails only among distractors",
+            "fails alone too", "held as it is: instructed / distractor / nothing"]
+    return head, [[html.escape(k), str(c["scenes"]),
+                   f"{_cell(c['success_original'])} → {_cell(c['success_alone'])}", _delta(c["success_change"]),
+                   _cell(c["distractor_failures"]), _cell(c["failures_alone"]),
+                   " / ".join(_cell(c["held_original"][o]) for o in ("instructed", "distractor", "none"))]
+                  for k, c in conds.items()]
+
+
 def _switch_tables(conds: dict) -> list[tuple[str, dict]]:
     """The instruction switch's per-table entries: one per condition and switch step."""
     return [(f"{key}, switch at step {k}", c) for key, cond in conds.items() for k, c in cond["by_step"].items()]
@@ -281,14 +303,21 @@ def _bars(ax, groups: list[str], series: dict[str, list[dict]], ylabel: str) -> 
     ax.legend(fontsize=7)
 
 
-def _plot_swap(data: dict, path: Path) -> Path:
+def _plot_metrics(data: dict, path: Path, metrics: dict[str, str], ylabel: str, title: str,
+                  legend_below: bool = False) -> Path:
+    """Grouped bars of each condition's `metrics` (key -> label), one {value, ci95} entry each."""
     plt = _plt()
     conds = data["conditions"]
-    fig, ax = plt.subplots(figsize=(max(5.0, 2.2 * len(conds)), 3.6))
-    _bars(ax, list(conds), {label: [c[m] for c in conds.values()] for m, label in SWAP_METRICS.items()},
-          "% (NMI × 100), 95% interval")
-    ax.set_title(f"Instruction swap: {data['policy'].get('spec', '')}")
+    fig, ax = plt.subplots(figsize=(max(5.0, 2.2 * len(conds)), 3.8 if legend_below else 3.6))
+    _bars(ax, list(conds), {label: [c[m] for c in conds.values()] for m, label in metrics.items()}, ylabel)
+    if legend_below:  # the bars reach 100
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
+    ax.set_title(f"{title}: {data['policy'].get('spec', '')}")
     return _save(fig, path)
+
+
+def _plot_swap(data: dict, path: Path) -> Path:
+    return _plot_metrics(data, path, SWAP_METRICS, "% (NMI × 100), 95% interval", "Instruction swap")
 
 
 def _plot_absent(data: dict, path: Path) -> Path:
@@ -306,6 +335,11 @@ def _plot_absent(data: dict, path: Path) -> Path:
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)  # below: the bars reach 100
     ax.set_title(f"Absent object: {data['policy'].get('spec', '')}")
     return _save(fig, path)
+
+
+def _plot_removal(data: dict, path: Path) -> Path:
+    return _plot_metrics(data, path, REMOVAL_SERIES, "% of scenes, 95% Wilson interval", "Distractor removal",
+                         legend_below=True)
 
 
 def _plot_paraphrase(data: dict, path: Path) -> Path:
@@ -419,6 +453,12 @@ def _position_lines(key: str, c: dict) -> list[str]:
             f"follows_place {c['follows_place_original']['value']:.2f} -> {c['follows_place_swapped']['value']:.2f}"]
 
 
+def _removal_lines(key: str, c: dict) -> list[str]:
+    return [f"{key}: scenes={c['scenes']} success {c['success_original']['value']:.2f} -> alone "
+            f"{c['success_alone']['value']:.2f} distractor_failures={c['distractor_failures']['value']:.2f} "
+            f"failures_alone={c['failures_alone']['value']:.2f}"]
+
+
 def _switch_lines(key: str, c: dict) -> list[str]:
     return [f"{key} switch@{k}: scenes={e['scenes']} follows_new "
             f"{e['follows_new_original']['value']:.2f} -> {e['follows_new_switched']['value']:.2f} "
@@ -470,6 +510,8 @@ VIEWS: dict[str, ProbeView] = {
     "instruction-switch": ProbeView(EXPLAIN["instruction-switch"], _switch_table, _switch_lines, _plot_switch,
                                     unit=POINTS, counts=("transitions", "held: original \\ switched"),
                                     tables=_switch_tables),
+    "distractor-removal": ProbeView(EXPLAIN["distractor-removal"], _removal_table, _removal_lines, _plot_removal,
+                                    unit=POINTS),
 }
 """The probes the report can show, by name (each name of experiments/probes.py PROBES has one)."""
 

@@ -113,6 +113,8 @@ class GraspObjectEnv(BaseEnv):
     `instructions` name B, a present distractor drawn from the seed; the scene itself never changes. The switch
     is applied as step K starts: the action of step K was chosen under A, the observation and info step K returns
     already refer to B, so a policy has acted K times on A's instruction and acts on B's from then on.
+    "alone" (True, or a list of bools) takes every distractor off the table (parked, as absent objects are), the
+    instructed object staying where the seed put it (the distractor-removal probe, `Layout.alone`).
 
     Success: the instructed object is grasped (both fingers push on it) at the final step. Episodes
     always run 50 steps (2.5 s at 20 Hz, physics at 100 Hz) and never terminate early. `info` also holds
@@ -256,7 +258,8 @@ class GraspObjectEnv(BaseEnv):
         present-object rank, or a list with one per reset env) instructs another object of the same scene,
         options["instruct_absent"] (a name or rank among the absent objects, or a list) an object not on it, and
         options["swap_positions"] (a bool, or a list) exchanges the instructed object's place with a distractor's,
-        and options["switch_at"] (a control step 1-49, or a list) switches the instruction to a distractor there."""
+        options["switch_at"] (a control step 1-49, or a list) switches the instruction to a distractor there, and
+        options["alone"] (a bool, or a list) takes the distractors off the table."""
         options = dict(options or {})
         env_idx = options.get("env_idx")
         idx = np.arange(self.num_envs) if env_idx is None else np.asarray(
@@ -283,7 +286,7 @@ class GraspObjectEnv(BaseEnv):
             check_instruction_set(options["instructions"])
         if options.get("appearance") is not None and check_appearance(options["appearance"]) != "original":
             self._check_paintable()
-        for name in ("instruct", "instruct_absent", "swap_positions", "switch_at"):
+        for name in ("instruct", "instruct_absent", "swap_positions", "switch_at", "alone"):
             value = options.get(name)
             if isinstance(value, (list, tuple)) and len(value) != len(idx):
                 raise ValueError(f"got {len(value)} {name} values for {len(idx)} envs being reset")
@@ -306,6 +309,12 @@ class GraspObjectEnv(BaseEnv):
         if any(k is not None and a is not None for k, a in zip(switch, both[1])):
             raise ValueError("switch_at switches from the instructed object to another present one, and "
                              "instruct_absent names one that is not on the table; give one per env")
+        alone = _per_env(options.get("alone"), len(idx))
+        if any(v is not None and not isinstance(v, (bool, np.bool_)) for v in alone):
+            raise ValueError(f"alone must be True or False (or a list with one per env), got {options['alone']!r}")
+        if any(v and (a is not None or s or k is not None) for v, a, s, k in zip(alone, both[1], swap, switch)):
+            raise ValueError("alone takes the distractors off the table, which instruct_absent, swap_positions and "
+                             "switch_at each need; give one per env")
         return super().reset(seed=None if seed is None else [int(s) for s in seeds] if env_idx is None
                              else None, options=options)
 
@@ -328,6 +337,7 @@ class GraspObjectEnv(BaseEnv):
         instruct_absent = _per_env(options.get("instruct_absent"), b)
         swap_positions = _per_env(options.get("swap_positions"), b)
         switch_at = _per_env(options.get("switch_at"), b)
+        alone = _per_env(options.get("alone"), b)
         switch_step = np.zeros(b, dtype=np.int64)  # 0: no switch
         switch_tgt = np.zeros(b, dtype=np.int64)
         centers = self._center.cpu().numpy()  # once, not per object and env: on CUDA each .cpu() waits on the GPU
@@ -342,6 +352,9 @@ class GraspObjectEnv(BaseEnv):
             if swap_positions[row]:
                 # After "instruct": the object the instruction names is the one that moves.
                 lay = lay.positions_swapped()
+            if alone[row]:
+                # After "instruct": the object the instruction names is the one that stays.
+                lay = lay.alone()
             if switch_at[row] is not None:
                 # Last: the switch names a distractor of the scene as played (after instruct and the swap).
                 lay = lay.switched(int(switch_at[row]))

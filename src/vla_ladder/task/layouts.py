@@ -70,6 +70,9 @@ class Layout:
     switch: tuple[int, str] | None = None
     """(control step K, present distractor B): from step K on the instruction names B and success is judged
     against B (the instruction-switch probe, `switched`); None: the instruction never changes"""
+    removed: tuple[str, ...] | None = None
+    """the distractors the seed placed and that were taken off the table, leaving the instructed object alone where
+    it stood (the distractor-removal probe, `alone`); None: every object the seed placed is there"""
 
     @property
     def target(self) -> str:
@@ -180,6 +183,24 @@ class Layout:
             return replace(self, xy=xy, regions=regions, position_swap=(self.objects[0], partner))
         return self
 
+    def alone(self) -> "Layout":
+        """The same scene with every distractor taken off the table: the instructed object stays where it stood,
+        with its yaw, colour and wording, and so does the robot's start: the counterfactual of the
+        distractor-removal probe. The condition (and its object count) stays the scene's: `removed` names what
+        was there."""
+        if self.absent_target is not None:
+            raise ValueError(f"cannot leave the instructed object alone in seed {self.seed}: "
+                             f"{self.absent_target!r} is not on the table")
+        if self.switch is not None or self.position_swap is not None:
+            raise ValueError(f"cannot take the distractors off seed {self.seed}'s table: its "
+                             f"{'instruction switches to' if self.switch else 'target swapped places with'} one")
+        if self.removed is not None:
+            return self
+        partner = self.colour_swap[1] if self.colour_swap else None
+        return replace(self, objects=self.objects[:1], xy=self.xy[:1], yaw=self.yaw[:1],
+                       regions=None if self.regions is None else self.regions[:1], removed=self.objects[1:],
+                       colour_swap=None if partner in self.objects[1:] else self.colour_swap)
+
     def _check_unswitched(self, what: str) -> None:
         # The switch's B is drawn among the distractors of the instructed object: instructing another object
         # afterwards could make B the target itself. The env applies instruct first and the switch last.
@@ -229,6 +250,8 @@ class Layout:
         if self.switch is not None:  # "target" and "instruction" are the first ones; these from step K on
             out["switch"] = {"step": self.switch[0], "target": self.switch[1],
                              "instruction": self.instruction_at(self.switch[0])}
+        if self.removed is not None:  # "positions" holds the target alone; these stood there too
+            out["removed"] = list(self.removed)
         return out
 
 
@@ -363,7 +386,7 @@ def layout_from_dict(data: dict) -> Layout:
     """The layout that the seed of a recorded `Layout.to_dict()` gives, sampled again (dataset checks compare
     the two): condition, object count, instruction set, appearance, the instructed object (an instruction swap's
     `instructed`), position swap and instruction switch as the dict says, applied in the env's order."""
-    condition = Condition(data["regime"], data["split"], len(data["positions"]))
+    condition = Condition(data["regime"], data["split"], len(data["positions"]) + len(data.get("removed") or ()))
     lay = sample_layout(condition, int(data["seed"]), instructions=data.get("instructions", CANONICAL),
                         appearance="swap" if data.get("colour_swap") else "original")
     if not data.get("absent_target") and data["target"] != lay.target and data["target"] in lay.objects:
@@ -372,4 +395,6 @@ def layout_from_dict(data: dict) -> Layout:
         lay = lay.positions_swapped()
     if data.get("switch"):
         lay = lay.switched(int(data["switch"]["step"]))
+    if data.get("removed") is not None:
+        lay = lay.alone()
     return lay.instructed_absent(data["target"]) if data.get("absent_target") else lay
