@@ -103,7 +103,8 @@ def test_a_policy_diagnosed_beside_itself_resembles_itself(tmp_path, capsys):
     assert row["question"] == "Does it hold up as the objects move?" and "layout-prior" in row["resembles"]
     assert text.index("Diagnosis") < text.index("Grounding probes")
     for probe in ("instruction-swap: layout-prior", "position-swap: layout-prior", "absent-object: layout-prior",
-                  "instruction-switch: layout-prior", "paraphrase: layout-prior", "appearance-swap: layout-prior"):
+                  "instruction-switch: layout-prior", "paraphrase: layout-prior", "appearance-swap: layout-prior",
+                  "distractor-removal: layout-prior"):
         assert probe in text
 
     # The same command resumes (nothing is played again); another request is refused in one line.
@@ -138,6 +139,9 @@ def test_two_policies_side_by_side_beside_one_set_of_references(tmp_path, capsys
                 assert twin in q["answers"][label]["resembles"].split(" / "), q
     follows = next(q for q in data["questions"] if q["id"] == "empty_place")["answers"]
     assert follows["shortcut"]["answer"]["value"] == 1.0 and follows["blind"]["answer"]["value"] == 0.0
+    # Alone with its target, the blind policy cannot pick another: what it failed, it failed among distractors.
+    distracted = next(q for q in data["questions"] if q["id"] == "distracted")["answers"]
+    assert distracted["shortcut"]["answer"]["value"] == 0.0
     printed = capsys.readouterr().out
     assert "[shortcut] Does it read the instruction?" in printed and "[blind] Does it read" in printed
     with chromium_page(out / "report.html") as (page, failed):

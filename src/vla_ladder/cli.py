@@ -40,7 +40,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve-policy": ("vla_ladder.policies.serving:ServePolicyConfig",
                      "serve a LeRobot checkpoint over WebSockets (openpi's protocol), for eval --policy remote:URL"),
     "diagnose": ("vla_ladder.experiments.diagnose:DiagnoseConfig",
-                 "the ladder and six grounding probes of a policy (or several), beside the references, one page"),
+                 "the ladder and seven grounding probes of a policy (or several), beside the references, one page"),
 }
 # Commands that pass everything after `--` to lerobot-train.
 LEROBOT_FLAGS_AFTER_DASHES = ("train", "grid")

@@ -1,5 +1,5 @@
 """`vla-ladder diagnose --policy SPEC [SPEC ...] --out DIR`: a policy (or several, side by side) through the ladder
-and six grounding probes, beside the reference policies on the same seeded scenes, and one page of answers.
+and seven grounding probes, beside the reference policies on the same seeded scenes, and one page of answers.
 
 The questions, each answered by one rate with its 95% interval (or, for the first and the sixth, a difference of two
 rates):
@@ -20,6 +20,8 @@ rates):
 7. Does it find the named object by its colour rather than its shape? The appearance swap (the named object and a
    distractor exchange colours): the share of swapped scenes in which it grasps the object wearing the named
    object's colour.
+8. Do the other objects cause its failures? The distractor removal: the share of scenes that fail as they are and
+   succeed with every distractor taken off the table.
 
 The reference policies answer the same questions on the same scenes (state only, so they cost little):
 `scripted` reads its target from the state every step (grounded by construction), `committed` is the same expert
@@ -57,7 +59,8 @@ from vla_ladder.stats import paired_difference
 REFERENCES = ("scripted", "committed", "layout-prior", "nearest")
 """The reference profiles: grounded and re-reading its target, grounded but reading it once, the location
 shortcut, ignoring the instruction."""
-PROBES = ("instruction-swap", "position-swap", "absent-object", "instruction-switch", "paraphrase", "appearance-swap")
+PROBES = ("instruction-swap", "position-swap", "absent-object", "instruction-switch", "paraphrase", "appearance-swap",
+          "distractor-removal")
 SWITCH_STEP = 5
 """The instruction switch's step for question 5: before the scripted expert closes its gripper in every scene
 measured (docs/probes.md), so a policy that re-reads its instruction can still turn."""
@@ -69,7 +72,7 @@ beside those already there."""
 
 @dataclass
 class DiagnoseConfig:
-    """Diagnose a policy: the ladder and six grounding probes on the same seeded scenes, beside the reference
+    """Diagnose a policy: the ladder and seven grounding probes on the same seeded scenes, beside the reference
     policies, with one page of answers (`vla-ladder diagnose --policy SPEC --out DIR`)."""
 
     policy: tuple[str, ...] = ()
@@ -232,13 +235,15 @@ QUESTIONS = (
      "paraphrase: success with held-out wordings minus with \"grasp the <object>\" (points)"),
     ("by_colour", "Does it find the named object by its colour rather than its shape?",
      "appearance swap: grasps the object that wears the named object's colour"),
+    ("distracted", "Do the other objects cause its failures?",
+     "distractor removal: fails as the scene is, succeeds with the distractors taken off the table"),
 )
 # The references read their target from the state: wording cannot change what they do, so on "reworded" they all
 # answer 0 and none is nearer than another (resembles then names none).
 
 
 def answers(root: Path, condition: str) -> dict[str, dict | None]:
-    """The seven answers of the runs under `root` (policy/ or references/<name>/)."""
+    """The answers (one per QUESTIONS) of the runs under `root` (policy/ or references/<name>/)."""
     ladder = load_run(root / "ladder")
 
     def probe(name: str) -> dict:
@@ -253,7 +258,8 @@ def answers(root: Path, condition: str) -> dict[str, dict | None]:
             "empty_place": _rate(probe("absent-object")["shortcut_reach"]),
             "keeps_reading": _rate(switch["reaches_new_switched"]),
             "reworded": _rate(probe("paraphrase")["paraphrase-heldout"]["vs_canonical"]["success"]),
-            "by_colour": _rate(probe("appearance-swap")["follows_colour"])}
+            "by_colour": _rate(probe("appearance-swap")["follows_colour"]),
+            "distracted": _rate(probe("distractor-removal")["distractor_failures"])}
 
 
 def diagnosis(cfg: DiagnoseConfig) -> dict:

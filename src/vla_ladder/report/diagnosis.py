@@ -1,4 +1,4 @@
-"""The page and the lines of `vla-ladder diagnose` (experiments/diagnose.py): its seven answers, for one policy or
+"""The page and the lines of `vla-ladder diagnose` (experiments/diagnose.py): its answers, for one policy or
 several side by side, beside the reference policies' answers, with the reference each is nearest."""
 
 from __future__ import annotations
