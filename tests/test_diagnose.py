@@ -139,9 +139,10 @@ def test_two_policies_side_by_side_beside_one_set_of_references(tmp_path, capsys
                 assert twin in q["answers"][label]["resembles"].split(" / "), q
     follows = next(q for q in data["questions"] if q["id"] == "empty_place")["answers"]
     assert follows["shortcut"]["answer"]["value"] == 1.0 and follows["blind"]["answer"]["value"] == 0.0
-    # Alone with its target, the blind policy cannot pick another: what it failed, it failed among distractors.
+    # Alone with its target, the nearest object is the target: the blind policy can only gain; the shortcut, in its
+    # own small-jitter condition, neither gains nor loses.
     distracted = next(q for q in data["questions"] if q["id"] == "distracted")["answers"]
-    assert distracted["shortcut"]["answer"]["value"] == 0.0
+    assert distracted["shortcut"]["answer"]["value"] == 0.0 and distracted["blind"]["answer"]["value"] >= 0
     printed = capsys.readouterr().out
     assert "[shortcut] Does it read the instruction?" in printed and "[blind] Does it read" in printed
     with chromium_page(out / "report.html") as (page, failed):

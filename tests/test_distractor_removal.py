@@ -33,6 +33,17 @@ def test_alone_keeps_the_instructed_object_where_it_stood_and_names_what_left():
             assert layout_from_dict(d).to_dict() == d  # the seed gives it back (dataset checks, replays)
             assert lay.alone() is lay
     assert "removed" not in sample_layout(Condition("small_jitter"), 3).to_dict()
+    # Under an appearance swap the instructed object keeps the colour it wore, whichever of the pair it is.
+    swapped = [sample_layout(Condition("small_jitter", num_objects=4), seed, appearance="swap") for seed in range(20)]
+    pair = next(lay for lay in swapped if lay.colour_swap is not None)
+    assert pair.alone().colour_swap == pair.colour_swap
+    partner = pair.instructed(pair.colour_swap[1])
+    assert partner.alone().colour_swap == partner.colour_swap
+    bystander = next((pair.instructed(o) for o in pair.objects if o not in pair.colour_swap), None)
+    if bystander is not None:
+        assert bystander.alone().colour_swap is None
+    for lay in (pair.alone(), partner.alone()):
+        assert layout_from_dict(lay.to_dict()).to_dict() == lay.to_dict()
     lay = sample_layout(Condition("small_jitter", num_objects=3), 4)
     with pytest.raises(ValueError, match="not on the table"):
         lay.instructed_absent(0).alone()
@@ -66,20 +77,28 @@ def removal_plays(choose, regime="small_jitter", k=5, scenes=12) -> tuple[pd.Dat
     return pd.DataFrame(rows["original"]), pd.DataFrame(rows["alone"])
 
 
-def test_removal_metrics_tell_selection_failures_from_failures_alone():
+def test_removal_metrics_split_the_failures_by_what_the_policy_does_alone():
     key = "small_jitter/canonical/5"
     # Picks the first object by name: right only when that is the target; alone, the target is all there is.
     by_name = grounding.distractor_removal(*removal_plays(lambda lay: sorted(lay.objects)[0]))[key]
     wrong = by_name["held_original"]["distractor"]["value"]
-    assert by_name["success_alone"]["value"] == 1 and by_name["failures_alone"]["value"] == 0
+    assert by_name["success_alone"]["value"] == 1 and by_name["failures_alone_too"]["value"] == 0
     assert by_name["distractor_failures"]["value"] == pytest.approx(1 - by_name["success_original"]["value"]) == wrong
     change = by_name["success_change"]
     assert change["value"] == pytest.approx(wrong) and change["ci95"][0] > 0 and change["mcnemar_p"] < 0.05
     # Never grasps: it fails alone too, and the distractors explain none of it.
     clumsy = grounding.distractor_removal(*removal_plays(lambda lay: "none"))[key]
-    assert clumsy["failures_alone"]["value"] == 1 and clumsy["distractor_failures"]["value"] == 0
+    assert clumsy["failures_alone_too"]["value"] == 1 and clumsy["distractor_failures"]["value"] == 0
     assert clumsy["held_original"]["none"]["value"] == 1 and clumsy["grasp_any_alone"]["value"] == 0
     assert clumsy["success_change"]["value"] == 0 and clumsy["success_change"]["ci95"][1] > 0  # a width, not [0, 0]
+    # A coin flip on every play: the distractors change nothing, yet scenes flip both ways. The failures as it is
+    # split exactly into those that succeed alone and those that fail alone too; Δ nets the flips, near 0.
+    rng = np.random.default_rng(0)
+    coin = grounding.distractor_removal(*removal_plays(lambda lay: lay.target if rng.random() < 0.5 else "none",
+                                                       scenes=60))[key]
+    parts = sum(coin[m]["value"] for m in ("success_original", "distractor_failures", "failures_alone_too"))
+    assert parts == pytest.approx(1) and coin["distractor_failures"]["value"] > 0.1
+    assert coin["success_change"]["ci95"][0] < 0 < coin["success_change"]["ci95"][1]
     original, alone = removal_plays(lambda lay: lay.target)
     with pytest.raises(ValueError, match="different seeds"):
         grounding.distractor_removal(original, alone.assign(seed=alone["seed"] + 1))
@@ -97,7 +116,7 @@ def test_removal_calibration_nearest_layout_prior_and_scripted(tmp_path):
     assert nearest["success_alone"]["value"] == 1 and nearest["distractor_failures"]["value"] >= 0.5
     # The location shortcut under full random goes to the target's usual region, empty with or without others.
     prior = probe("layout-prior", ("full_random",))["full_random/canonical/5"]
-    assert prior["failures_alone"]["value"] >= 0.8 and prior["distractor_failures"]["value"] <= 0.2
+    assert prior["failures_alone_too"]["value"] >= 0.8 and prior["distractor_failures"]["value"] <= 0.2
     scripted = probe("scripted", ("small_jitter",))["small_jitter/canonical/5"]
     assert scripted["success_original"]["value"] == scripted["success_alone"]["value"] == 1
     root = tmp_path / "nearest"
@@ -105,6 +124,6 @@ def test_removal_calibration_nearest_layout_prior_and_scripted(tmp_path):
     assert all(len(json.loads(lay)["positions"]) == 1 and len(json.loads(lay)["removed"]) == 4
                for lay in alone["layout"])
     assert (root / "distractor-removal.png").stat().st_size > 5000
-    widths, cells = first_table_row(root / "report.html", "fails only among distractors")
+    widths, cells = first_table_row(root / "report.html", "fails as it is, succeeds alone")
     assert len(widths) >= 2 and min(widths) > 300
     assert cells["condition"] == "small_jitter/canonical/5" and cells["fails alone too"].startswith("0"), cells

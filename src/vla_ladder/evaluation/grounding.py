@@ -25,8 +25,8 @@ on what the instruction says:
   the old one, another, none) and where the gripper ends, per K, next to the unswitched play: shares (Wilson),
   paired changes (Newcombe's paired interval, McNemar's exact p), the transition table original -> switched.
 - distractor removal: the same scenes with every distractor taken off the table. Success in both plays (Wilson)
-  and its paired change (Newcombe, McNemar), and the original play's failures split into those the distractors
-  caused (it succeeds alone) and those it makes alone too.
+  and its paired change (Newcombe, McNemar), and the original play's failures split into those that succeed alone
+  and those that fail alone too.
 
 An object "held" is the one grasped at the final step ("none" when nothing is), as for success.
 """
@@ -527,9 +527,11 @@ def distractor_removal(original: pd.DataFrame, alone: pd.DataFrame) -> dict:
     instructed object alone where it stood). What is held in the original play (the instructed object, a
     distractor, nothing: Wilson), success in each play and its paired change alone - original (Newcombe's paired
     interval, McNemar's exact p), and the original play's failures split by what the alone play did: distractor
-    failures (it succeeds alone: with the others on the table the policy chose or was drawn to something else)
-    and failures alone (it fails with nothing to choose between: reaching, grasping, or going to a place where
-    the object is not). Both as shares of all scenes (Wilson)."""
+    failures (it succeeds alone: with the others on the table the policy chose, or was drawn to, something else,
+    or, for a policy whose outcomes vary from play to play, chance) and failures alone too (it fails with nothing
+    to choose between as well: reaching, grasping, or going to a place where the object is not), so success as
+    it is + distractor failures + failures alone too = 1. Shares of all scenes (Wilson). Δ success nets the
+    distractor failures against the opposite flips (succeeds as it is, fails alone)."""
     keys = [*CONDITION_KEYS, "episode"]
     merged = original.merge(alone, on=keys, suffixes=("_o", "_a"))
     if (merged["seed_o"] != merged["seed_a"]).any() or (merged["target_o"] != merged["target_a"]).any():
@@ -546,7 +548,7 @@ def distractor_removal(original: pd.DataFrame, alone: pd.DataFrame) -> dict:
             "success_change": paired_change(x, y),
             "held_original": {o: wilson_rate(held.count(o), n) for o in REMOVAL_OUTCOMES},
             "distractor_failures": wilson_rate(int((~x & y).sum()), n),
-            "failures_alone": wilson_rate(int((~y).sum()), n),
+            "failures_alone_too": wilson_rate(int((~x & ~y).sum()), n),
             "grasp_any_alone": wilson_rate(int(g["grasp_any_a"].astype(bool).sum()), n),
         }
     return out

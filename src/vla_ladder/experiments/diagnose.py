@@ -1,8 +1,8 @@
 """`vla-ladder diagnose --policy SPEC [SPEC ...] --out DIR`: a policy (or several, side by side) through the ladder
 and seven grounding probes, beside the reference policies on the same seeded scenes, and one page of answers.
 
-The questions, each answered by one rate with its 95% interval (or, for the first and the sixth, a difference of two
-rates):
+The questions, each answered by one rate with its 95% interval (or, for the first, the sixth and the eighth, a
+difference of two rates):
 
 1. Does it hold up as the objects move? Success in the ladder's farthest regime minus success in the policy's own
    (the ladder of its training condition's split and object count; the same seeds in every regime, so a paired
@@ -20,8 +20,8 @@ rates):
 7. Does it find the named object by its colour rather than its shape? The appearance swap (the named object and a
    distractor exchange colours): the share of swapped scenes in which it grasps the object wearing the named
    object's colour.
-8. Do the other objects cause its failures? The distractor removal: the share of scenes that fail as they are and
-   succeed with every distractor taken off the table.
+8. Do the other objects cost it success? The distractor removal: success with every distractor taken off the
+   table minus success as the scene is (Newcombe's interval for paired rates).
 
 The reference policies answer the same questions on the same scenes (state only, so they cost little):
 `scripted` reads its target from the state every step (grounded by construction), `committed` is the same expert
@@ -235,8 +235,8 @@ QUESTIONS = (
      "paraphrase: success with held-out wordings minus with \"grasp the <object>\" (points)"),
     ("by_colour", "Does it find the named object by its colour rather than its shape?",
      "appearance swap: grasps the object that wears the named object's colour"),
-    ("distracted", "Do the other objects cause its failures?",
-     "distractor removal: fails as the scene is, succeeds with the distractors taken off the table"),
+    ("distracted", "Do the other objects cost it success?",
+     "distractor removal: success with the distractors taken off the table minus as the scene is (points)"),
 )
 # The references read their target from the state: wording cannot change what they do, so on "reworded" they all
 # answer 0 and none is nearer than another (resembles then names none).
@@ -259,7 +259,7 @@ def answers(root: Path, condition: str) -> dict[str, dict | None]:
             "keeps_reading": _rate(switch["reaches_new_switched"]),
             "reworded": _rate(probe("paraphrase")["paraphrase-heldout"]["vs_canonical"]["success"]),
             "by_colour": _rate(probe("appearance-swap")["follows_colour"]),
-            "distracted": _rate(probe("distractor-removal")["distractor_failures"])}
+            "distracted": _rate(probe("distractor-removal")["success_change"])}
 
 
 def diagnosis(cfg: DiagnoseConfig) -> dict:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import html
 
-DIFFERENCES = ("holds_up", "reworded")
+DIFFERENCES = ("holds_up", "reworded", "distracted")
 """Questions answered by a difference of two rates: shown in signed points."""
 
 

@@ -33,7 +33,7 @@ SWITCH_NAMES = {"new": "switched-to object B (follows the new instruction)",
                 "old": "first-named object A (stays with the old one)", "other": "another object", "none": "nothing"}
 WORDINGS = ("canonical", "paraphrase-train", "paraphrase-heldout")
 REMOVAL_SERIES = {"success_original": "success, as it is", "success_alone": "success, distractors removed",
-                  "distractor_failures": "fails only among distractors", "failures_alone": "fails alone too"}
+                  "distractor_failures": "fails as it is, succeeds alone", "failures_alone_too": "fails alone too"}
 ABSENT_SERIES = {"grasp_present": "grasp, own target named", "grasp_absent": "grasp, absent object named",
                  "shortcut_reach": "ends at an empty usual place of the absent object",
                  "same_grasp": "grasps what it grasps when its own target is named"}
@@ -89,14 +89,14 @@ EXPLAIN = {
     "the old one at every K; one that ignores the instruction plays the same in both plays.",
     "distractor-removal": "The same scenes played as they are and with every distractor taken off the table, the "
     "instructed object alone where it stood, with the same wording, colours and robot start (task/layouts.py "
-    "Layout.alone). <b>Success</b> in each play and its paired change (Newcombe's paired interval, McNemar's exact "
-    "p). <b>Fails only among distractors</b>: the scene fails as it is and succeeds alone, so the other objects "
-    "were the problem (the policy chose, or was drawn to, something else); <b>fails alone too</b>: the scene fails "
-    "with nothing to choose between (reaching, grasping, or a place where the object is not). <b>Held, as it "
-    "is</b>: the instructed object, a distractor, or nothing. A grounded policy with sound control fails neither "
-    "way; one that picks objects by something other than the instruction (the nearest, its usual object) fails "
-    "among distractors and succeeds alone; a location shortcut under full random fails alone too, its usual place "
-    "being empty.",
+    "Layout.alone). <b>Success</b> in each play and its paired change <b>Δ success</b> (Newcombe's paired interval, "
+    "McNemar's exact p): what the other objects cost. The failures as it is, split: <b>fails as it is, succeeds "
+    "alone</b> (the other objects drew it off, or, for a policy whose outcomes vary from play to play, chance: Δ "
+    "nets these against the opposite flips) and <b>fails alone too</b> (with nothing to choose between: reaching, "
+    "grasping, or a place where the object is not). <b>Held, as it is</b>: the instructed object, a distractor, or "
+    "nothing. A grounded policy with sound control fails neither way; one that picks objects by something other than "
+    "the instruction (the nearest, its usual object) gains alone; a location shortcut under full random fails alone "
+    "too, its usual place being empty.",
 }
 
 
@@ -228,11 +228,11 @@ def _switch_table(conds: dict) -> tuple[list[str], list[list[str]]]:
 
 
 def _removal_table(conds: dict) -> tuple[list[str], list[list[str]]]:
-    head = ["condition", "scenes", "success: as it is → alone", "Δ success", "fails only among distractors",
+    head = ["condition", "scenes", "success: as it is → alone", "Δ success", "fails as it is, succeeds alone",
             "fails alone too", "held as it is: instructed / distractor / nothing"]
     return head, [[html.escape(k), str(c["scenes"]),
                    f"{_cell(c['success_original'])} → {_cell(c['success_alone'])}", _delta(c["success_change"]),
-                   _cell(c["distractor_failures"]), _cell(c["failures_alone"]),
+                   _cell(c["distractor_failures"]), _cell(c["failures_alone_too"]),
                    " / ".join(_cell(c["held_original"][o]) for o in ("instructed", "distractor", "none"))]
                   for k, c in conds.items()]
 
@@ -456,7 +456,7 @@ def _position_lines(key: str, c: dict) -> list[str]:
 def _removal_lines(key: str, c: dict) -> list[str]:
     return [f"{key}: scenes={c['scenes']} success {c['success_original']['value']:.2f} -> alone "
             f"{c['success_alone']['value']:.2f} distractor_failures={c['distractor_failures']['value']:.2f} "
-            f"failures_alone={c['failures_alone']['value']:.2f}"]
+            f"failures_alone_too={c['failures_alone_too']['value']:.2f}"]
 
 
 def _switch_lines(key: str, c: dict) -> list[str]:

@@ -196,10 +196,11 @@ class Layout:
                              f"{'instruction switches to' if self.switch else 'target swapped places with'} one")
         if self.removed is not None:
             return self
-        partner = self.colour_swap[1] if self.colour_swap else None
+        # The instructed object keeps the colour it wore (a swap's partner, parked, wears the other one).
+        swap = self.colour_swap if self.colour_swap and self.objects[0] in self.colour_swap else None
         return replace(self, objects=self.objects[:1], xy=self.xy[:1], yaw=self.yaw[:1],
                        regions=None if self.regions is None else self.regions[:1], removed=self.objects[1:],
-                       colour_swap=None if partner in self.objects[1:] else self.colour_swap)
+                       colour_swap=swap)
 
     def _check_unswitched(self, what: str) -> None:
         # The switch's B is drawn among the distractors of the instructed object: instructing another object

@@ -162,7 +162,8 @@ class Checker:
         bad = 0
         for (_, row), layout in zip(self.prov.iterrows(), self.layouts):
             ep = f"episode {row['episode_index']} (seed {row['seed']})"
-            recorded_condition = Condition(layout["regime"], layout["split"], len(layout["positions"]))
+            recorded_condition = Condition(layout["regime"], layout["split"],
+                                           len(layout["positions"]) + len(layout.get("removed") or ()))
             problems = []
             if recorded_condition != condition:
                 problems.append(f"layout of {recorded_condition}, the recording is of {condition}")
