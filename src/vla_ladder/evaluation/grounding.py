@@ -226,13 +226,22 @@ def transitions(before: list[str], after: list[str], outcomes: tuple[str, ...]) 
     return {"rows": list(outcomes), "columns": list(outcomes), "counts": counts.tolist()}
 
 
+def same_scenes(a: pd.DataFrame, b: pd.DataFrame, suffixes: tuple[str, str], same_target: bool = False) -> pd.DataFrame:
+    """Two variants' plays of the same scenes side by side, paired on condition and episode index (columns suffixed
+    `suffixes`); ValueError when they played different seeds (or, `same_target`, named different targets)."""
+    merged = a.merge(b, on=[*CONDITION_KEYS, "episode"], suffixes=suffixes)
+    first, second = suffixes
+    if (merged[f"seed{first}"] != merged[f"seed{second}"]).any() or (
+            same_target and (merged[f"target{first}"] != merged[f"target{second}"]).any()):
+        raise ValueError(f"the variants played different seeds{' or instructions' if same_target else ''}; a probe "
+                         "compares the same scenes")
+    return merged
+
+
 def paired(a: pd.DataFrame, b: pd.DataFrame, metrics=METRICS) -> dict:
     """Per condition: both variants' rates (Wilson), and per metric the paired difference b - a with Newcombe's paired
     interval over scenes and McNemar's exact p-value. Episodes pair on condition and episode index."""
-    keys = [*CONDITION_KEYS, "episode"]
-    merged = a.merge(b, on=keys, suffixes=("_a", "_b"))
-    if (merged["seed_a"] != merged["seed_b"]).any():
-        raise ValueError("the variants played different seeds; a probe compares the same scenes")
+    merged = same_scenes(a, b, ("_a", "_b"))
     out = {}
     for key, g in _by_condition(merged):
         diffs = {}
@@ -449,10 +458,7 @@ def position_swap(original: pd.DataFrame, swapped: pd.DataFrame) -> dict:
     stands at the instructed object's original place; in the original play it is a wrong grasp like any other).
     reaches_object / reaches_place: the TCP ends at the instructed object / at the partner (`ends_near`), whatever
     is held. Their paired changes swapped - original get Newcombe's paired interval and McNemar's exact p."""
-    keys = [*CONDITION_KEYS, "episode"]
-    merged = original.merge(swapped, on=keys, suffixes=("_o", "_s"))
-    if (merged["seed_o"] != merged["seed_s"]).any() or (merged["target_o"] != merged["target_s"]).any():
-        raise ValueError("the variants played different seeds or instructions; a probe compares the same scenes")
+    merged = same_scenes(original, swapped, ("_o", "_s"), same_target=True)
     merged["partner"] = [(json.loads(lay).get("position_swap") or [None, None])[1] for lay in merged["layout_s"]]
     out = {}
     for key, g in _by_condition(merged):
@@ -486,13 +492,10 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
     horizontally of the footprint, nearer it than the other); the transition table original -> switched. Each
     condition holds them per K under "by_step", and at its top, like every probe's flat metrics (the study's probe
     table lists those), the switched play's follows_new_at_K and stays_old_at_K."""
-    keys = [*CONDITION_KEYS, "episode"]
     out: dict = {}
     for step, plays in sorted(switched.items()):
-        merged = original.merge(plays, on=keys, suffixes=("_o", "_s"))
+        merged = same_scenes(original, plays, ("_o", "_s"))
         switch = [json.loads(lay).get("switch") or {} for lay in merged["layout_s"]]
-        if (merged["seed_o"] != merged["seed_s"]).any():
-            raise ValueError("the variants played different seeds; a probe compares the same scenes")
         if any(s.get("step") != step or s.get("target") != t for s, t in zip(switch, merged["target_s"])):
             raise ValueError(f"the switch-{step} plays do not all switch at step {step} to their target; "
                              "a probe compares the same scenes")
@@ -532,10 +535,7 @@ def distractor_removal(original: pd.DataFrame, alone: pd.DataFrame) -> dict:
     to choose between as well: reaching, grasping, or going to a place where the object is not), so success as
     it is + distractor failures + failures alone too = 1. Shares of all scenes (Wilson). Δ success nets the
     distractor failures against the opposite flips (succeeds as it is, fails alone)."""
-    keys = [*CONDITION_KEYS, "episode"]
-    merged = original.merge(alone, on=keys, suffixes=("_o", "_a"))
-    if (merged["seed_o"] != merged["seed_a"]).any() or (merged["target_o"] != merged["target_a"]).any():
-        raise ValueError("the variants played different seeds or instructions; a probe compares the same scenes")
+    merged = same_scenes(original, alone, ("_o", "_a"), same_target=True)
     out = {}
     for key, g in _by_condition(merged):
         n = len(g)

@@ -150,28 +150,29 @@ def _check_switch(cfg: ProbeConfig) -> None:
                          f"episode has {EPISODE_STEPS}), got {' '.join(map(str, cfg.switch_steps)) or 'none'}")
 
 
+def _against_original(second: str, options: dict, metrics: Callable[[pd.DataFrame, pd.DataFrame], dict],
+                      **kw) -> Probe:
+    """A probe playing each scene as it is (original: exactly `vla-ladder eval`) and once more with `options` (the
+    variant `second`), scored by metrics(original episodes, second episodes)."""
+    return Probe(lambda cfg: {"original": dict(grid=cfg.grid), second: dict(grid=cfg.grid, **options)},
+                 lambda runs, _: metrics(runs["original"].episodes, runs[second].episodes), **kw)
+
+
 TWO = dict(objects=(2, MAX_OBJECTS), needs="at least two objects on the table")
 PROBES: dict[str, Probe] = {
     "instruction-swap": Probe(_swap_variants, _swap_results, **TWO),
     "paraphrase": Probe(_paraphrase_variants, lambda runs, _: grounding.paraphrase(
         {name: r.episodes for name, r in runs.items()})),
-    "appearance-swap": Probe(lambda cfg: {a: dict(grid=cfg.grid, appearance=a) for a in ("original", "swap")},
-                             lambda runs, _: grounding.appearance_swap(runs["original"].episodes,
-                                                                       runs["swap"].episodes),
-                             **TWO, one_env=True),
+    "appearance-swap": _against_original("swap", {"appearance": "swap"}, grounding.appearance_swap, **TWO,
+                                         one_env=True),
     # with three objects on the table, two are absent in every scene
     "absent-object": Probe(_absent_variants, _absent_results, objects=(1, MAX_OBJECTS - 1),
                            needs="an object off the table", default_objects=3),
     # scenes without a collision-free swap play unswapped (left out of the metrics)
-    "position-swap": Probe(lambda cfg: {"original": dict(grid=cfg.grid),
-                                        "swapped": dict(grid=cfg.grid, swap_positions=True)},
-                           lambda runs, _: grounding.position_swap(runs["original"].episodes,
-                                                                   runs["swapped"].episodes), **TWO),
+    "position-swap": _against_original("swapped", {"swap_positions": True}, grounding.position_swap, **TWO),
     "instruction-switch": Probe(_switch_variants, _switch_results, **TWO, options=("switch_steps",),
                                 check=_check_switch),
-    "distractor-removal": Probe(lambda cfg: {"original": dict(grid=cfg.grid), "alone": dict(grid=cfg.grid, alone=True)},
-                                lambda runs, _: grounding.distractor_removal(runs["original"].episodes,
-                                                                             runs["alone"].episodes), **TWO),
+    "distractor-removal": _against_original("alone", {"alone": True}, grounding.distractor_removal, **TWO),
 }
 """The probes by name, in the order the CLI and reports list them."""
 _OWN_COUNTS = "".join(f"; {name}: {p.default_objects}" for name, p in PROBES.items()

@@ -383,12 +383,17 @@ def sample_layouts(condition: Condition, seeds=(0,), target: str | None = None, 
     return [sample_layout(condition, int(s), target, instructions, appearance) for s in seeds]
 
 
+def condition_of(data: dict) -> Condition:
+    """The condition a recorded `Layout.to_dict()` was sampled in: its objects on the table and, after a distractor
+    removal, the ones taken off it."""
+    return Condition(data["regime"], data["split"], len(data["positions"]) + len(data.get("removed") or ()))
+
+
 def layout_from_dict(data: dict) -> Layout:
     """The layout that the seed of a recorded `Layout.to_dict()` gives, sampled again (dataset checks compare
     the two): condition, object count, instruction set, appearance, the instructed object (an instruction swap's
     `instructed`), position swap and instruction switch as the dict says, applied in the env's order."""
-    condition = Condition(data["regime"], data["split"], len(data["positions"]) + len(data.get("removed") or ()))
-    lay = sample_layout(condition, int(data["seed"]), instructions=data.get("instructions", CANONICAL),
+    lay = sample_layout(condition_of(data), int(data["seed"]), instructions=data.get("instructions", CANONICAL),
                         appearance="swap" if data.get("colour_swap") else "original")
     if not data.get("absent_target") and data["target"] != lay.target and data["target"] in lay.objects:
         lay = lay.instructed(data["target"])  # the same scene, another present object named

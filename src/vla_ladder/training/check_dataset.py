@@ -44,7 +44,7 @@ from vla_ladder import files
 from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.contract import ACTION_KEY, EPISODE_STEPS, STATE_KEY, contract_changes
 from vla_ladder.recordings import read_provenance, read_recording, read_recording_state
-from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, layout_from_dict
+from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, condition_of, layout_from_dict
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
 from vla_ladder.task.replay import Replayer
 from vla_ladder.training.dataset import check_features, read_info
@@ -162,8 +162,7 @@ class Checker:
         bad = 0
         for (_, row), layout in zip(self.prov.iterrows(), self.layouts):
             ep = f"episode {row['episode_index']} (seed {row['seed']})"
-            recorded_condition = Condition(layout["regime"], layout["split"],
-                                           len(layout["positions"]) + len(layout.get("removed") or ()))
+            recorded_condition = condition_of(layout)
             problems = []
             if recorded_condition != condition:
                 problems.append(f"layout of {recorded_condition}, the recording is of {condition}")
