@@ -93,6 +93,36 @@ def _check_dataset(root: Path, expect_seeds: list[int]) -> None:
 
 
 @pytest.mark.slow
+def test_a_shard_of_several_commits_merges_into_a_dataset_that_merges_and_resumes_again(tmp_path):
+    """A shard committed in three batches has three meta/episodes files; merged into an empty dataset they become
+    one, whose rows must name that file (LeRobot's aggregate kept the shard's file indices 1 and 2, and the next
+    merge failed on meta/episodes/chunk-000/file-001.parquet, as a killed two-writer recording did in CI)."""
+    import pandas as pd
+
+    root = tmp_path / "ds"
+    main = DatasetStore(root, Recording(**CONFIG), commit_every=1)
+
+    def shard(name: str, n: int) -> Path:
+        store = DatasetStore(main.shards_dir / name, Recording(**CONFIG), commit_every=1, seed_book=main.seeds.path)
+        written.extend(_fill(store, n))
+        store.close()
+        return main.shards_dir / name
+
+    written: list[int] = []
+    first = shard("a", 3)
+    assert len(list((first / "meta/episodes").glob("*/*.parquet"))) == 3
+    main.merge([first])
+    main.close()
+    for path in (root / "meta/episodes").glob("chunk-*/file-*.parquet"):
+        meta = pd.read_parquet(path)
+        assert (meta["meta/episodes/file_index"] == int(path.stem.split("-")[1])).all(), path
+    main = DatasetStore(root, Recording(**CONFIG), commit_every=1)
+    main.merge([shard("b", 1), shard("c", 1)])
+    resumed = _fill(main, 1)  # and a single writer resumes it
+    main.close()
+    _check_dataset(root, written + resumed)
+
+
 def test_shards_merge_after_the_dataset_and_resume(tmp_path):
     root = tmp_path / "ds"
     main = DatasetStore(root, Recording(**CONFIG), commit_every=2)

@@ -260,6 +260,7 @@ class DatasetStore:
         with _private_datasets_cache(self.work / "hf-cache"), SuppressProgressBars():
             aggregate_datasets([f"{self.repo_id}-part{i}" for i in range(len(sources))], self.repo_id,
                                roots=sources, aggr_root=self.staging)
+        _own_meta_indices(self.staging)
         provenance = self.staging / PROVENANCE_DIR
         provenance.mkdir(parents=True, exist_ok=True)
         if self.saved:
@@ -364,6 +365,28 @@ class SeedBook:
                                  "--out with a lower --first-seed")
             files.write_json(self.path, {"config": self.config.to_dict(), "next_seed": first + n})
         return list(range(first, first + n))
+
+
+def _own_meta_indices(root: Path) -> None:
+    """Make every row of meta/episodes/chunk-C/file-F.parquet say chunk C, file F. LeRobot 0.6's aggregate_datasets
+    offsets a source's meta/episodes indices but may append its rows to the current file, so a shard committed in
+    several batches (one meta file each) left its episodes pointing at meta files the merge never wrote; the next
+    merge or resume of the dataset then failed on the missing file (tests/test_recording_shards.py)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    for path in sorted((root / "meta/episodes").glob("chunk-*/file-*.parquet")):
+        table = pq.read_table(path)
+        own = {"meta/episodes/chunk_index": int(path.parent.name.split("-")[1]),
+               "meta/episodes/file_index": int(path.stem.split("-")[1])}
+        if all(pc.all(pc.equal(table[k], v)).as_py() for k, v in own.items()):
+            continue
+        for k, v in own.items():
+            table = table.set_column(table.schema.get_field_index(k), table.schema.field(k),
+                                     pa.array([v] * len(table), type=table.schema.field(k).type))
+        with files.atomic_path(path) as tmp:
+            pq.write_table(table, tmp)
 
 
 def _remove_shard(shard: Path) -> None:
