@@ -133,3 +133,21 @@ def test_eval_refuses_a_mismatched_checkpoint_before_its_run_directory(tmp_path)
     assert done.returncode == 2 and len(err) == 1, done.stderr[-3000:]
     assert f"camera {HAND} has shape (3, 96, 96), the env renders {CHW}" in err[0]
     assert not out.exists()
+
+
+def test_a_checkpoint_trained_under_another_task_contract_is_refused(tmp_path):
+    """Every shape fits, and the camera looked through another lens when its data was recorded: the file `train`
+    writes beside the checkpoint names the difference, before any weight is read. The same contract passes to the
+    next check (the missing weights), and so does a checkpoint without the file (trained elsewhere)."""
+    from vla_ladder.contract import TRAINED_CONTRACT_FILE, policy_fingerprint
+
+    ckpt = _checkpoint(tmp_path / "ckpt", "act", ENV_CAMERAS)
+    assert "no model.safetensors" in _refusal(ckpt)
+    trained = policy_fingerprint()
+    trained["cameras"][1]["fov_deg"] = 60.0
+    (ckpt / TRAINED_CONTRACT_FILE).write_text(json.dumps(trained))
+    msg = _refusal(ckpt)
+    assert "was trained under another task contract (cameras[1].fov_deg was 60.0, now 45.0):" in msg
+    assert "no model.safetensors" not in msg
+    (ckpt / TRAINED_CONTRACT_FILE).write_text(json.dumps(policy_fingerprint()))
+    assert "no model.safetensors" in _refusal(ckpt)

@@ -159,6 +159,30 @@ def test_bad_input_errors(tmp_path, run_dir):
         Args(out="x", num_envs=4, total_timesteps=10)
 
 
+def test_a_checkpoint_trained_under_another_task_contract_is_refused(tmp_path):
+    """Checkpoints keep the contract's policy fields (rates, cameras, state, action): an expert trained at another
+    control rate is refused before any episode, the field named; one written before checkpoints kept it loads."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    from vla_ladder.contract import CONTROL_HZ, policy_fingerprint
+    from vla_ladder.policies import check_spec
+
+    f = tmp_path / "model.safetensors"
+    save_agent(f, Agent(80, 7, (16,)))
+    with safe_open(str(f), framework="pt") as sf:
+        meta = sf.metadata()
+    assert json.loads(meta["contract"]) == policy_fingerprint()
+    save_file(load_file(str(f)), str(f), {**meta, "contract": json.dumps({**policy_fingerprint(),
+                                                                          "control_hz": CONTROL_HZ // 2})})
+    changed = f"another task contract \\(control_hz was {CONTROL_HZ // 2}, now {CONTROL_HZ}\\)"
+    with pytest.raises(ValueError, match=changed):
+        check_spec(f"ppo:{tmp_path}")
+    del meta["contract"]
+    save_file(load_file(str(f)), str(f), meta)
+    assert load_agent(tmp_path).obs_dim == 80 and check_spec(f"ppo:{tmp_path}") == ("ppo", str(tmp_path))
+
+
 def test_cli_exposes_every_field(capsys):
     from vla_ladder.cli import main
 

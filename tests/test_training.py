@@ -3,12 +3,14 @@ recording pipeline, evaluated in the real simulator (with rendering) by the eval
 
 import json
 import os
+import shutil
 
 import pandas as pd
 import pytest
 
 import lerobot_helpers as H
 from vla_ladder.cli import main
+from vla_ladder.contract import CONTROL_HZ, TRAINED_CONTRACT_FILE, policy_fingerprint
 from vla_ladder.experiments.grid import best_row
 from vla_ladder.training.train import TrainConfig
 
@@ -37,6 +39,9 @@ def test_tiny_policy_trains_saves_reloads_and_evaluates(kind, tmp_path_factory, 
     assert "--policy.push_to_hub=false" in record["lerobot_train_command"]
     cfg = json.loads((ckpt / "config.json").read_text())
     assert cfg["type"] == kind and cfg["chunk_size"] == 4
+    # the task contract of the data it learned from travels with the checkpoint (eval refuses another)
+    assert json.loads((ckpt / TRAINED_CONTRACT_FILE).read_text()) == policy_fingerprint() == \
+        record["dataset"]["contract"]
     assert set(cfg["input_features"]) == {"observation.images.hand_camera", "observation.images.fixed_camera",
                                           "observation.state"}
 
@@ -46,6 +51,23 @@ def test_tiny_policy_trains_saves_reloads_and_evaluates(kind, tmp_path_factory, 
     assert summary["policy"]["type"] == kind and summary["policy"]["n_action_steps"] == 2
     cond = summary["conditions"]["small_jitter/canonical/2"]
     assert cond["n"] == 1 and all(0.0 <= cond[m] <= 1.0 for m in ("success", "grasp_any", "reach"))
+
+
+@pytest.mark.slow
+def test_a_dataset_recorded_under_another_task_contract_is_refused(data, tmp_path):
+    """Data recorded at another control rate would teach a policy a task that eval no longer plays: refused before
+    training, the field named. A change that only scores episodes differently (the episode length) is not."""
+    from vla_ladder.recordings import RECORDING_FILE
+
+    copy = tmp_path / "data"
+    shutil.copytree(data, copy)
+    state = json.loads((copy / RECORDING_FILE).read_text())
+    (copy / RECORDING_FILE).write_text(json.dumps({**state, "contract": {**state["contract"], "episode_steps": 80}}))
+    assert TrainConfig(policy_type="act", dataset=copy, out=tmp_path / "run").contract == policy_fingerprint()
+    (copy / RECORDING_FILE).write_text(json.dumps({**state, "contract": {**state["contract"], "control_hz": 10}}))
+    with pytest.raises(ValueError, match=rf"was recorded under another task contract \(control_hz was 10, now "
+                                         rf"{CONTROL_HZ}\): a policy trained on it would be evaluated on a task"):
+        TrainConfig(policy_type="act", dataset=copy, out=tmp_path / "run")
 
 
 @pytest.mark.slow

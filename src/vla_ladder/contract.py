@@ -110,13 +110,40 @@ def fingerprint() -> dict:
             "reach_threshold": REACH_THRESHOLD, "blind_instruction": BLIND_INSTRUCTION}
 
 
-def contract_changes(saved: dict | None) -> list[str]:
-    """How a saved fingerprint() differs from this contract, one "name was X, now Y" per field (each cut to 200
-    characters); none when nothing was saved (files written before fingerprints were kept resume unchecked, and
-    keep this contract's from then on)."""
+POLICY_FIELDS: tuple[str, ...] = ("env_id", "robot", "control_mode", "sim_hz", "control_hz", "cameras", "state",
+                                  "action")
+"""The fingerprint's fields that decide what a policy sees and what its actions do. A policy trained under other
+values would be scored on a task it never saw, so trained checkpoints keep these (policy_fingerprint) and are
+refused under another contract; the episode length, the metrics, the reach threshold and the blind instruction
+change only how episodes are scored or worded."""
+
+
+TRAINED_CONTRACT_FILE = "vla_ladder_contract.json"
+"""Beside a trained LeRobot checkpoint's config.json: the policy_fingerprint() of the data it was trained on."""
+
+
+def policy_fingerprint() -> dict:
+    """fingerprint() cut to POLICY_FIELDS: what a trained policy keeps of the contract it was trained under."""
+    now = fingerprint()
+    return {k: now[k] for k in POLICY_FIELDS}
+
+
+def contract_changes(saved: dict | None, fields: tuple[str, ...] | None = None) -> list[str]:
+    """How a saved fingerprint() differs from this contract, one "name was X, now Y" per value that differs (a
+    camera's field of view reads cameras[1].fov_deg; each line cut to 200 characters), only in `fields` when given;
+    none when nothing was saved (files written before fingerprints were kept resume unchecked, and keep this
+    contract's from then on)."""
     if saved is None:
         return []
     now = fingerprint()
-    return [f"{k} was {saved.get(k)!r}, now {now.get(k)!r}"[:200] for k in sorted({*saved, *now})
-            if saved.get(k) != now.get(k)]
+    names = sorted({*saved, *now}) if fields is None else fields
+    return [line for k in names for line in _differences(k, saved.get(k), now.get(k))]
+
+
+def _differences(name: str, was, now) -> list[str]:
+    if isinstance(was, dict) and isinstance(now, dict):
+        return [line for k in sorted({*was, *now}) for line in _differences(f"{name}.{k}", was.get(k), now.get(k))]
+    if isinstance(was, list) and isinstance(now, list) and len(was) == len(now):
+        return [line for i, (a, b) in enumerate(zip(was, now)) for line in _differences(f"{name}[{i}]", a, b)]
+    return [] if was == now else [f"{name} was {was!r}, now {now!r}"[:200]]
 

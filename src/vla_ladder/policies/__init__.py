@@ -136,14 +136,15 @@ def _sha256(path: str, inode: int, size: int, mtime_ns: int) -> str:
 
 
 def check_spec(spec: str) -> tuple[str, str | None]:
-    """parse_spec, plus: a ppo: spec must name a checkpoint that is there, a lerobot: spec one whose options fit it
-    and whose inputs the env provides (lerobot.checked_config), a remote: spec a server that answers. Commands call
+    """parse_spec, plus: a ppo: spec must name a readable checkpoint trained under this task contract, a lerobot:
+    spec one whose options fit it, whose inputs the env provides and whose training data had this contract
+    (lerobot.checked_config), a remote: spec a server that answers. Commands call
     it before any long work (a server would otherwise build its simulator and fail every request; an evaluation
     would write its run directory and fail in its first worker)."""
     kind, arg = parse_spec(spec)
     if kind == "ppo":
-        from vla_ladder.policies.ppo import checkpoint_dir
-        checkpoint_dir(arg)
+        from vla_ladder.policies.ppo import load_agent
+        load_agent(arg)  # a small network: read whole, so an unreadable or other-contract checkpoint stops here
     elif kind == "lerobot":
         from vla_ladder.policies.lerobot import CONFIG_OPTIONS, check_checkpoint, checked_config, parse_arg
         path, options = parse_arg(arg)

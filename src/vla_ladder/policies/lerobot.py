@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import json
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -30,7 +31,8 @@ import numpy as np
 import torch
 
 from vla_ladder.checks import TORCH_DEVICE
-from vla_ladder.contract import ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IMAGE_SHAPE, STATE_DIM, STATE_KEY
+from vla_ladder.contract import (ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IMAGE_SHAPE, POLICY_FIELDS, STATE_DIM,
+                                 STATE_KEY, TRAINED_CONTRACT_FILE, contract_changes)
 from vla_ladder.files import own_tempdir
 from vla_ladder.policies import Policy, parse_options, positive_int
 
@@ -166,13 +168,26 @@ def checked_config(path: str | Path, n_action_steps: int | None = None, device: 
     except Exception as e:  # draccus wraps the config's own checks (e.g. n_action_steps > chunk_size)
         raise ValueError(f"cannot use the checkpoint {str(path)!r} with {overrides}: {e}") from e
     check_env_compatible(cfg, _saved_rename_map(path))
+    check_trained_contract(path)
     check_checkpoint(path)  # last: a mismatch is named even where the weights are missing
     return cfg
 
 
-def _saved_rename_map(path: Path) -> dict[str, str]:
-    import json
+def check_trained_contract(path: Path) -> None:
+    """ValueError when the checkpoint was trained on data recorded under another task contract (its
+    TRAINED_CONTRACT_FILE, which `vla-ladder train` writes, differs from this one in contract.POLICY_FIELDS): the
+    shapes may all fit and the rate, the cameras' view or the meaning of a state entry still differ. A checkpoint
+    without the file (trained elsewhere, or before checkpoints kept it) is not checked."""
+    saved = path / TRAINED_CONTRACT_FILE
+    if not saved.is_file():
+        return
+    if changed := contract_changes(json.loads(saved.read_text()), POLICY_FIELDS):
+        raise ValueError(f"the LeRobot checkpoint {str(path)!r} was trained under another task contract "
+                         f"({'; '.join(changed)}): its numbers here would be those of a task it never saw; evaluate "
+                         "it with the vla-ladder version it was trained with, or train it again")
 
+
+def _saved_rename_map(path: Path) -> dict[str, str]:
     pre = path / "policy_preprocessor.json"
     if not pre.is_file():
         return {}

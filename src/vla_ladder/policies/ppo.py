@@ -21,6 +21,7 @@ from safetensors.torch import load_file, safe_open, save_file
 from torch.distributions.normal import Normal
 
 from vla_ladder import files
+from vla_ladder.contract import POLICY_FIELDS, contract_changes, policy_fingerprint
 from vla_ladder.policies import Policy
 
 FORMAT = "vla-ladder-ppo/1"
@@ -67,7 +68,8 @@ class Agent(nn.Module):
 # ------------------------------------------------------------------------------------- checkpoints
 def save_agent(path: Path, agent: Agent) -> None:
     meta = {"format": FORMAT, "obs_dim": str(agent.obs_dim), "act_dim": str(agent.act_dim),
-            "hidden_sizes": ",".join(map(str, agent.hidden_sizes))}
+            "hidden_sizes": ",".join(map(str, agent.hidden_sizes)),
+            "contract": json.dumps(policy_fingerprint())}  # the task it learned: load_agent refuses another
     with files.atomic_path(path) as tmp:
         save_file({k: v.detach().cpu().contiguous() for k, v in agent.state_dict().items()}, str(tmp), meta)
 
@@ -88,8 +90,9 @@ def checkpoint_dir(path: str | Path) -> Path:
 
 def load_agent(path: str | Path, obs_dim: int | None = None, act_dim: int | None = None,
                device: str | torch.device = "cpu") -> Agent:
-    """Load model.safetensors of a checkpoint (or run) directory; ValueError when it is unreadable or
-    was trained for other observation/action sizes than the ones given."""
+    """Load model.safetensors of a checkpoint (or run) directory; ValueError when it is unreadable, was trained
+    under another task contract (contract.POLICY_FIELDS), or for other observation/action sizes than the ones
+    given."""
     f = checkpoint_dir(path) / "model.safetensors"
     try:
         with safe_open(str(f), framework="pt") as sf:
@@ -98,8 +101,12 @@ def load_agent(path: str | Path, obs_dim: int | None = None, act_dim: int | None
             raise ValueError(f"format {meta.get('format')!r}, expected {FORMAT!r}")
         agent = Agent(int(meta["obs_dim"]), int(meta["act_dim"]), [int(h) for h in meta["hidden_sizes"].split(",")])
         agent.load_state_dict(load_file(str(f)))
+        trained_under = json.loads(meta["contract"]) if "contract" in meta else None  # None: written before it was
     except (SafetensorError, OSError, KeyError, ValueError, RuntimeError) as e:
         raise ValueError(f"unreadable PPO checkpoint {f}: {e}") from e
+    if changed := contract_changes(trained_under, POLICY_FIELDS):
+        raise ValueError(f"PPO checkpoint {f} was trained under another task contract ({'; '.join(changed)}): "
+                         "its numbers here would be those of a task it never saw; train it again")
     if (obs_dim is not None and obs_dim != agent.obs_dim) or (act_dim is not None and act_dim != agent.act_dim):
         raise ValueError(f"PPO checkpoint {f} was trained for {agent.obs_dim}-d observations and "
                          f"{agent.act_dim}-d actions; this environment has {obs_dim}-d observations and "

@@ -6,8 +6,8 @@ import json
 from pathlib import Path
 
 from vla_ladder.conditions import Condition
-from vla_ladder.contract import CAMERA_KEYS, FEATURE_SHAPES
-from vla_ladder.recordings import read_recording
+from vla_ladder.contract import CAMERA_KEYS, FEATURE_SHAPES, POLICY_FIELDS, contract_changes
+from vla_ladder.recordings import read_recording, read_recording_state
 
 
 def read_info(root: str | Path) -> dict:
@@ -50,3 +50,17 @@ def dataset_condition(root: str | Path) -> Condition | None:
     dataset vla-ladder did not record)."""
     recording = read_recording(root)
     return None if recording is None else recording.condition
+
+
+def dataset_contract(root: str | Path) -> dict | None:
+    """The task contract (contract.policy_fingerprint's fields) the dataset was recorded under; None where it does
+    not say (another tool's dataset, or a recording made before recordings kept it). ValueError when it differs
+    from this contract in what a policy sees or does: a policy trained on it would be evaluated on another task."""
+    saved = (read_recording_state(root) or {}).get("contract")
+    if saved is None:
+        return None
+    if changed := contract_changes(saved, POLICY_FIELDS):
+        raise ValueError(f"dataset {str(root)!r} was recorded under another task contract ({'; '.join(changed)}): "
+                         "a policy trained on it would be evaluated on a task it never saw; record it again with "
+                         "this version, or train with the version that recorded it")
+    return {k: saved[k] for k in POLICY_FIELDS}

@@ -21,8 +21,8 @@ from pathlib import Path
 
 from vla_ladder import files
 from vla_ladder.checks import TORCH_DEVICE
-from vla_ladder.contract import CAMERA_KEYS
-from vla_ladder.training.dataset import check_features, dataset_condition, read_info
+from vla_ladder.contract import CAMERA_KEYS, TRAINED_CONTRACT_FILE
+from vla_ladder.training.dataset import check_features, dataset_condition, dataset_contract, read_info
 
 log = logging.getLogger(__name__)
 
@@ -113,6 +113,7 @@ class TrainConfig:
         if self.pretrained in ("", "none", "None"):
             self.pretrained = None
         self.condition = dataset_condition(self.dataset)
+        self.contract = dataset_contract(self.dataset)
         if self.batch_size is None:
             if self.condition is None:
                 raise ValueError(f"{str(self.dataset)!r} is not a vla-ladder recording, so its regime is unknown; "
@@ -288,11 +289,15 @@ def train(req: TrainConfig) -> Path:
                          "without network export HF_HUB_OFFLINE=1, so that ACT's backbone trains from scratch and "
                          "tokenizers and checkpoints are looked up locally") from None
     if int(os.environ.get("RANK", "0")) == 0:
+        if req.contract is not None:  # each checkpoint says what it was trained on, wherever it is copied to
+            for ckpt in sorted((req.out / "checkpoints").glob("*/pretrained_model")):
+                files.write_json(ckpt / TRAINED_CONTRACT_FILE, req.contract)
         files.write_json(req.out / "vla_ladder_train.json", {
             "request": asdict(req),
             "lerobot_train_command": shlex.join(req.lerobot_command()),
             "dataset": {"root": str(req.dataset), "condition": req.condition and req.condition.key,
-                        "episodes": req.info.get("total_episodes"), "frames": req.info.get("total_frames")},
+                        "episodes": req.info.get("total_episodes"), "frames": req.info.get("total_frames"),
+                        "contract": req.contract},
             "checkpoint": str(checkpoint_dir(req.out)),
             "wall_s": round(time.time() - start, 1),
             "provenance": files.provenance(),
