@@ -127,6 +127,18 @@ def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
     assert all("num_envs" not in u.config for u in batched.probe_units(chosen))
 
 
+def test_the_gpu_studies_put_every_instruction_reading_model_through_every_probe(tmp_path):
+    from vla_ladder.experiments.probes import PROBES
+    from vla_ladder.experiments.study import Study, StudyCommand
+
+    for preset in ("gpu-scratch", "paper"):
+        study = Study(StudyCommand(preset, out=tmp_path / preset))
+        readers = [(p.name, d.name) for p, d, _ in study.models() if not p.blind]
+        units = study.probe_units(study.best({}))
+        assert [u.id for u in units] == [f"probe-{p}-{d}-{name}" for p, d in readers for name in PROBES], preset
+        assert {u.config["episodes"] for u in units} == {50}
+
+
 def test_selection_plays_validation_seeds_and_picks_by_success_then_grasp_then_reach(tmp_path):
     """A 2x2 grid with horizons {2, 4}: every (model, horizon) is played on the validation seeds of the training
     condition, and the choice ranks success, then grasp-any, then reach (first in grid order on a full tie)."""
