@@ -289,8 +289,7 @@ def appearance_swap(original: pd.DataFrame, swapped: pd.DataFrame) -> dict:
     """Per condition, on the scenes whose instructed object had a swap partner: what is held under the swap and
     without it (the same scenes), as shares of COLOUR_OUTCOMES with Wilson intervals; the transition table
     original -> swap; follows-shape minus its no-swap value with Newcombe's paired interval and McNemar's p."""
-    keys = [*CONDITION_KEYS, "episode"]
-    merged = original.merge(swapped, on=keys, suffixes=("_o", "_s"))
+    merged = same_scenes(original, swapped, ("_o", "_s"), same_target=True)
     merged["partner"] = [(json.loads(lay).get("colour_swap") or [None, None])[1] for lay in merged["layout_s"]]
     out = {}
     for key, g in _by_condition(merged):
