@@ -9,6 +9,7 @@ import pytest
 from report_fixtures import chromium_page, table_row
 
 from vla_ladder.cli import main
+from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.experiments.diagnose import QUESTIONS
 
 SMALL = ["--episodes", "3", "--probe-episodes", "3", "--workers", "1", "--videos", "1"]
@@ -89,8 +90,16 @@ def test_a_policy_diagnosed_beside_itself_resembles_itself(tmp_path, capsys):
     assert rows["follows_object"]["references"]["scripted"] == 1.0 and rows["follows_object"]["policy"]["value"] == 0
     assert rows["empty_place"]["policy"]["value"] == 1.0 and rows["empty_place"]["references"]["scripted"] == 0
     assert rows["holds_up"]["policy"]["value"] < 0 and rows["holds_up"]["policy"]["to"] == "full_random/canonical/5"
+    # The ladder's episodes against the named object's distance from its training place: the twin's curve is the
+    # policy's, every ladder episode in one bin.
+    disp = data["displacement"]
+    assert disp["trained_in"] == "small_jitter/canonical/5" and set(disp["references"]) == {"scripted", "layout-prior"}
+    assert disp["policies"]["layout-prior"] == disp["references"]["layout-prior"]
+    ladder = load_run(out / "policy" / "ladder").episodes
+    assert sum(b["n"] for b in disp["policies"]["layout-prior"]["bins"]) == len(ladder)
     printed = capsys.readouterr().out
     assert "Does it keep reading the instruction?" in printed and "resembles layout-prior" in printed
+    assert "Where does it stop finding the object? success" in printed
     # The policy's filmed scenes, and no reference's.
     assert list((out / "policy" / "ladder" / "videos").glob("*.mp4"))
     assert not (out / "references" / "scripted" / "ladder" / "videos").exists()
@@ -101,7 +110,7 @@ def test_a_policy_diagnosed_beside_itself_resembles_itself(tmp_path, capsys):
         text = page.inner_text("body")
     assert not failed
     assert row["question"] == "Does it hold up as the objects move?" and "layout-prior" in row["resembles"]
-    assert text.index("Diagnosis") < text.index("Grounding probes")
+    assert text.index("Diagnosis") < text.index("Where it stops finding the object") < text.index("Grounding probes")
     for probe in ("instruction-swap: layout-prior", "position-swap: layout-prior", "absent-object: layout-prior",
                   "instruction-switch: layout-prior", "paraphrase: layout-prior", "appearance-swap: layout-prior",
                   "distractor-removal: layout-prior"):

@@ -188,3 +188,24 @@ def test_report_command_and_bad_input(runs, tmp_path, capsys):
     assert main(["report", str(bad), "--out", str(out)]) == 2
     assert "missing summary.json" in capsys.readouterr().err
     json.loads((runs[0].path / "summary.json").read_text())
+
+
+def test_report_trained_in_adds_success_against_the_named_objects_distance(runs, tmp_path, capsys):
+    """`--trained-in COND`: the runs' success per distance bin from the named object's place in COND's layouts,
+    its odds ratio per 10 cm, and the figure; refused in one line for a condition without usual places."""
+    out = tmp_path / "d.html"
+    assert main(["report", str(runs[0].path), str(runs[1].path), "--out", str(out), "--no-placements",
+                 "--no-video", "--trained-in", "small_jitter/canonical/5"]) == 0
+    with chromium_page(out) as (page, failed):
+        images = dict(page.evaluate("[...document.images].map(i => [i.alt, i.naturalWidth])"))
+        text = page.inner_text("body")
+    assert not failed and images["displacement"] > 100
+    assert "Where it stops finding the object" in text and "odds ratio / 10 cm" in text
+    assert "small_jitter/canonical/5's regions" in text and "0–2 cm" in text
+    capsys.readouterr()
+    for bad, words in (("full_random/canonical/5", "has no usual place to measure from; allowed: a jitter regime"),
+                       ("nowhere/canonical/5", "nowhere")):
+        assert main(["report", str(runs[0].path), "--out", str(tmp_path / "x.html"), "--trained-in", bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], err
+    assert not (tmp_path / "x.html").exists()

@@ -232,6 +232,11 @@ def test_micro_study_survives_kills_mid_record_and_mid_train_and_reports_learned
     assert "| SmolVLA-tiny | sj (small_jitter/canonical/2) |" in matrix
     page = (out / "report.html").read_text()
     assert "Study: train regime x eval regime" in page and "SmolVLA-tiny" in page and "Grasp-any" in page
+    # Its ladder's episodes against the named object's distance from its place in small jitter (no references here)
+    curve = summary["displacement"]["sj"]
+    assert curve["trained_in"] == "small_jitter/canonical/2" and list(curve["runs"]) == ["SmolVLA-tiny (sj)"]
+    assert sum(b["n"] for b in curve["runs"]["SmolVLA-tiny (sj)"]["bins"]) == 4
+    assert "Study: where the models trained on sj stop finding the object" in page
     assert (out / "logs" / "eval-SmolVLA-tiny-sj.log").stat().st_size > 0
     # A different study in the same directory is refused.
     other = tmp_path / "other.json"

@@ -23,6 +23,10 @@ difference of two rates):
 8. Do the other objects cost it success? The distractor removal: success with every distractor taken off the
    table minus success as the scene is (Newcombe's interval for paired rates).
 
+Beside the answers, where it stops finding the object: every ladder's success against the named object's distance
+from its place in the training condition (evaluation/displacement.py: rates per distance bin and the odds ratio per
+10 cm), the curve between the ladder's rungs, for the policies and the references alike.
+
 The reference policies answer the same questions on the same scenes (state only, so they cost little):
 `scripted` reads its target from the state every step (grounded by construction), `committed` is the same expert
 reading its target once, at the first step, `layout-prior` goes to where the named object stands in training (the
@@ -47,10 +51,11 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import REGIMES, Condition, ConditionGrid
+from vla_ladder.evaluation.displacement import by_displacement
 from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
 from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
-from vla_ladder.experiments.probes import PROBES as PROBE_KINDS
+from vla_ladder.experiments.probes import PROBES
 from vla_ladder.experiments.probes import ProbeConfig, run_probe
 from vla_ladder.policies import check_spec, parse_spec
 from vla_ladder.report.diagnosis import answer_lines, diagnosis_html
@@ -59,8 +64,9 @@ from vla_ladder.stats import paired_difference
 REFERENCES = ("scripted", "committed", "layout-prior", "nearest")
 """The reference profiles: grounded and re-reading its target, grounded but reading it once, the location
 shortcut, ignoring the instruction."""
-PROBES = ("instruction-swap", "position-swap", "absent-object", "instruction-switch", "paraphrase", "appearance-swap",
-          "distractor-removal")
+ASKED = ("instruction-swap", "position-swap", "absent-object", "instruction-switch", "paraphrase", "appearance-swap",
+         "distractor-removal")
+"""The probes (names in experiments/probes.py's PROBES) whose results QUESTIONS read."""
 SWITCH_STEP = 5
 """The instruction switch's step for question 5: before the scripted expert closes its gripper in every scene
 measured (docs/probes.md), so a policy that re-reads its instruction can still turn."""
@@ -154,11 +160,11 @@ class DiagnoseConfig:
                             grid=ConditionGrid(("all",), (cond.split,), (cond.num_objects,)), videos=videos,
                             overwrite=self.overwrite, **players)
         probes = {}
-        for name in PROBES:
+        for name in ASKED:
             # absent-object needs an object off the table: five-object policies are probed with four, as a study does
-            n = PROBE_KINDS[name].fit(cond.num_objects)
+            n = PROBES[name].fit(cond.num_objects)
             # the appearance swap paints each scene's objects: one env per scene, in worker processes
-            plays = dict(workers=self.workers) if PROBE_KINDS[name].one_env else players
+            plays = dict(workers=self.workers) if PROBES[name].one_env else players
             probes[name] = ProbeConfig(name, policy=spec, out=root / "probes" / name,
                                        grid=ConditionGrid((cond.regime,), (cond.split,), (n,)),
                                        episodes=self.probe_episodes, first_seed=self.first_seed, videos=videos,
@@ -280,7 +286,19 @@ def diagnosis(cfg: DiagnoseConfig) -> dict:
     return {"policy": cfg.policy[0] if len(cfg.policy) == 1 else list(cfg.policy),
             "policies": dict(zip(cfg.labels, cfg.policy)), "condition": cfg.condition, "episodes": cfg.episodes,
             "probe_episodes": cfg.probe_episodes, "first_seed": cfg.first_seed, "references": list(cfg.references),
-            "questions": rows, "provenance": files.provenance()}
+            "questions": rows, "displacement": displacement_curves(cfg), "provenance": files.provenance()}
+
+
+def displacement_curves(cfg: DiagnoseConfig) -> dict | None:
+    """Every ladder's metrics against the named object's distance from its place in the training condition
+    (evaluation/displacement.py): the curve between the ladder's rungs, for each policy and reference on the same
+    scenes. None for a policy trained in full random (no place is usual there)."""
+    roots = {**cfg.roots(), **{r: cfg.out / "references" / r for r in cfg.references}}
+    curves = {who: by_displacement(load_run(root / "ladder").episodes, cfg.condition) for who, root in roots.items()}
+    if any(c is None for c in curves.values()):
+        return None
+    return {"trained_in": cfg.condition, "policies": {label: curves[label] for label in cfg.labels},
+            "references": {r: curves[r] for r in cfg.references}}
 
 
 def _resembles(answer: dict | None, theirs: dict[str, float | None]) -> str | None:
@@ -310,8 +328,8 @@ def run_diagnosis(cfg: DiagnoseConfig, progress: bool = True) -> dict:
     named = cfg.policy if len(cfg.policy) == 1 else cfg.labels
     build_report(ladders, cfg.out / "report.html", title=f"vla-ladder diagnose: {', '.join(named)}",
                  labels=[*named, *(f"{r} (reference)" for r in cfg.references)],
-                 sections=[("Diagnosis", diagnosis_html(data))],
-                 probe_runs=variants)
+                 sections=[("Diagnosis", diagnosis_html(data))], probe_runs=variants,
+                 trained_in=None if data["displacement"] is None else cfg.condition)
     return data
 
 

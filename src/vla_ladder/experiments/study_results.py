@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import html
 import json
 import os
+import tempfile
 from pathlib import Path
 
 from vla_ladder import files
 from vla_ladder.contract import METRICS
+from vla_ladder.evaluation.displacement import by_displacement
 from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.experiments.probes import rescore_probe
 
@@ -42,22 +45,51 @@ def curve_points(study, chosen: dict) -> dict[str, list[dict]]:
     return curves
 
 
+def _played(run) -> tuple:
+    """What a run played, episode by episode: runs with the same plays have the same scenes."""
+    return tuple(sorted(zip(run.episodes["regime"], run.episodes["split"], run.episodes["seed"],
+                            run.episodes["target"])))
+
+
+def displacement_curves(runs: dict[str, tuple]) -> dict[str, dict]:
+    """dataset name -> {"trained_in", "runs": label -> evaluation.displacement.by_displacement}: the models trained
+    on each dataset recorded where objects have usual places (not full random), and every reference run that
+    played the same episodes, against the named object's distance from its place in that dataset's condition.
+    `runs`: label -> (Run, the dataset's (name, condition key) or None for a reference)."""
+    out = {}
+    for name, cond in dict.fromkeys(train for _, train in runs.values() if train is not None):
+        mine = {label: run for label, (run, train) in runs.items() if train == (name, cond)}
+        played = {_played(run) for run in mine.values()}
+        with_refs = {**mine, **{label: run for label, (run, train) in runs.items()
+                                if train is None and _played(run) in played}}
+        curves = {label: by_displacement(run.episodes, cond) for label, run in with_refs.items()}
+        if all(c is not None for c in curves.values()):
+            out[name] = {"trained_in": cond, "runs": curves}
+    return out
+
+
 def write_results(study, chosen: dict, results: dict, curves_results: dict) -> Path:
     from vla_ladder.report import study as present
-    from vla_ladder.report.html import build_report, reference_data
+    from vla_ladder.report.displacement import CAPTION as DISPLACEMENT_CAPTION
+    from vla_ladder.report.displacement import displacement_table
+    from vla_ladder.report.html import build_report, png_tag, reference_data
+    from vla_ladder.report.plots import plot_displacement
 
     root, cfg = study.root, study.cfg
-    cells, runs, labels = [], [], []
+    cells, runs, labels, trained = [], [], [], []
     for p, d, _ in study.models():
         run_dir = root / "eval" / f"{p.name}-{d.name}"
         cells += cells_of(run_dir, p.name, (d.name, d.condition))
         runs.append(load_run(run_dir))
         labels.append(f"{p.name} ({d.name})")
+        trained.append((d.name, d.condition))
     for ref in cfg.evaluation.reference_policies:
         for run_dir in sorted((root / "eval").glob(f"reference-{ref}-*")):
             cells += cells_of(run_dir, ref)
             runs.append(load_run(run_dir))
             labels.append(f"{ref} #{run_dir.name.rsplit('-', 1)[1]}")
+            trained.append(None)
+    displacement = displacement_curves({label: (run, t) for label, run, t in zip(labels, runs, trained)})
     for cell in cells:  # relative to the study's folder, so that its summary holds wherever it is copied
         cell["run"] = os.path.relpath(cell["run"], root)
     curves = curve_points(study, chosen)
@@ -69,6 +101,7 @@ def write_results(study, chosen: dict, results: dict, curves_results: dict) -> P
             probes[uid.removeprefix("probe-")] = {"probe": data["probe"], "conditions": data["conditions"]}
     summary = {"study": cfg.name, "description": cfg.description, "cells": cells,
                "selection": {f"{p}/{d}": v for (p, d), v in chosen.items()}, "curves": curves, "probes": probes,
+               "displacement": displacement,
                "units": {**results, **{f"probe-{name}": r for name, r in probes.items()}},
                "provenance": files.provenance()}
     files.write_json(root / "summary.json", summary)
@@ -84,6 +117,12 @@ def write_results(study, chosen: dict, results: dict, curves_results: dict) -> P
     pairings = present.pairings_html(cells)
     if pairings:
         sections.append(("Study: held-out object-region pairings", pairings))
+    for name, disp in displacement.items():
+        with tempfile.TemporaryDirectory() as tmp:
+            figure = png_tag(plot_displacement(disp["runs"], Path(tmp) / f"displacement_{name}.png"))
+        caption = f"<figcaption class=note>{html.escape(DISPLACEMENT_CAPTION)}</figcaption>"
+        sections.append((f"Study: where the models trained on {name} stop finding the object",
+                         f"{displacement_table(disp['runs'], disp['trained_in'])}<figure>{figure}{caption}</figure>"))
     if curves:
         png = present.plot_curves(curves, root / "curves.png")
         import base64

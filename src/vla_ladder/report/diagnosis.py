@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import html
 
+from vla_ladder.report.displacement import odds_text
+
 DIFFERENCES = ("holds_up", "reworded", "distracted")
 """Questions answered by a difference of two rates: shown in signed points."""
 
@@ -27,7 +29,8 @@ def _policies(q: dict) -> dict[str, dict]:
 
 
 def answer_lines(data: dict) -> list[str]:
-    """One line per question (and policy): the answer, the measure, the references' answers and the nearest."""
+    """One line per question (and policy): the answer, the measure, the references' answers and the nearest; then
+    where it stops finding the object (displacement_lines)."""
     lines = []
     for q in data["questions"]:
         refs = ", ".join(f"{r} {_pct(x, q['id'] in DIFFERENCES)}" for r, x in q["references"].items())
@@ -37,7 +40,7 @@ def answer_lines(data: dict) -> list[str]:
             like = f"; resembles {a['resembles']}" if a["resembles"] else ""
             who = f"[{label}] " if several else ""
             lines.append(f"{who}{q['question']} {value} ({q['measure']}){'; ' + refs if refs else ''}{like}")
-    return lines
+    return lines + displacement_lines(data)
 
 
 def diagnosis_html(data: dict) -> str:
@@ -71,3 +74,28 @@ def diagnosis_html(data: dict) -> str:
             + (" Two policies' answers are on the same scenes: <code>vla-ladder compare</code> on their run "
                "directories tests a difference pair by pair." if several else "") + "</p>")
     return f"<table><tr>{head}</tr>{''.join(rows)}</table>{note}"
+
+
+
+def displacement_lines(data: dict) -> list[str]:
+    """One line per policy: its success nearest and farthest from the named object's place in training, and the
+    odds ratio per 10 cm beside the references'."""
+    disp = data.get("displacement")
+    if not disp:
+        return []
+    several = len(disp["policies"]) > 1
+    refs = ", ".join(f"{r} {odds_text(c['trend']['success'])}" for r, c in disp["references"].items())
+    lines = []
+    for label, curve in disp["policies"].items():
+        near, far = curve["bins"][0], curve["bins"][-1]
+        who = f"[{label}] " if several else ""
+        beyond = curve["far"]
+        at_place = ("" if beyond["ends_at_place"]["value"] is None else
+                    f", ends at its usual place in {_pct(beyond['ends_at_place']['value'])}%")
+        lines.append(f"{who}Where does it stop finding the object? success {_pct(near['success'])}% at "
+                     f"{near['from_cm']:g}-{near['to_cm']:g} cm from the named object's place in training, "
+                     f"{_pct(far['success'])}% at {far['from_cm']:g}-{far['to_cm']:g} cm; beyond "
+                     f"{beyond['from_cm']:g} cm (n={beyond['n']}) it reaches the object in "
+                     f"{_pct(beyond['reach']['value'])}%{at_place}; odds {odds_text(curve['trend']['success'])} "
+                     f"per 10 cm{'; ' + refs if refs else ''}")
+    return lines

@@ -20,14 +20,17 @@ import tyro
 
 import numpy as np
 
-from vla_ladder.conditions import LADDER, REGIMES
+from vla_ladder.conditions import JITTER_REGIMES, LADDER, REGIMES, Condition
 from vla_ladder.contract import CONTROL_HZ, METRICS
+from vla_ladder.evaluation.displacement import by_displacement
 from vla_ladder.evaluation.metrics import OUTCOME_TEXT, OUTCOMES, outcomes
 from vla_ladder.checks import check_output_file
 from vla_ladder.evaluation.rundir import EPISODE_KEY, Run, load_runs
 from vla_ladder.files import write_text
 from vla_ladder.report import plots, tables
 from vla_ladder.report import probes as probe_report
+from vla_ladder.report.displacement import CAPTION as DISPLACEMENT_CAPTION
+from vla_ladder.report.displacement import displacement_table
 
 STRIP_EVERY = 6  # steps: 300 ms at 20 Hz
 VIDEO_MAX_BYTES = 4_000_000  # larger videos are shown as frame strips only, to keep the page loadable
@@ -84,7 +87,8 @@ def _data_uri(data: bytes, mime: str) -> str:
     return f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}"
 
 
-def _png(path: Path) -> str:
+def png_tag(path: Path) -> str:
+    """A PNG file as an <img> that carries its picture (the page is one file)."""
     return f'<img class="plot" alt="{html.escape(path.stem)}" src="{_data_uri(path.read_bytes(), "image/png")}">'
 
 
@@ -184,11 +188,12 @@ def _figures(results: dict[str, dict], runs: list[Run], tmp: Path, placements: b
         path = tmp / f"{name}.png"
         {"ladder": plots.plot_ladder, "pairings": plots.plot_pairings,
          "object_count": plots.plot_object_count}[name](results, path, **kwargs)
-        figs.append((table.caption, _png(path)))
+        figs.append((table.caption, png_tag(path)))
     for label, conds in results.items():
         path = tmp / f"confusion_{len(figs)}.png"
         plots.plot_confusion({key: c for key, c in conds.items() if "confusion" in c}, path)
-        figs.append((f"Confusion matrices of {label}: instructed object x object held at the final step", _png(path)))
+        figs.append((f"Confusion matrices of {label}: instructed object x object held at the final step",
+                     png_tag(path)))
     if placements:
         fig = _placement_figure(runs, tmp)
         if fig:
@@ -205,7 +210,7 @@ def _placement_figure(runs: list[Run], tmp: Path) -> tuple[str, str] | None:
     regimes = [r for r in REGIMES if r in present] or list(REGIMES)
     path = tmp / "placements.png"
     plot_placements(regimes, 200, 0, path)
-    return ("Initial object positions per regime (200 sampled layouts each)", _png(path))
+    return ("Initial object positions per regime (200 sampled layouts each)", png_tag(path))
 
 
 def _episode_card(run: Run, row, with_video: bool) -> str:
@@ -297,7 +302,7 @@ def _probe_sections(runs: list[Run], tmp: Path, samples: int = 2, with_video: bo
     parts = []
     for i, path in enumerate(probe_report.probe_dirs([r.path for r in runs])):
         data = probe_report.load_probe(path)
-        figures = [_png(p) for p in probe_report.plot_probe(data, tmp / f"probe_{i}.png")]
+        figures = [png_tag(p) for p in probe_report.plot_probe(data, tmp / f"probe_{i}.png")]
         variants = [r for r in runs if r.path.resolve().parent == path]
         parts.append(probe_report.section(data, figures, str(path)) + _paired_plays(variants, samples, with_video))
     return "<h2>Grounding probes</h2>" + "".join(parts) if parts else ""
@@ -318,11 +323,13 @@ pre{background:#f7f7f7;padding:.5em;overflow-x:auto}
 
 def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder evaluation report", samples: int = 2,
                  with_video: bool = True, placements: bool = True, labels: list[str] | None = None,
-                 sections: list[tuple[str, str]] | None = None, probe_runs: list[Run] | None = None) -> Path:
+                 sections: list[tuple[str, str]] | None = None, probe_runs: list[Run] | None = None,
+                 trained_in: str | None = None) -> Path:
     """Write the HTML page for `runs` to `out` and return its path; `labels` name the runs' policies
     (default: their policy specs); `sections` ((title, HTML) pairs, e.g. a study's tables) come first;
     `probe_runs`, variants of grounding probes, appear in their probes' sections only (not in the tables,
-    figures and rollouts of `runs`)."""
+    figures and rollouts of `runs`); `trained_in`, the condition the policies were trained in, adds their success
+    against the named object's distance from its place there (evaluation/displacement.py)."""
     labels = labels or [r.label for r in runs]
     if len(labels) != len(runs):
         raise ValueError(f"got {len(labels)} labels for {len(runs)} runs")
@@ -346,6 +353,11 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
             body += [_md_table_html(t) for _, t, _ in paper]
         body.append("<h2>Figures</h2>")
         body += [f"<figure>{img}<figcaption class=note>{html.escape(cap)}</figcaption></figure>" for cap, img in figs]
+        if trained_in is not None:
+            curves = {label: by_displacement(r.episodes, trained_in) for r, label in zip(runs, labels)}
+            body += ["<h2>Where it stops finding the object</h2>", displacement_table(curves, trained_in),
+                     f"<figure>{png_tag(plots.plot_displacement(curves, Path(tmp) / 'displacement.png'))}"
+                     f"<figcaption class=note>{html.escape(DISPLACEMENT_CAPTION)}</figcaption></figure>"]
         body.append(_probe_sections([*runs, *(probe_runs or ())], Path(tmp), samples, with_video))
         body += ["<h2>Success by instructed object</h2>", _per_object_table(results),
                  "<h2>Rollouts</h2>", f"<p class=note>Up to {samples} recorded episodes of each outcome per run; "
@@ -372,16 +384,26 @@ class ReportConfig:
     """embed rollout videos (--no-video: frame strips only, a smaller page)"""
     placements: bool = True
     """include the placement figure"""
+    trained_in: str | None = None
+    """the condition the runs' policies were trained in (regime/split/objects, a jitter regime): adds their success
+    against the named object's distance from its place there, the curve between the ladder's rungs"""
 
     def __post_init__(self):
         if self.samples < 0:
             raise ValueError(f"--samples must be >= 0, got {self.samples}")
+        if self.trained_in is not None:
+            cond = Condition.parse(self.trained_in)
+            if REGIMES[cond.regime] is None:
+                raise ValueError(f"--trained-in {self.trained_in}: a policy trained in {cond.regime} has no usual "
+                                 f"place to measure from; allowed: a jitter regime ({', '.join(JITTER_REGIMES)})")
+            self.trained_in = cond.key
         if not self.runs:
             raise ValueError("give at least one run directory")
         check_output_file(self.out, "--out")
 
 
 def run(cfg: ReportConfig) -> int:
-    out = build_report(load_runs(cfg.runs), cfg.out, cfg.title, cfg.samples, cfg.video, cfg.placements)
+    out = build_report(load_runs(cfg.runs), cfg.out, cfg.title, cfg.samples, cfg.video, cfg.placements,
+                       trained_in=cfg.trained_in)
     print(out.resolve())
     return 0

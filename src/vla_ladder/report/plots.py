@@ -1,4 +1,5 @@
-"""PNG figures of evaluation results: the ladder, pairings bars, object-count curve, confusion matrices.
+"""PNG figures of evaluation results: the ladder, pairings bars, object-count curve, confusion matrices, success
+against the named object's displacement.
 
 All take per-condition summaries (`metrics.summarize`, i.e. summary.json "conditions") keyed by model
 label, and draw every rate with its 95% Wilson interval.
@@ -153,4 +154,26 @@ def plot_data_scaling(stages: list[dict], path: str | Path, num_objects: int = 5
     axes[0].set_ylabel("rate (%) with 95% Wilson interval")
     axes[0].legend(fontsize=8)
     fig.suptitle("Data scaling", y=1.03)
+    return _save(fig, path)
+
+
+def plot_displacement(curves: dict[str, dict], path: str | Path) -> Path:
+    """One panel per metric, one line per policy: its rate in each displacement bin (evaluation/displacement.py),
+    drawn at the bin's mean displacement with its Wilson interval; the legend gives each policy's odds ratio per
+    10 cm of success."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(METRICS), figsize=(4.2 * len(METRICS), 3.4), sharey=True)
+    for ax, m in zip(axes, METRICS):
+        for j, (label, curve) in enumerate(curves.items()):
+            v, e = _err(curve["bins"], m)
+            x = np.array([b["mean_cm"] for b in curve["bins"]]) + (j - (len(curves) - 1) / 2) * 0.25
+            trend = curve["trend"]["success"]["odds_ratio_per_10cm"]
+            ax.errorbar(x, v, yerr=e, marker="o", capsize=3,
+                        label=label + ("" if trend is None else f" (x{trend:.2g} / 10 cm)"))
+        ax.set_title(METRIC_NAMES[m])
+        ax.set_ylim(-3, 103)
+        ax.grid(alpha=0.3)
+    fig.supxlabel("the named object's distance from its place in training (cm)", fontsize=10)
+    axes[0].set_ylabel("rate (%) with 95% Wilson interval")
+    axes[0].legend(loc="best", fontsize=7)
     return _save(fig, path)

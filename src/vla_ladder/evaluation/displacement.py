@@ -1,0 +1,126 @@
+"""Success against how far the named object stands from its place in training: the curve between the ladder's rungs.
+
+The ladder measures four points (small, medium, large jitter, full random). An episode's displacement is the
+distance from the instructed object to the nearest centre of the regions it stands in in the training condition's
+layouts (layouts.usual_regions: region i for object i in the canonical split, its three training regions in the
+pairing splits). Pooled over a ladder's regimes it runs from about 0 (small jitter) to 40 cm and more (full random),
+so one run directory of `vla-ladder eval --regimes all` says where along the way a policy stops finding the object.
+
+- bins: each metric's rate per displacement bin (DISPLACEMENT_BINS_CM), with Wilson intervals (stats.rates);
+- far from the place (FAR_CM and more, where the gripper cannot be within REACH_THRESHOLD of both the object and
+  its usual place): the share of episodes that reach the object and the share whose gripper ends at the object's
+  usual place instead (within REACH_THRESHOLD of a usual region's centre, horizontally, as the absent-object probe
+  measures it), with Wilson intervals: the location shortcut seen in ordinary episodes, no probe needed;
+- the trend: a logistic regression of the metric on the displacement (statsmodels' Logit, Wald interval), as the
+  odds ratio per 10 cm. A policy that goes to the named object wherever it stands is flat (about 1); one that goes
+  to where the object usually stands falls off steeply. Where success is all-or-nothing on either side of some
+  distance (the layout prior: every near episode succeeds, no far one does) the slope is unbounded and none is
+  given, with the reason; the bins still show it.
+
+A policy trained in full random has no usual place (no regions): there is nothing to measure then (None).
+Simulator-free: it reads the episodes' recorded layouts.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pandas as pd
+
+from vla_ladder.conditions import Condition
+from vla_ladder.contract import METRICS, REACH_THRESHOLD
+from vla_ladder.stats import CONFIDENCE, rates, wilson
+from vla_ladder.task.layouts import REGION_CENTERS, usual_regions
+from vla_ladder.task.objects import OBJECT_NAMES
+
+DISPLACEMENT_BINS_CM: tuple[float, ...] = (0, 2, 4, 7, 10, 15, 20, 30, 60)
+"""Bin edges: small jitter's regions reach ~3.6 cm from their centres, medium ~7 cm, large ~10 cm; full random
+reaches ~45 cm (the workspace is 35 x 50 cm). Fixed, so that curves of different policies line up."""
+PER_CM = 10.0
+"""The trend's unit of distance: the odds ratio per 10 cm."""
+FAR_CM = 200 * REACH_THRESHOLD
+"""From here on (10 cm) the object and its usual place lie more than two reach thresholds apart: a gripper that ends
+at one has not reached the other."""
+
+
+def displacement(layout: dict, trained: Condition) -> float:
+    """Metres from the instructed object of a recorded layout (Layout.to_dict()) to the nearest centre of its usual
+    regions in `trained` (which must have regions)."""
+    regions = usual_regions(layout["target"], trained)
+    if regions is None:
+        raise ValueError(f"{trained.key} has no regions: no place is usual there")
+    xy = np.asarray(layout["positions"][layout["target"]], dtype=float)
+    return float(np.linalg.norm(REGION_CENTERS[list(regions)] - xy, axis=1).min())
+
+
+def by_displacement(episodes: pd.DataFrame, trained: Condition | str) -> dict | None:
+    """The episodes' metrics against their displacement from the training condition's places: the bins (each with
+    its displacement range, n and every metric's rate and Wilson interval, as stats.rates gives them) and, per
+    metric, the logistic trend. None when `trained` has no regions (full random). Episodes whose named object is
+    not on the table (the absent-object probe) have no displacement: ValueError."""
+    trained = Condition.of(trained)
+    if usual_regions(OBJECT_NAMES[0], trained) is None:
+        return None
+    layouts = [json.loads(s) for s in episodes["layout"]]
+    if any(lay.get("absent_target") for lay in layouts):
+        raise ValueError("episodes that name an object not on the table have no displacement")
+    d = np.array([displacement(lay, trained) for lay in layouts])
+    edges = np.asarray(DISPLACEMENT_BINS_CM) / 100
+    which = np.clip(np.digitize(d, edges) - 1, 0, len(edges) - 2)  # beyond the last edge: the last bin
+    bins = [{"from_cm": float(DISPLACEMENT_BINS_CM[b]), "to_cm": float(DISPLACEMENT_BINS_CM[b + 1]),
+             "mean_cm": round(float(d[which == b].mean()) * 100, 2), **rates(episodes[which == b])}
+            for b in range(len(edges) - 1) if (which == b).any()]
+    return {"trained_in": trained.key, "n": int(len(d)), "bins_cm": list(DISPLACEMENT_BINS_CM),
+            "displacement_cm": {"min": round(float(d.min()) * 100, 2) if len(d) else None,
+                                "max": round(float(d.max()) * 100, 2) if len(d) else None},
+            "bins": bins, "far": _far(episodes, layouts, d, trained),
+            "trend": {m: logistic_trend(d, episodes[m].astype(bool).to_numpy()) for m in METRICS}}
+
+
+def _far(episodes: pd.DataFrame, layouts: list[dict], d: np.ndarray, trained: Condition) -> dict:
+    """The episodes FAR_CM or more from the named object's place: how many reach the object and how many end at its
+    usual place instead ("ends_at_place" None where the run kept no final TCP position)."""
+    far = d >= FAR_CM / 100
+    tcp = episodes[["tcp_x", "tcp_y"]].to_numpy(dtype=float)[far]
+    places = [REGION_CENTERS[list(usual_regions(lay["target"], trained))] for lay, f in zip(layouts, far) if f]
+    at_place = [bool(np.linalg.norm(c - xy, axis=1).min() <= REACH_THRESHOLD) for c, xy in zip(places, tcp)]
+    n = int(far.sum())
+    return {"from_cm": FAR_CM, "n": n, **_share("reach", int(episodes["reach"].astype(bool)[far].sum()), n),
+            **_share("ends_at_place", sum(at_place), n, known=bool(np.isfinite(tcp).all()))}
+
+
+def _share(name: str, k: int, n: int, known: bool = True) -> dict:
+    lo, hi = wilson(k, n)
+    return {name: {"value": k / n if n and known else None, "ci95": [lo, hi] if n and known else None}}
+
+
+def logistic_trend(d: np.ndarray, y: np.ndarray, confidence: float = CONFIDENCE) -> dict:
+    """Logit P(y) = a + b * d / 10 cm, by maximum likelihood: the odds ratio exp(b) per 10 cm with its Wald
+    interval and p-value; "odds_ratio_per_10cm" None with "why" where no finite slope fits (every episode alike,
+    no spread of distances, or outcomes that separate at a distance)."""
+    import statsmodels.api as sm
+    from statsmodels.tools.sm_exceptions import ConvergenceWarning, PerfectSeparationWarning
+
+    out = {"odds_ratio_per_10cm": None, "ci95": None, "p_value": None, "n": int(len(y))}
+    if len(y) < 3 or y.all() or not y.any():
+        return {**out, "why": "too few episodes" if len(y) < 3 else
+                f"{'every' if y.all() else 'no'} episode has this outcome: no trend to fit"}
+    if np.ptp(d) < 1e-6:
+        return {**out, "why": "every episode at the same displacement"}
+    x = sm.add_constant(d * 100 / PER_CM)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            fit = sm.Logit(y.astype(float), x).fit(disp=0, maxiter=200)
+        except np.linalg.LinAlgError as e:
+            return {**out, "why": f"no fit ({e})"}
+    if not fit.mle_retvals.get("converged", False) or any(
+            issubclass(w.category, (PerfectSeparationWarning, ConvergenceWarning)) for w in caught):
+        return {**out, "why": "the outcome separates at a distance (all on one side, none on the other): the slope "
+                              "is unbounded; read the bins"}
+    lo, hi = fit.conf_int(alpha=1 - confidence)[1]
+    b = float(fit.params[1])
+    return {**out, "odds_ratio_per_10cm": float(np.exp(b)), "ci95": [float(np.exp(lo)), float(np.exp(hi))],
+            "p_value": float(fit.pvalues[1]), "method": "logistic regression (statsmodels Logit), Wald interval"}
