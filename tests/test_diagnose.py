@@ -42,10 +42,25 @@ def _one_line(capsys) -> str:
     return err
 
 
+def test_a_one_object_policy_is_probed_with_the_object_counts_each_probe_can_play(tmp_path):
+    """Trained with one object: its ladder and the probes that play one object (absent-object, paraphrase) stay in
+    its condition; those that need a second object (the swaps, the switch, the removal) play two, as a study's do."""
+    from vla_ladder.experiments.diagnose import DiagnoseConfig
+
+    cfg = DiagnoseConfig(policy=("nearest",), out=tmp_path / "d", condition="medium_jitter/canonical/1",
+                         references=())
+    ((_, ladder, probes),) = cfg.plan()
+    assert ladder.grid.num_objects == (1,) and ladder.grid.splits == ("canonical",)
+    counts = {name: probe.grid.num_objects for name, probe in probes.items()}
+    assert counts == {"instruction-swap": (2,), "position-swap": (2,), "absent-object": (1,),
+                      "instruction-switch": (2,), "paraphrase": (1,), "appearance-swap": (2,),
+                      "distractor-removal": (2,)}
+    assert {probe.grid.regimes for probe in probes.values()} == {("medium_jitter",)}
+
+
 def test_bad_input_is_refused_in_one_line_before_any_work(tmp_path, capsys):
     out = tmp_path / "d"
-    cases = [(["--condition", "small_jitter/canonical/1"], "at least two objects"),
-             (["--condition", "tiny/canonical/5"], "regime"),
+    cases = [(["--condition", "tiny/canonical/5"], "regime"),
              (["--references", "scripted", "oracle"], "allowed: scripted, committed, layout-prior, nearest, random)"),
              (["--references", "nearest", "nearest"], "distinct"),
              (["--episodes", "0"], "positive integer")]

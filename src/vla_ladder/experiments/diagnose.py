@@ -91,8 +91,9 @@ class DiagnoseConfig:
     """names of the policies on the page and of their directories (default: from each spec, e.g. a checkpoint's run
     directory)"""
     condition: str = "small_jitter/canonical/5"
-    """the condition the policy was trained in (regime/split/objects, 2-5 objects): the probes play it and the
-    ladder moves its objects through every regime"""
+    """the condition the policy was trained in (regime/split/objects): the probes play it (those that need two
+    objects play two where it has one, absent-object four where it has five) and the ladder moves its objects
+    through every regime"""
     episodes: int = 50
     """episodes per ladder regime"""
     probe_episodes: int = 50
@@ -129,11 +130,7 @@ class DiagnoseConfig:
                 not _LABEL.fullmatch(label) or label in ("policy", "references") for label in self.labels):
             raise ValueError(f"--labels must give {len(self.policy)} distinct names of letters, digits, '.', '_' or "
                              f"'-' (one per --policy); got {' '.join(self.labels) or 'none'}")
-        cond = Condition.parse(self.condition)
-        if cond.num_objects < 2:
-            raise ValueError(f"--condition {self.condition}: the probes need at least two objects on the table "
-                             "(allowed: 2-5)")
-        self.condition = cond.key
+        self.condition = Condition.parse(self.condition).key
         allowed = (*REFERENCES, "random")
         if any(r not in allowed for r in self.references) or len(set(self.references)) != len(self.references):
             raise ValueError(f"--references must be distinct names (allowed: {', '.join(allowed)}); got "
@@ -161,7 +158,9 @@ class DiagnoseConfig:
                             overwrite=self.overwrite, **players)
         probes = {}
         for name in ASKED:
-            # absent-object needs an object off the table: five-object policies are probed with four, as a study does
+            # The object count nearest the policy's that the probe can play, as a study does: absent-object needs an
+            # object off the table (five-object policies are probed with four), the swaps, the switch and the
+            # removal a second object (one-object policies are probed with two: a choice they never had in training)
             n = PROBES[name].fit(cond.num_objects)
             # the appearance swap paints each scene's objects: one env per scene, in worker processes
             plays = dict(workers=self.workers) if PROBES[name].one_env else players
