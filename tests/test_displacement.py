@@ -96,10 +96,13 @@ def test_far_from_its_place_the_gripper_ends_at_the_object_or_at_the_place():
     got = by_displacement(to_place, TRAINED)["far"]
     assert got["from_cm"] == 10 and got["n"] == far.sum()
     assert got["ends_at_place"]["value"] == 1.0 and got["reach"]["value"] == 0.0
+    assert got["place_minus_object"]["value"] == 1.0 and got["place_minus_object"]["ci95"][0] > 0.8
     to_object = episodes.assign(tcp_x=target_xy[:, 0], tcp_y=target_xy[:, 1], reach=True)
     got = by_displacement(to_object, TRAINED)["far"]
     assert got["ends_at_place"]["value"] == 0.0 and got["reach"]["value"] == 1.0
+    assert got["place_minus_object"]["value"] == -1.0 and got["place_minus_object"]["ci95"][1] < -0.8
     lo, hi = got["reach"]["ci95"]
     assert lo < 1.0 == hi  # Wilson: n far episodes, all reached
     unknown = by_displacement(episodes.assign(tcp_x=np.nan, tcp_y=np.nan), TRAINED)["far"]
     assert unknown["ends_at_place"] == {"value": None, "ci95": None} and unknown["reach"]["value"] == 0.0
+    assert unknown["place_minus_object"] is None

@@ -95,6 +95,30 @@ def test_a_moved_study_is_refused_before_any_unit_runs_again(tmp_path, capsys):
     assert f"{new} was moved: its units ran in {old}" in err and "Traceback" not in err
 
 
+def test_a_finished_study_resumes_with_probes_added_and_refuses_any_other_change(tmp_path):
+    """Adding a grounding probe to a study that ran runs that probe only (its other units are done); dropping one,
+    or changing anything else, is another study."""
+    from vla_ladder.experiments.study import StudyCommand, StudyConfig
+
+    base = StudyConfig.load("cpu-mini")
+    files.write_json(tmp_path / "s" / "study.json", asdict(base))
+
+    def config(**evaluation) -> str:
+        path = tmp_path / f"c{len(list(tmp_path.glob('c*.json')))}.json"
+        data = asdict(base)
+        data["evaluation"].update(evaluation)
+        path.write_text(json.dumps(data))
+        return str(path)
+
+    probes = list(base.evaluation.probes)
+    StudyCommand(config(probes=[*probes, "distractor-removal"]), out=tmp_path / "s")  # resumes
+    StudyCommand(config(probes=probes[::-1]), out=tmp_path / "s")  # the same probes in another order
+    for changed in (dict(probes=probes[1:]), dict(probes=[*probes, "paraphrase"], probe_episodes=11),
+                    dict(episodes=51)):
+        with pytest.raises(ValueError, match="holds another study"):
+            StudyCommand(config(**changed), out=tmp_path / "s")
+
+
 def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
     """cpu-mini's blind control is trained on sj only: no unit of it on pid or fr, every other model planned."""
     from vla_ladder.experiments.study import Study, StudyCommand

@@ -10,7 +10,8 @@ so one run directory of `vla-ladder eval --regimes all` says where along the way
 - far from the place (FAR_CM and more, where the gripper cannot be within REACH_THRESHOLD of both the object and
   its usual place): the share of episodes that reach the object and the share whose gripper ends at the object's
   usual place instead (within REACH_THRESHOLD of a usual region's centre, horizontally, as the absent-object probe
-  measures it), with Wilson intervals: the location shortcut seen in ordinary episodes, no probe needed;
+  measures it), with Wilson intervals, and the second minus the first (Newcombe's paired interval: +1 always the
+  place, -1 always the object): the location shortcut seen in ordinary episodes, no probe needed;
 - the trend: a logistic regression of the metric on the displacement (statsmodels' Logit, Wald interval), as the
   odds ratio per 10 cm. A policy that goes to the named object wherever it stands is flat (about 1); one that goes
   to where the object usually stands falls off steeply. Where success is all-or-nothing on either side of some
@@ -31,7 +32,7 @@ import pandas as pd
 
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import METRICS, REACH_THRESHOLD
-from vla_ladder.stats import CONFIDENCE, rates, wilson
+from vla_ladder.stats import CONFIDENCE, paired_difference, rates, wilson
 from vla_ladder.task.layouts import REGION_CENTERS, usual_regions
 from vla_ladder.task.objects import OBJECT_NAMES
 
@@ -86,9 +87,14 @@ def _far(episodes: pd.DataFrame, layouts: list[dict], d: np.ndarray, trained: Co
     tcp = episodes[["tcp_x", "tcp_y"]].to_numpy(dtype=float)[far]
     places = [REGION_CENTERS[list(usual_regions(lay["target"], trained))] for lay, f in zip(layouts, far) if f]
     at_place = [bool(np.linalg.norm(c - xy, axis=1).min() <= REACH_THRESHOLD) for c, xy in zip(places, tcp)]
-    n = int(far.sum())
-    return {"from_cm": FAR_CM, "n": n, **_share("reach", int(episodes["reach"].astype(bool)[far].sum()), n),
-            **_share("ends_at_place", sum(at_place), n, known=bool(np.isfinite(tcp).all()))}
+    n, known = int(far.sum()), bool(np.isfinite(tcp).all())
+    reached = episodes["reach"].astype(bool).to_numpy()[far]
+    lo, hi = paired_difference(reached, np.array(at_place, bool))
+    # place - object: +1 always the place (the location shortcut), -1 always the object, 0 neither or both alike
+    preference = ({"value": float(np.mean(at_place) - reached.mean()), "ci95": [lo, hi], "n": n,
+                   "method": "newcombe paired score"} if n and known else None)
+    return {"from_cm": FAR_CM, "n": n, **_share("reach", int(reached.sum()), n),
+            **_share("ends_at_place", sum(at_place), n, known=known), "place_minus_object": preference}
 
 
 def _share(name: str, k: int, n: int, known: bool = True) -> dict:

@@ -1,8 +1,8 @@
 """`vla-ladder diagnose --policy SPEC [SPEC ...] --out DIR`: a policy (or several, side by side) through the ladder
 and seven grounding probes, beside the reference policies on the same seeded scenes, and one page of answers.
 
-The questions, each answered by one rate with its 95% interval (or, for the first, the sixth and the eighth, a
-difference of two rates):
+The questions, each answered by one rate with its 95% interval (or, for the first, the sixth, the eighth and the
+ninth, a difference of two rates):
 
 1. Does it hold up as the objects move? Success in the ladder's farthest regime minus success in the policy's own
    (the ladder of its training condition's split and object count; the same seeds in every regime, so a paired
@@ -22,6 +22,10 @@ difference of two rates):
    object's colour.
 8. Do the other objects cost it success? The distractor removal: success with every distractor taken off the
    table minus success as the scene is (Newcombe's interval for paired rates).
+9. Far from its usual place, does it go to the named object or to that place? The ladder's episodes whose named
+   object stood 10 cm or more from its place in the training condition: the share whose gripper ends at the place
+   minus the share that reach the object (Newcombe's interval for paired rates; +1 the place, -1 the object; no
+   answer for a policy trained in full random, where no place is usual). No probe: ordinary episodes.
 
 Beside the answers, where it stops finding the object: every ladder's success against the named object's distance
 from its place in the training condition (evaluation/displacement.py: rates per distance bin and the odds ratio per
@@ -51,7 +55,7 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import REGIMES, Condition, ConditionGrid
-from vla_ladder.evaluation.displacement import by_displacement
+from vla_ladder.evaluation.displacement import FAR_CM, by_displacement
 from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
 from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
@@ -242,6 +246,9 @@ QUESTIONS = (
      "appearance swap: grasps the object that wears the named object's colour"),
     ("distracted", "Do the other objects cost it success?",
      "distractor removal: success with the distractors taken off the table minus as the scene is (points)"),
+    ("goes_to_place", "Far from its usual place, does it go to the named object or to that place?",
+     f"ladder episodes whose named object stood {FAR_CM:g} cm or more from its usual place: gripper ends at the "
+     "place minus gripper reaches the object (points)"),
 )
 # The references read their target from the state: wording cannot change what they do, so on "reworded" they all
 # answer 0 and none is nearer than another (resembles then names none).
@@ -250,6 +257,7 @@ QUESTIONS = (
 def answers(root: Path, condition: str) -> dict[str, dict | None]:
     """The answers (one per QUESTIONS) of the runs under `root` (policy/ or references/<name>/)."""
     ladder = load_run(root / "ladder")
+    curve = by_displacement(ladder.episodes, condition)  # None for a policy trained in full random
 
     def probe(name: str) -> dict:
         played = json.loads((root / "probes" / name / "probe.json").read_text())["conditions"]
@@ -264,7 +272,8 @@ def answers(root: Path, condition: str) -> dict[str, dict | None]:
             "keeps_reading": _rate(switch["reaches_new_switched"]),
             "reworded": _rate(probe("paraphrase")["paraphrase-heldout"]["vs_canonical"]["success"]),
             "by_colour": _rate(probe("appearance-swap")["follows_colour"]),
-            "distracted": _rate(probe("distractor-removal")["success_change"])}
+            "distracted": _rate(probe("distractor-removal")["success_change"]),
+            "goes_to_place": None if curve is None else _rate(curve["far"]["place_minus_object"])}
 
 
 def diagnosis(cfg: DiagnoseConfig) -> dict:

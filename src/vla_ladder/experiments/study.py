@@ -64,8 +64,9 @@ class StudyCommand:
         if self.out.exists() and not self.out.is_dir():
             raise ValueError(f"--out {str(self.out)!r} is a file; give a directory")
         saved = self.out / "study.json"
-        if saved.is_file() and _what_it_runs(json.loads(saved.read_text())) != _what_it_runs(asdict(self.study)):
-            raise ValueError(f"{self.out} holds another study ({saved}); use a new --out")
+        if saved.is_file() and not _resumes(json.loads(saved.read_text()), asdict(self.study)):
+            raise ValueError(f"{self.out} holds another study ({saved}); use a new --out (a study resumes with the "
+                             "same config, reworded, or with grounding probes added to evaluation.probes)")
         if self.out.is_dir() and any(self.out.iterdir()) and not saved.is_file():
             raise ValueError(f"{self.out} is not empty and holds no study; use a new --out")
         ran_at = _where_it_ran(self.out)
@@ -87,6 +88,19 @@ def _where_it_ran(root: Path) -> Path | None:
 def _what_it_runs(study: dict) -> dict:
     """A study config as a request: a preset whose description is reworded still resumes its finished studies."""
     return {k: v for k, v in files.plain(study).items() if k != "description"}
+
+
+def _resumes(saved: dict, now: dict) -> bool:
+    """Whether a study directory that ran `saved` goes on under `now`: the same request, or the same with grounding
+    probes added (its done units stay done, the new probes run, the summary and report are written again)."""
+    def without_probes(study: dict) -> tuple[dict, set]:
+        request = _what_it_runs(study)
+        evaluation = request.get("evaluation", {})
+        request["evaluation"] = {k: v for k, v in evaluation.items() if k != "probes"}
+        return request, set(evaluation.get("probes", []))
+
+    (before, old_probes), (after, new_probes) = without_probes(saved), without_probes(now)
+    return before == after and old_probes <= new_probes
 
 
 # ---------------------------------------------------------------------- planning

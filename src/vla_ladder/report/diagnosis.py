@@ -7,7 +7,7 @@ import html
 
 from vla_ladder.report.displacement import odds_text
 
-DIFFERENCES = ("holds_up", "reworded", "distracted")
+DIFFERENCES = ("holds_up", "reworded", "distracted", "goes_to_place")
 """Questions answered by a difference of two rates: shown in signed points."""
 
 
