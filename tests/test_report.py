@@ -4,6 +4,7 @@ import json
 import shutil
 
 import numpy as np
+import pandas as pd
 import pytest
 from report_fixtures import chromium_page, make_run
 
@@ -209,3 +210,12 @@ def test_report_trained_in_adds_success_against_the_named_objects_distance(runs,
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], err
     assert not (tmp_path / "x.html").exists()
+    # An absent-object variant names an object that is not on the table: nothing to measure from, said in one line.
+    absent = tmp_path / "absent"
+    shutil.copytree(runs[0].path, absent)
+    episodes = pd.read_parquet(absent / "episodes.parquet")
+    episodes["layout"] = [json.dumps({**json.loads(lay), "absent_target": True}) for lay in episodes["layout"]]
+    episodes.to_parquet(absent / "episodes.parquet")
+    assert main(["report", str(absent), "--out", str(tmp_path / "x.html"), "--trained-in",
+                 "small_jitter/canonical/5"]) == 2
+    assert f"{absent}: episodes that name an object not on the table" in capsys.readouterr().err

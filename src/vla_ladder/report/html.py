@@ -354,7 +354,7 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
         body.append("<h2>Figures</h2>")
         body += [f"<figure>{img}<figcaption class=note>{html.escape(cap)}</figcaption></figure>" for cap, img in figs]
         if trained_in is not None:
-            curves = {label: by_displacement(r.episodes, trained_in) for r, label in zip(runs, labels)}
+            curves = {label: _displacement(r, trained_in) for r, label in zip(runs, labels)}
             body += ["<h2>Where it stops finding the object</h2>", displacement_table(curves, trained_in),
                      f"<figure>{png_tag(plots.plot_displacement(curves, Path(tmp) / 'displacement.png'))}"
                      f"<figcaption class=note>{html.escape(DISPLACEMENT_CAPTION)}</figcaption></figure>"]
@@ -366,6 +366,13 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
     page = ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8>"
             f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body>{''.join(body)}</body></html>")
     return write_text(out, page)
+
+
+def _displacement(run: Run, trained_in: str) -> dict:
+    try:
+        return by_displacement(run.episodes, trained_in)
+    except ValueError as e:  # an absent-object variant: its named object is not on the table
+        raise ValueError(f"{run.path}: {e}; --trained-in reads ladder runs") from None
 
 
 @dataclass
