@@ -232,3 +232,33 @@ def test_record_with_two_writers_killed_then_rerun(tmp_path):
     assert last["task"] == prov["instruction"].iloc[-1] and last["observation.images.fixed_camera"].shape[0] == 3
     assert {ds.meta.features[k]["info"]["video.codec"] for k in ds.meta.video_keys} == {"h264"}
     assert read_recording_state(root)["config"]["vcodec"] == "h264"
+
+
+def test_a_shard_of_another_recording_or_task_contract_cannot_join(tmp_path):
+    """A shard recorded with other arguments, or under another task contract, is refused before LeRobot merges
+    anything, the difference named; the dataset stays as it was."""
+    from vla_ladder.contract import EPISODE_STEPS
+    from vla_ladder.files import write_json
+    from vla_ladder.recordings import RECORDING_FILE
+
+    root = tmp_path / "ds"
+    main = DatasetStore(root, Recording(**CONFIG), commit_every=1)
+    own = _fill(main, 1)
+    other = DatasetStore(main.shards_dir / "other", Recording(**{**CONFIG, "robot_mesh": "full"}), commit_every=1,
+                         seed_book=main.seeds.path)
+    _fill(other, 1)
+    other.close()
+    with pytest.raises(ValueError, match=r"shard .*other was recorded with robot_mesh='full' \(this command: 'lite'\); "
+                                         r"it cannot join"):
+        main.merge([main.shards_dir / "other"])
+    same = DatasetStore(main.shards_dir / "same", Recording(**CONFIG), commit_every=1, seed_book=main.seeds.path)
+    _fill(same, 1)
+    same.close()
+    state = read_recording_state(main.shards_dir / "same")
+    write_json(main.shards_dir / "same" / RECORDING_FILE,
+               {**state, "contract": {**state["contract"], "episode_steps": 2 * EPISODE_STEPS}})
+    with pytest.raises(ValueError, match=rf"shard .*same was recorded under another task contract \(episode_steps "
+                                         rf"was {2 * EPISODE_STEPS}, now {EPISODE_STEPS}\); it cannot join"):
+        main.merge([main.shards_dir / "same"])
+    main.close()
+    assert sorted(read_provenance(root)["seed"]) == sorted(own)

@@ -121,7 +121,9 @@ def test_kill_writer_at_random_moments(crashed):
 
 def test_resume_refuses_other_settings_and_a_second_writer(crashed, tmp_path):
     root, _ = crashed
-    with pytest.raises(ValueError, match="condition='small_jitter/canonical/2'"):
+    refused = (r"condition='small_jitter/canonical/2' \(this command: 'large_jitter/canonical/2'\); resume with "
+               "the same arguments or record into a new --out")
+    with pytest.raises(ValueError, match=refused):
         DatasetStore(root, Recording("scripted", Condition("large_jitter", num_objects=2)))
     with pytest.raises(ValueError, match="video=True"):
         DatasetStore(root, Recording(**CONFIG, video=False))

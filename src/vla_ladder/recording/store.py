@@ -99,6 +99,15 @@ class DatasetStore:
             _remove_shard(self.shards_dir / name)
 
     # ------------------------------------------------------------------ state on disk
+    def _not_the_same(self, state: dict) -> tuple[str, str] | None:
+        """Why the recording whose state this is cannot go on as this one (a resume) or join it (a shard), as
+        ("arguments" or "contract", the reason); None when it can."""
+        if diff := self.config.differences(Recording.from_dict(state["config"], state["format"])):
+            return "arguments", "was recorded with " + ", ".join(diff)
+        if changed := contract_changes(state.get("contract")):
+            return "contract", f"was recorded under another task contract ({'; '.join(changed)})"
+        return None
+
     def _load_committed(self) -> dict | None:
         if not self.root.exists() or not any(self.root.iterdir()):
             return None
@@ -108,13 +117,10 @@ class DatasetStore:
         if state.get("format") not in (1, FORMAT_VERSION):
             raise ValueError(f"{self.root} was written by recording format {state.get('format')}; this version "
                              f"reads formats 1 and {FORMAT_VERSION}")
-        diff = self.config.differences(Recording.from_dict(state["config"], state["format"]))
-        if diff:
-            raise ValueError(f"{self.root} was recorded with " + ", ".join(diff) +
-                             "; resume with the same arguments or record into a new --out")
-        if changed := contract_changes(state.get("contract")):
-            raise ValueError(f"{self.root} was recorded under another task contract ({'; '.join(changed)}); "
-                             "record into a new --out")
+        if found := self._not_the_same(state):
+            kind, why = found
+            raise ValueError(f"{self.root} {why}; " + ("resume with the same arguments or " if kind == "arguments"
+                                                      else "") + "record into a new --out")
         info = json.loads((self.root / "meta/info.json").read_text())
         if info["total_episodes"] != state["counters"]["saved"]:
             raise ValueError(f"{self.root}: info.json has {info['total_episodes']} episodes but the recording "
@@ -237,12 +243,8 @@ class DatasetStore:
         states = {s: read_recording_state(s) for s in map(Path, shards)}
         full = [s for s, st in states.items() if st and st["counters"]["saved"] > 0]
         for s in full:
-            diff = self.config.differences(Recording.from_dict(states[s]["config"], states[s]["format"]))
-            if diff:
-                raise ValueError(f"shard {s} was recorded with " + ", ".join(diff) + f"; it cannot join {self.root}")
-            if changed := contract_changes(states[s].get("contract")):
-                raise ValueError(f"shard {s} was recorded under another task contract ({'; '.join(changed)}); it "
-                                 f"cannot join {self.root}")
+            if found := self._not_the_same(states[s]):
+                raise ValueError(f"shard {s} {found[1]}; it cannot join {self.root}")
             if states[s]["object_set"] != (self.object_set or states[s]["object_set"]):
                 raise ValueError(f"shard {s} used object set {states[s]['object_set']!r} but {self.root} holds "
                                  f"{self.object_set!r}")
