@@ -15,7 +15,7 @@ so one run directory of `vla-ladder eval --regimes all` says where along the way
 - the trend: a logistic regression of the metric on the displacement (statsmodels' Logit, Wald interval), as the
   odds ratio per 10 cm. A policy that goes to the named object wherever it stands is flat (about 1); one that goes
   to where the object usually stands falls off steeply. Where success is all-or-nothing on either side of some
-  distance (the layout prior: every near episode succeeds, no far one does) the slope is unbounded and none is
+  distance (a pure location shortcut: every near episode succeeds, no far one does) the slope is unbounded and none is
   given, with the reason; the bins still show it.
 
 A policy trained in full random has no usual place (no regions): there is nothing to measure then (None).
