@@ -46,14 +46,19 @@ FAR_CM = 200 * REACH_THRESHOLD
 at one has not reached the other."""
 
 
-def displacement(layout: dict, trained: Condition) -> float:
-    """Metres from the instructed object of a recorded layout (Layout.to_dict()) to the nearest centre of its usual
-    regions in `trained` (which must have regions)."""
+def usual_places(layout: dict, trained: Condition) -> np.ndarray:
+    """(k, 2) centres of the regions where the instructed object of a recorded layout (Layout.to_dict()) stands in
+    `trained`'s layouts (which must have regions)."""
     regions = usual_regions(layout["target"], trained)
     if regions is None:
         raise ValueError(f"{trained.key} has no regions: no place is usual there")
+    return REGION_CENTERS[list(regions)]
+
+
+def displacement(layout: dict, trained: Condition) -> float:
+    """Metres from the instructed object of a recorded layout to the nearest of its usual places in `trained`."""
     xy = np.asarray(layout["positions"][layout["target"]], dtype=float)
-    return float(np.linalg.norm(REGION_CENTERS[list(regions)] - xy, axis=1).min())
+    return float(np.linalg.norm(usual_places(layout, trained) - xy, axis=1).min())
 
 
 def by_displacement(episodes: pd.DataFrame, trained: Condition | str) -> dict | None:
@@ -85,7 +90,7 @@ def _far(episodes: pd.DataFrame, layouts: list[dict], d: np.ndarray, trained: Co
     usual place instead ("ends_at_place" None where the run kept no final TCP position)."""
     far = d >= FAR_CM / 100
     tcp = episodes[["tcp_x", "tcp_y"]].to_numpy(dtype=float)[far]
-    places = [REGION_CENTERS[list(usual_regions(lay["target"], trained))] for lay, f in zip(layouts, far) if f]
+    places = [usual_places(lay, trained) for lay, f in zip(layouts, far) if f]
     at_place = [bool(np.linalg.norm(c - xy, axis=1).min() <= REACH_THRESHOLD) for c, xy in zip(places, tcp)]
     n, known = int(far.sum()), bool(np.isfinite(tcp).all())
     reached = episodes["reach"].astype(bool).to_numpy()[far]

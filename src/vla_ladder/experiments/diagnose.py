@@ -254,10 +254,12 @@ QUESTIONS = (
 # answer 0 and none is nearer than another (resembles then names none).
 
 
-def answers(root: Path, condition: str) -> dict[str, dict | None]:
-    """The answers (one per QUESTIONS) of the runs under `root` (policy/ or references/<name>/)."""
+def answers(root: Path, condition: str) -> tuple[dict[str, dict | None], dict | None]:
+    """The answers (one per QUESTIONS) of the runs under `root` (policy/ or references/<name>/), and its ladder's
+    metrics against the named object's distance from its place in `condition` (evaluation/displacement.py; None
+    for a policy trained in full random, where no place is usual)."""
     ladder = load_run(root / "ladder")
-    curve = by_displacement(ladder.episodes, condition)  # None for a policy trained in full random
+    curve = by_displacement(ladder.episodes, condition)
 
     def probe(name: str) -> dict:
         played = json.loads((root / "probes" / name / "probe.json").read_text())["conditions"]
@@ -273,15 +275,18 @@ def answers(root: Path, condition: str) -> dict[str, dict | None]:
             "reworded": _rate(probe("paraphrase")["paraphrase-heldout"]["vs_canonical"]["success"]),
             "by_colour": _rate(probe("appearance-swap")["follows_colour"]),
             "distracted": _rate(probe("distractor-removal")["success_change"]),
-            "goes_to_place": None if curve is None else _rate(curve["far"]["place_minus_object"])}
+            "goes_to_place": None if curve is None else _rate(curve["far"]["place_minus_object"])}, curve
 
 
 def diagnosis(cfg: DiagnoseConfig) -> dict:
     """The answers of every policy and reference. Each question's "answers" maps a policy's label to its answer and
     the reference(s) it resembles; a one-policy diagnosis also keeps "policy" and "resembles" at the top of each
     question, as it always wrote them."""
-    mine = {label: answers(root, cfg.condition) for label, root in cfg.roots().items()}
-    refs = {r: answers(cfg.out / "references" / r, cfg.condition) for r in cfg.references}
+    # Kept apart by kind: a policy may be labelled like a reference (`--policy nearest` beside `nearest`).
+    played = {label: answers(root, cfg.condition) for label, root in cfg.roots().items()}
+    played_refs = {r: answers(cfg.out / "references" / r, cfg.condition) for r in cfg.references}
+    mine, curves = {label: a for label, (a, _) in played.items()}, {label: c for label, (_, c) in played.items()}
+    refs, ref_curves = {r: a for r, (a, _) in played_refs.items()}, {r: c for r, (_, c) in played_refs.items()}
     rows = []
     for key, question, measure in QUESTIONS:
         theirs = {r: (None if a[key] is None else a[key]["value"]) for r, a in refs.items()}
@@ -294,19 +299,9 @@ def diagnosis(cfg: DiagnoseConfig) -> dict:
     return {"policy": cfg.policy[0] if len(cfg.policy) == 1 else list(cfg.policy),
             "policies": dict(zip(cfg.labels, cfg.policy)), "condition": cfg.condition, "episodes": cfg.episodes,
             "probe_episodes": cfg.probe_episodes, "first_seed": cfg.first_seed, "references": list(cfg.references),
-            "questions": rows, "displacement": displacement_curves(cfg), "provenance": files.provenance()}
-
-
-def displacement_curves(cfg: DiagnoseConfig) -> dict | None:
-    """Every ladder's metrics against the named object's distance from its place in the training condition
-    (evaluation/displacement.py): the curve between the ladder's rungs, for each policy and reference on the same
-    scenes. None for a policy trained in full random (no place is usual there)."""
-    roots = {**cfg.roots(), **{r: cfg.out / "references" / r for r in cfg.references}}
-    curves = {who: by_displacement(load_run(root / "ladder").episodes, cfg.condition) for who, root in roots.items()}
-    if any(c is None for c in curves.values()):
-        return None
-    return {"trained_in": cfg.condition, "policies": {label: curves[label] for label in cfg.labels},
-            "references": {r: curves[r] for r in cfg.references}}
+            "questions": rows, "provenance": files.provenance(),
+            "displacement": None if any(c is None for c in [*curves.values(), *ref_curves.values()]) else {
+                "trained_in": cfg.condition, "policies": curves, "references": ref_curves}}
 
 
 def _resembles(answer: dict | None, theirs: dict[str, float | None]) -> str | None:
@@ -334,10 +329,12 @@ def run_diagnosis(cfg: DiagnoseConfig, progress: bool = True) -> dict:
     variants = [load_run(p.out / v) for who, _, probes in plan if who == "policy"
                 for p in probes.values() for v in p.variants()]
     named = cfg.policy if len(cfg.policy) == 1 else cfg.labels
-    build_report(ladders, cfg.out / "report.html", title=f"vla-ladder diagnose: {', '.join(named)}",
-                 labels=[*named, *(f"{r} (reference)" for r in cfg.references)],
-                 sections=[("Diagnosis", diagnosis_html(data))], probe_runs=variants,
-                 trained_in=None if data["displacement"] is None else cfg.condition)
+    labels = [*named, *(f"{r} (reference)" for r in cfg.references)]
+    disp = data["displacement"]
+    curves = None if disp is None else (cfg.condition, dict(zip(labels, [*disp["policies"].values(),
+                                                                          *disp["references"].values()])))
+    build_report(ladders, cfg.out / "report.html", title=f"vla-ladder diagnose: {', '.join(named)}", labels=labels,
+                 sections=[("Diagnosis", diagnosis_html(data))], probe_runs=variants, displacement=curves)
     return data
 
 

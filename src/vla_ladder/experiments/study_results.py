@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import html
 import json
 import os
 import tempfile
@@ -70,10 +69,7 @@ def displacement_curves(runs: dict[str, tuple]) -> dict[str, dict]:
 
 def write_results(study, chosen: dict, results: dict, curves_results: dict) -> Path:
     from vla_ladder.report import study as present
-    from vla_ladder.report.displacement import CAPTION as DISPLACEMENT_CAPTION
-    from vla_ladder.report.displacement import displacement_table
-    from vla_ladder.report.html import build_report, png_tag, reference_data
-    from vla_ladder.report.plots import plot_displacement
+    from vla_ladder.report.html import build_report, displacement_section, reference_data
 
     root, cfg = study.root, study.cfg
     cells, runs, labels, trained = [], [], [], []
@@ -119,10 +115,8 @@ def write_results(study, chosen: dict, results: dict, curves_results: dict) -> P
         sections.append(("Study: held-out object-region pairings", pairings))
     for name, disp in displacement.items():
         with tempfile.TemporaryDirectory() as tmp:
-            figure = png_tag(plot_displacement(disp["runs"], Path(tmp) / f"displacement_{name}.png"))
-        caption = f"<figcaption class=note>{html.escape(DISPLACEMENT_CAPTION)}</figcaption>"
-        sections.append((f"Study: where the models trained on {name} stop finding the object",
-                         f"{displacement_table(disp['runs'], disp['trained_in'])}<figure>{figure}{caption}</figure>"))
+            sections.append((f"Study: where the models trained on {name} stop finding the object",
+                             displacement_section(disp["runs"], disp["trained_in"], Path(tmp))))
     if curves:
         png = present.plot_curves(curves, root / "curves.png")
         import base64

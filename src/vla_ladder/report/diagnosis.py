@@ -76,7 +76,6 @@ def diagnosis_html(data: dict) -> str:
     return f"<table><tr>{head}</tr>{''.join(rows)}</table>{note}"
 
 
-
 def displacement_lines(data: dict) -> list[str]:
     """One line per policy: its success nearest and farthest from the named object's place in training, and the
     odds ratio per 10 cm beside the references'."""

@@ -50,7 +50,7 @@ def displacement_table(curves: dict[str, dict], trained_in: str) -> str:
         rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in (html.escape(label), *cells, *far, odds)) + "</tr>")
     note = ("<p class=note>Success (%) of each run's episodes, binned by how far the named object stands from the "
             f"nearest place it stands in training ({html.escape(trained_in)}'s regions), pooled over the runs' "
-            "regimes: the curve between the ladder's rungs. Beyond 10 cm the object and its usual place are "
+            f"regimes: the curve between the ladder's rungs. Beyond {far_cm:g} cm the object and its usual place are "
             "more than two reach thresholds apart: the gripper ends at one or the other, or elsewhere. Odds ratio per "
             "10 cm: a logistic regression of success "
             "on the distance (Wald interval); about 1 for a policy that finds the object wherever it stands, far "

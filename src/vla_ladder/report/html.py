@@ -324,12 +324,13 @@ pre{background:#f7f7f7;padding:.5em;overflow-x:auto}
 def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder evaluation report", samples: int = 2,
                  with_video: bool = True, placements: bool = True, labels: list[str] | None = None,
                  sections: list[tuple[str, str]] | None = None, probe_runs: list[Run] | None = None,
-                 trained_in: str | None = None) -> Path:
+                 displacement: tuple[str, dict[str, dict]] | None = None) -> Path:
     """Write the HTML page for `runs` to `out` and return its path; `labels` name the runs' policies
     (default: their policy specs); `sections` ((title, HTML) pairs, e.g. a study's tables) come first;
     `probe_runs`, variants of grounding probes, appear in their probes' sections only (not in the tables,
-    figures and rollouts of `runs`); `trained_in`, the condition the policies were trained in, adds their success
-    against the named object's distance from its place there (evaluation/displacement.py)."""
+    figures and rollouts of `runs`); `displacement`, (the condition the policies were trained in, label -> its
+    run's evaluation.displacement.by_displacement), adds their success against the named object's distance from
+    its place there (displacement_section)."""
     labels = labels or [r.label for r in runs]
     if len(labels) != len(runs):
         raise ValueError(f"got {len(labels)} labels for {len(runs)} runs")
@@ -353,11 +354,9 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
             body += [_md_table_html(t) for _, t, _ in paper]
         body.append("<h2>Figures</h2>")
         body += [f"<figure>{img}<figcaption class=note>{html.escape(cap)}</figcaption></figure>" for cap, img in figs]
-        if trained_in is not None:
-            curves = {label: _displacement(r, trained_in) for r, label in zip(runs, labels)}
-            body += ["<h2>Where it stops finding the object</h2>", displacement_table(curves, trained_in),
-                     f"<figure>{png_tag(plots.plot_displacement(curves, Path(tmp) / 'displacement.png'))}"
-                     f"<figcaption class=note>{html.escape(DISPLACEMENT_CAPTION)}</figcaption></figure>"]
+        if displacement is not None:
+            trained_in, curves = displacement
+            body += ["<h2>Where it stops finding the object</h2>", displacement_section(curves, trained_in, Path(tmp))]
         body.append(_probe_sections([*runs, *(probe_runs or ())], Path(tmp), samples, with_video))
         body += ["<h2>Success by instructed object</h2>", _per_object_table(results),
                  "<h2>Rollouts</h2>", f"<p class=note>Up to {samples} recorded episodes of each outcome per run; "
@@ -366,6 +365,14 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
     page = ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8>"
             f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body>{''.join(body)}</body></html>")
     return write_text(out, page)
+
+
+def displacement_section(curves: dict[str, dict], trained_in: str, tmp: Path) -> str:
+    """The table of each policy's success against the named object's distance from its place in `trained_in`
+    (label -> evaluation.displacement.by_displacement) and the figure of its three metrics, drawn in `tmp`."""
+    figure = png_tag(plots.plot_displacement(curves, tmp / "displacement.png"))
+    return (f"{displacement_table(curves, trained_in)}<figure>{figure}"
+            f"<figcaption class=note>{html.escape(DISPLACEMENT_CAPTION)}</figcaption></figure>")
 
 
 def _displacement(run: Run, trained_in: str) -> dict:
@@ -410,7 +417,9 @@ class ReportConfig:
 
 
 def run(cfg: ReportConfig) -> int:
-    out = build_report(load_runs(cfg.runs), cfg.out, cfg.title, cfg.samples, cfg.video, cfg.placements,
-                       trained_in=cfg.trained_in)
+    runs = load_runs(cfg.runs)
+    displacement = None if cfg.trained_in is None else (
+        cfg.trained_in, {r.label: _displacement(r, cfg.trained_in) for r in runs})
+    out = build_report(runs, cfg.out, cfg.title, cfg.samples, cfg.video, cfg.placements, displacement=displacement)
     print(out.resolve())
     return 0
