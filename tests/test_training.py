@@ -4,6 +4,9 @@ recording pipeline, evaluated in the real simulator (with rendering) by the eval
 import json
 import os
 import shutil
+import subprocess
+import sys
+import time
 
 import pandas as pd
 import pytest
@@ -68,6 +71,29 @@ def test_a_dataset_recorded_under_another_task_contract_is_refused(data, tmp_pat
     with pytest.raises(ValueError, match=rf"was recorded under another task contract \(control_hz was 10, now "
                                          rf"{CONTROL_HZ}\): a policy trained on it would be evaluated on a task"):
         TrainConfig(policy_type="act", dataset=copy, out=tmp_path / "run")
+
+
+@pytest.mark.slow
+def test_a_killed_training_leaves_checkpoints_that_say_their_contract(data, tmp_path):
+    """Each checkpoint gets the data's task contract as LeRobot saves it, not when training ends: a run killed after
+    a save leaves a `checkpoints/last` that `lerobot:` can check instead of taking on trust."""
+    out = tmp_path / "run"
+    args = H.train_args("act", data, out, steps=100_000)
+    args[args.index("--"):args.index("--")] = ["--save-freq", "1"]
+    proc = subprocess.Popen([sys.executable, "-m", "vla_ladder.cli", *args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+    last = out / "checkpoints" / "last"
+    try:
+        deadline = time.monotonic() + 300
+        while not last.exists():
+            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+            assert time.monotonic() < deadline, "no checkpoint in 300 s"
+            time.sleep(0.1)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert not (out / "vla_ladder_train.json").exists()  # killed mid-run: the end-of-run files were never written
+    assert json.loads((last / "pretrained_model" / TRAINED_CONTRACT_FILE).read_text()) == policy_fingerprint()
 
 
 @pytest.mark.slow

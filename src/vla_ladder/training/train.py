@@ -9,6 +9,7 @@ through an `accelerate` Accelerator, so `accelerate launch -m vla_ladder.cli tra
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -283,15 +284,13 @@ def train(req: TrainConfig) -> Path:
              req.steps, req.batch_size, req.chunk_size, shlex.join(req.lerobot_command()))
     start = time.time()
     try:
-        lerobot_train(cfg)
+        with contract_in_each_checkpoint(req.contract):
+            lerobot_train(cfg)
     except URLError as e:  # a download without network (ACT's ImageNet backbone, a tokenizer, a hub checkpoint)
         raise ValueError(f"lerobot-train tried to download something and could not ({e.reason}); on a machine "
                          "without network export HF_HUB_OFFLINE=1, so that ACT's backbone trains from scratch and "
                          "tokenizers and checkpoints are looked up locally") from None
     if int(os.environ.get("RANK", "0")) == 0:
-        if req.contract is not None:  # each checkpoint says what it was trained on, wherever it is copied to
-            for ckpt in sorted((req.out / "checkpoints").glob("*/pretrained_model")):
-                files.write_json(ckpt / TRAINED_CONTRACT_FILE, req.contract)
         files.write_json(req.out / "vla_ladder_train.json", {
             "request": asdict(req),
             "lerobot_train_command": shlex.join(req.lerobot_command()),
@@ -303,6 +302,32 @@ def train(req: TrainConfig) -> Path:
             "provenance": files.provenance(),
         })
     return checkpoint_dir(req.out)
+
+
+@contextlib.contextmanager
+def contract_in_each_checkpoint(contract: dict | None):
+    """While LeRobot trains, every checkpoint it saves gets TRAINED_CONTRACT_FILE (the data's task contract) before
+    `checkpoints/last` points to it, so that each checkpoint says what it was trained on wherever it is copied to,
+    and a run killed after any save leaves checkpoints that `lerobot:` checks, not ones it takes on trust.
+    LeRobot's loop offers no hook, so its module's save_checkpoint is wrapped for the call (the main process saves)."""
+    import lerobot.scripts.lerobot_train as loop
+    from lerobot.utils.constants import PRETRAINED_MODEL_DIR
+
+    if contract is None:  # data recorded before contracts were kept: nothing to say
+        yield
+        return
+    save = loop.save_checkpoint
+
+    def save_with_contract(checkpoint_dir, *args, **kwargs):
+        out = save(checkpoint_dir, *args, **kwargs)
+        files.write_json(Path(checkpoint_dir) / PRETRAINED_MODEL_DIR / TRAINED_CONTRACT_FILE, contract)
+        return out
+
+    loop.save_checkpoint = save_with_contract
+    try:
+        yield
+    finally:
+        loop.save_checkpoint = save
 
 
 def cpu_threads(req: TrainConfig) -> None:
