@@ -17,9 +17,9 @@ import pytest
 
 import lerobot_helpers as H
 from vla_ladder.cli import main
-from vla_ladder.contract import CAMERAS, STATE_KEY
-from vla_ladder.policies.remote import (CHUNK_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY, WINDOW_KEY, pack, parse_arg,
-                                        unpack)
+from vla_ladder.contract import CAMERAS, CONTROL_HZ, STATE_KEY, policy_fingerprint
+from vla_ladder.policies.remote import (CHUNK_KEY, CONTRACT_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY, WINDOW_KEY, pack,
+                                        parse_arg, unpack)
 from vla_ladder.policies.serving import check_servable, read_request
 
 KEY = "k3y"
@@ -145,6 +145,41 @@ def test_a_server_that_does_not_name_a_horizon_needs_one(tmp_path, capsys):
         server.shutdown()
 
 
+def test_a_policy_served_under_another_task_contract_is_refused(tmp_path, capsys):
+    """A server that names the contract its policy was trained under is checked before any episode, as a lerobot:
+    checkpoint is: another control rate is named and refused; the same contract, or none said, passes."""
+    import threading
+
+    from websockets.sync.server import serve
+
+    from vla_ladder.policies.remote import check_server
+
+    said = {}
+
+    def server_side(ws):
+        ws.send(pack(said))
+        for _ in ws:
+            pass
+
+    with serve(server_side, "127.0.0.1", 0) as server:
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        url = f"ws://127.0.0.1:{server.socket.getsockname()[1]}?n_action_steps=2"
+        said[CONTRACT_KEY] = {**policy_fingerprint(), "control_hz": 10}
+        assert main(["eval", "--policy", f"remote:{url}", *EVAL, "--out", str(tmp_path / "run")]) == 2
+        err = capsys.readouterr().err
+        assert f"was trained under another task contract (control_hz was 10, now {CONTROL_HZ})" in err
+        assert len(err.strip().splitlines()) == 1 and not (tmp_path / "run").exists()
+        said[CONTRACT_KEY] = "GraspObject-v1"
+        with pytest.raises(ValueError, match="sent 'vla_ladder/contract' as a str; expected a map"):
+            check_server(url)
+        # The episode length only scores episodes differently: not a contract a policy is refused for.
+        said[CONTRACT_KEY] = {**policy_fingerprint(), "episode_steps": 1}
+        check_server(url)
+        del said[CONTRACT_KEY]
+        check_server(url)
+        server.shutdown()
+
+
 @pytest.mark.parametrize("depth", [None, 2])
 def test_a_batch_of_envs_pipelines_its_requests_only_to_servers_that_say_so(depth):
     """With --num-envs N, `remote:` sends up to the server's "max_pipelined" requests before it reads an answer, and
@@ -255,6 +290,7 @@ def test_the_server_answers_bad_requests_in_one_message_and_keeps_serving(served
         with connect(url, additional_headers=headers, max_size=2 * MAX_MESSAGE, compression=None) as ws:
             metadata = unpack(ws.recv(timeout=30))
             assert metadata["server"] == "vla-ladder" and metadata["n_action_steps"] == 2
+            assert metadata[CONTRACT_KEY] == policy_fingerprint()  # the checkpoint's, which the client checks
             try:
                 for m in messages:
                     ws.send(m)

@@ -178,13 +178,16 @@ def check_trained_contract(path: Path) -> None:
     TRAINED_CONTRACT_FILE, which `vla-ladder train` writes, differs from this one in contract.POLICY_FIELDS): the
     shapes may all fit and the rate, the cameras' view or the meaning of a state entry still differ. A checkpoint
     without the file (trained elsewhere, or before checkpoints kept it) is not checked."""
-    saved = path / TRAINED_CONTRACT_FILE
-    if not saved.is_file():
-        return
-    if changed := contract_changes(json.loads(saved.read_text()), POLICY_FIELDS):
+    if changed := contract_changes(trained_contract(path), POLICY_FIELDS):
         raise ValueError(f"the LeRobot checkpoint {str(path)!r} was trained under another task contract "
                          f"({'; '.join(changed)}): its numbers here would be those of a task it never saw; evaluate "
                          "it with the vla-ladder version it was trained with, or train it again")
+
+
+def trained_contract(path: Path) -> dict | None:
+    """The task contract a checkpoint was trained under (its TRAINED_CONTRACT_FILE), None where it does not say."""
+    saved = path / TRAINED_CONTRACT_FILE
+    return json.loads(saved.read_text()) if saved.is_file() else None
 
 
 def _saved_rename_map(path: Path) -> dict[str, str]:

@@ -22,6 +22,12 @@ remote episode plays exactly as the same checkpoint does in-process (`lerobot:`)
 asked; each request of such a window names its size under "vla_ladder/window", so that the server runs the window
 in one forward pass. Other servers get one request at a time, as openpi's client sends them.
 
+A server may say which task its policy was trained on: metadata "vla_ladder/contract", the
+contract.policy_fingerprint() of its training data (vla-ladder's server sends the checkpoint's
+vla_ladder_contract.json). The client refuses a policy trained under another contract (another control rate, a
+camera's field of view, the meaning of a state entry) before any episode, as `lerobot:` refuses such a checkpoint;
+a server that does not say is not checked.
+
 A server that wants a key gets $VLA_LADDER_API_KEY as openpi's client sends its api_key. Nothing received is
 unpickled: arrays are rebuilt with np.frombuffer, only for boolean, numeric and fixed-width string dtypes and
 only when their bytes match their shape, and every message is bounded (MAX_MESSAGE).
@@ -40,13 +46,14 @@ import msgpack
 import numpy as np
 import torch
 
-from vla_ladder.contract import ACTION_DIM, CAMERAS, STATE_KEY
+from vla_ladder.contract import ACTION_DIM, CAMERAS, POLICY_FIELDS, STATE_KEY, contract_changes
 from vla_ladder.policies import Policy, parse_options, positive_int
 
 PROMPT_KEY = "prompt"
 SEED_KEY = "vla_ladder/episode_seed"
 CHUNK_KEY = "vla_ladder/chunk_index"
 WINDOW_KEY = "vla_ladder/window"  # the size of the pipelined window a request belongs to (module docstring)
+CONTRACT_KEY = "vla_ladder/contract"  # metadata: the task contract the served policy was trained under
 ACTIONS_KEY = "actions"
 API_KEY_ENV = "VLA_LADDER_API_KEY"  # sent as openpi's client sends its api_key: `Authorization: Api-Key KEY`
 # An observation is ~0.4 MB (two 256x256 RGB images); a chunk a few KB; metadata small. Both directions are
@@ -189,6 +196,7 @@ class RemotePolicy(Policy):
         self._ws, self.server = connect(url)  # checks the URL first
         self.url = url
         weakref.finalize(self, self._ws.close)
+        check_contract(url, self.server)
         self.n_action_steps = horizon(self.url, n_action_steps, self.server)
         self.pipelined = pipeline_depth(self.server)
         self.instruction = instruction
@@ -299,6 +307,22 @@ def horizon(url: str, n_action_steps: int | None, metadata: dict) -> int:
                      f"no n_action_steps); give one: remote:{url}?n_action_steps=H (openpi's examples run 5)")
 
 
+def check_contract(url: str, metadata: dict) -> None:
+    """ValueError when the server says its policy was trained under another task contract than this one plays
+    (metadata CONTRACT_KEY; see the module docstring): every shape may fit while the rate, a camera's view or the
+    meaning of a state entry differ. A server that does not say is not checked."""
+    saved = metadata.get(CONTRACT_KEY)
+    if saved is None:
+        return
+    if not isinstance(saved, dict):
+        raise ValueError(f"the policy server at {url} sent {CONTRACT_KEY!r} as a {type(saved).__name__}; expected a "
+                         "map, contract.policy_fingerprint() of the policy's training data")
+    if changed := contract_changes(saved, POLICY_FIELDS):
+        raise ValueError(f"the policy served at {url} was trained under another task contract ({'; '.join(changed)}):"
+                         " its numbers here would be those of a task it never saw; evaluate it with the vla-ladder "
+                         "version it was trained with")
+
+
 def pipeline_depth(metadata: dict) -> int:
     """Requests one connection may have in flight: the server's metadata "max_pipelined", else 1 (an openpi server
     would answer more in order too, but one at a time; asking one at a time is what its own client does)."""
@@ -307,11 +331,12 @@ def pipeline_depth(metadata: dict) -> int:
 
 
 def check_server(arg: str) -> None:
-    """The spec's options parse, a policy server answers at its URL, and the horizon is known: checked before any
-    long work."""
+    """The spec's options parse, a policy server answers at its URL, its policy was trained under this task
+    contract (where it says) and the horizon is known: checked before any long work."""
     url, options = parse_arg(arg)
     ws, metadata = connect(url)
     ws.close()
+    check_contract(url, metadata)
     horizon(url, options.get("n_action_steps"), metadata)
 
 

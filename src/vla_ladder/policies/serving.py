@@ -47,8 +47,8 @@ import torch
 from vla_ladder.checks import check_port_free, is_loopback
 from vla_ladder.contract import ACTION_DIM, CAMERAS, STATE_DIM, STATE_KEY
 from vla_ladder.policies import check_spec, parse_spec
-from vla_ladder.policies.remote import (API_KEY_ENV, CHUNK_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY, WINDOW_KEY, pack,
-                                        unpack)
+from vla_ladder.policies.remote import (API_KEY_ENV, CHUNK_KEY, CONTRACT_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY,
+                                        WINDOW_KEY, pack, unpack)
 
 log = logging.getLogger(__name__)
 MAX_PROMPT = 1000  # characters of an instruction
@@ -154,6 +154,7 @@ class PolicyServer:
 
     def __init__(self, cfg: ServePolicyConfig):
         from vla_ladder.policies import load_policy, weights_identity
+        from vla_ladder.policies.lerobot import trained_contract
 
         self.cfg = cfg
         self.policy = load_policy(cfg.policy)
@@ -165,6 +166,10 @@ class PolicyServer:
             "observation": {"cameras": {c.key: list(c.shape) for c in CAMERAS}, "state": [STATE_KEY, STATE_DIM],
                             "prompt": PROMPT_KEY, "episode_seed": SEED_KEY, "chunk_index": CHUNK_KEY},
         }
+        # What the checkpoint was trained under, when it says (loading it checked it against this server's): the
+        # client refuses it if its own vla-ladder plays another task.
+        if (contract := trained_contract(self.policy.path)) is not None:
+            self.metadata[CONTRACT_KEY] = contract
         self.requests = 0
         self.batches: collections.Counter[int] = collections.Counter()  # forward passes by batch size
         self._pending: asyncio.Queue | None = None  # groups of requests waiting for a forward pass
