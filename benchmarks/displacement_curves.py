@@ -38,9 +38,7 @@ class Args:
 
 def curves(study: Path, names: tuple[str, ...], trained_in: str) -> dict[str, dict]:
     runs = {name: load_run(study / "eval" / name) for name in names}
-    played = {name: sorted(zip(r.episodes["regime"], r.episodes["seed"], r.episodes["target"]))
-              for name, r in runs.items()}
-    if any(p != played[names[0]] for p in played.values()):
+    if len({r.played for r in runs.values()}) > 1:
         raise SystemExit(f"{study}: the runs {', '.join(names)} did not all play the same episodes")
     return {name: by_displacement(r.episodes, trained_in) for name, r in runs.items()}
 

@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from vla_ladder.conditions import REGIMES, Condition
-from vla_ladder.evaluation.displacement import DISPLACEMENT_BINS_CM, by_displacement, displacement
+from vla_ladder.evaluation.displacement import DISPLACEMENT_BINS_CM, by_displacement, displacement, logistic_trend
 from vla_ladder.stats import rates
 from vla_ladder.task.layouts import REGION_CENTERS, sample_layout
 from vla_ladder.task.objects import object_index
@@ -26,7 +26,8 @@ def _ladder(outcome, seeds: int = 60, seed: int = 0) -> tuple[pd.DataFrame, np.n
             lay = sample_layout(Condition(regime, "canonical", 5), s).to_dict()
             d = float(np.linalg.norm(REGION_CENTERS[object_index(lay["target"])] - lay["positions"][lay["target"]]))
             ok = bool(outcome(d, rng))
-            rows.append({"layout": json.dumps(lay), "success": ok, "grasp_any": True, "reach": ok,
+            rows.append({"regime": regime, "split": "canonical", "num_objects": 5, "seed": s, "target": lay["target"],
+                         "layout": json.dumps(lay), "success": ok, "grasp_any": True, "reach": ok,
                          "tcp_x": np.nan, "tcp_y": np.nan})
             ds.append(d)
     return pd.DataFrame(rows), np.array(ds)
@@ -73,6 +74,29 @@ def test_a_flat_policy_has_odds_near_one_and_a_step_has_none():
     assert step["bins"][0]["success"] == 1.0 and step["bins"][-1]["success"] == 0.0
 
 
+def test_the_trend_interval_is_the_profile_likelihood_one_not_walds():
+    """At each end of the interval, the best fit with the slope held there (statsmodels' own Logit, the slope as an
+    offset, the intercept refitted) loses chi2_1(0.95) / 2 of log-likelihood. On a steep, nearly separated curve (a
+    policy that succeeds only near the usual place) that interval is not Wald's, and the p-value is the
+    likelihood-ratio test's."""
+    import statsmodels.api as sm
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(3)
+    d = rng.uniform(0, 0.4, 150)
+    y = rng.random(150) < 1 / (1 + np.exp(-(2 - 40 * d)))
+    trend = logistic_trend(d, y)
+    x = d * 100 / 10  # per 10 cm
+    fit = sm.Logit(y.astype(float), sm.add_constant(x)).fit(disp=0)
+    assert trend["odds_ratio_per_10cm"] == pytest.approx(np.exp(fit.params[1]))
+    for end in np.log(trend["ci95"]):
+        held = sm.Logit(y.astype(float), np.ones((len(y), 1)), offset=end * x).fit(disp=0)
+        assert 2 * (fit.llf - held.llf) == pytest.approx(chi2.ppf(0.95, 1), abs=1e-4)
+    wald = np.exp(fit.conf_int(0.05)[1])
+    assert abs(np.log(trend["ci95"][1]) - np.log(wald[1])) > 0.1  # far from quadratic: not Wald's
+    assert trend["p_value"] == pytest.approx(fit.llr_pvalue)
+
+
 def test_nothing_to_measure_for_a_policy_trained_in_full_random_or_an_absent_target():
     episodes, _ = _ladder(lambda d, rng: True, seeds=3)
     assert by_displacement(episodes, "full_random/canonical/5") is None
@@ -106,3 +130,25 @@ def test_far_from_its_place_the_gripper_ends_at_the_object_or_at_the_place():
     unknown = by_displacement(episodes.assign(tcp_x=np.nan, tcp_y=np.nan), TRAINED)["far"]
     assert unknown["ends_at_place"] == {"value": None, "ci95": None} and unknown["reach"]["value"] == 0.0
     assert unknown["place_minus_object"] is None
+
+
+def test_a_study_draws_each_datasets_curve_with_the_references_that_played_its_episodes():
+    """study_results.displacement_curves: a model trained on sj is drawn beside the references that played the
+    same episodes (in any order), not beside one that played other seeds; a full-random model has no curve."""
+    from pathlib import Path
+
+    from vla_ladder.evaluation.rundir import Run
+    from vla_ladder.experiments.study_results import displacement_curves
+
+    def run(episodes: pd.DataFrame) -> Run:
+        return Run(Path("run"), episodes, {})
+
+    model, _ = _ladder(lambda d, rng: d < 0.03 or rng.random() < 0.1, seeds=20)
+    same, _ = _ladder(lambda d, rng: rng.random() < 0.5, seeds=20, seed=1)
+    other, _ = _ladder(lambda d, rng: True, seeds=21)
+    curves = displacement_curves({
+        "model (sj)": (run(model), ("sj", TRAINED.key)), "nearest": (run(same.iloc[::-1]), None),
+        "other seeds": (run(other), None), "model (fr)": (run(model), ("fr", "full_random/canonical/5"))})
+    assert list(curves) == ["sj"] and curves["sj"]["trained_in"] == TRAINED.key
+    assert list(curves["sj"]["runs"]) == ["model (sj)", "nearest"]
+    assert curves["sj"]["runs"]["nearest"] == by_displacement(same.iloc[::-1], TRAINED)  # its own episodes

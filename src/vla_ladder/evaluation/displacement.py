@@ -12,11 +12,11 @@ so one run directory of `vla-ladder eval --regimes all` says where along the way
   usual place instead (within REACH_THRESHOLD of a usual region's centre, horizontally, as the absent-object probe
   measures it), with Wilson intervals, and the second minus the first (Newcombe's paired interval: +1 always the
   place, -1 always the object): the location shortcut seen in ordinary episodes, no probe needed;
-- the trend: a logistic regression of the metric on the displacement (statsmodels' Logit, Wald interval), as the
-  odds ratio per 10 cm. A policy that goes to the named object wherever it stands is flat (about 1); one that goes
-  to where the object usually stands falls off steeply. Where success is all-or-nothing on either side of some
-  distance (a pure location shortcut: every near episode succeeds, no far one does) the slope is unbounded and none is
-  given, with the reason; the bins still show it.
+- the trend: a logistic regression of the metric on the displacement (statsmodels' Logit, profile-likelihood
+  interval, likelihood-ratio p-value), as the odds ratio per 10 cm. A policy that goes to the named object wherever
+  it stands is flat (about 1); one that goes to where the object usually stands falls off steeply. Where success is
+  all-or-nothing on either side of some distance (a pure location shortcut: every near episode succeeds, no far one
+  does) the slope is unbounded and none is given, with the reason; the bins still show it.
 
 A policy trained in full random has no usual place (no regions): there is nothing to measure then (None).
 Simulator-free: it reads the episodes' recorded layouts.
@@ -108,9 +108,9 @@ def _share(name: str, k: int, n: int, known: bool = True) -> dict:
 
 
 def logistic_trend(d: np.ndarray, y: np.ndarray, confidence: float = CONFIDENCE) -> dict:
-    """Logit P(y) = a + b * d / 10 cm, by maximum likelihood: the odds ratio exp(b) per 10 cm with its Wald
-    interval and p-value; "odds_ratio_per_10cm" None with "why" where no finite slope fits (every episode alike,
-    no spread of distances, or outcomes that separate at a distance)."""
+    """Logit P(y) = a + b * d / 10 cm, by maximum likelihood: the odds ratio exp(b) per 10 cm with its
+    profile-likelihood interval and likelihood-ratio p-value; "odds_ratio_per_10cm" None with "why" where no finite
+    slope fits (every episode alike, no spread of distances, or outcomes that separate at a distance)."""
     import statsmodels.api as sm
     from statsmodels.tools.sm_exceptions import ConvergenceWarning, PerfectSeparationWarning
 
@@ -131,7 +131,38 @@ def logistic_trend(d: np.ndarray, y: np.ndarray, confidence: float = CONFIDENCE)
             issubclass(w.category, (PerfectSeparationWarning, ConvergenceWarning)) for w in caught):
         return {**out, "why": "the outcome separates at a distance (all on one side, none on the other): the slope "
                               "is unbounded; read the bins"}
-    lo, hi = fit.conf_int(alpha=1 - confidence)[1]
-    b = float(fit.params[1])
-    return {**out, "odds_ratio_per_10cm": float(np.exp(b)), "ci95": [float(np.exp(lo)), float(np.exp(hi))],
-            "p_value": float(fit.pvalues[1]), "method": "logistic regression (statsmodels Logit), Wald interval"}
+    lo, hi = profile_interval(fit, x[:, 1], y.astype(float), confidence)
+    return {**out, "odds_ratio_per_10cm": float(np.exp(fit.params[1])), "ci95": [float(np.exp(lo)), float(np.exp(hi))],
+            "p_value": float(fit.llr_pvalue),
+            "method": "logistic regression (statsmodels Logit), profile-likelihood interval, likelihood-ratio p-value"}
+
+
+def profile_interval(fit, x: np.ndarray, y: np.ndarray, confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """The slope's profile-likelihood interval: the slopes b whose best fit (the intercept refitted with b fixed)
+    loses at most chi2_1(confidence) / 2 of log-likelihood. Near separation, where a policy succeeds only close to
+    the usual place, the likelihood is far from quadratic and Wald's interval (estimate +- 1.96 SE) is too wide on
+    one side and too narrow on the other; the profile interval is what R's confint(glm) gives."""
+    from scipy import optimize, stats
+
+    floor = fit.llf - stats.chi2.ppf(confidence, 1) / 2
+    (a_hat, b_hat), step = (float(v) for v in fit.params), max(float(fit.bse[1]), 1e-3)
+
+    def log_likelihood(a: float, b: float) -> float:
+        eta = a + b * x
+        return float(np.sum(y * eta - np.logaddexp(0.0, eta)))  # log(1 + e^eta) without overflow
+
+    def above_floor(b: float) -> float:
+        # For a fixed slope the intercept's likelihood is concave in one variable (statsmodels' IRLS diverges from
+        # its own start when the offsets are large, as they are far along a steep slope).
+        best = optimize.minimize_scalar(lambda a: -log_likelihood(a, b), bracket=(a_hat - 1, a_hat + 1))
+        return -float(best.fun) - floor
+
+    ends = []
+    for sign in (-1.0, 1.0):
+        far = b_hat + sign * step
+        for _ in range(60):  # the likelihood falls without bound on both sides when the outcomes do not separate
+            if above_floor(far) < 0:
+                break
+            far = b_hat + 2 * (far - b_hat)
+        ends.append(optimize.brentq(above_floor, min(b_hat, far), max(b_hat, far), xtol=1e-10))
+    return ends[0], ends[1]

@@ -44,6 +44,13 @@ class Run:
         specs = self.episodes["policy"].unique() if len(self.episodes) else []
         return str(specs[0]) if len(specs) == 1 else self.path.name
 
+    @property
+    def played(self) -> tuple:
+        """What the run played, episode by episode (condition, seed, target): runs with the same plays played the
+        same scenes, whatever order their workers finished in."""
+        e = self.episodes
+        return tuple(sorted(zip(e["regime"], e["split"], e["num_objects"], e["seed"], e["target"])))
+
     def video_path(self, video: str) -> Path | None:
         """Absolute path of an episode's video, None when it has none or the file is gone."""
         if not video:

@@ -44,12 +44,6 @@ def curve_points(study, chosen: dict) -> dict[str, list[dict]]:
     return curves
 
 
-def _played(run) -> tuple:
-    """What a run played, episode by episode: runs with the same plays have the same scenes."""
-    return tuple(sorted(zip(run.episodes["regime"], run.episodes["split"], run.episodes["seed"],
-                            run.episodes["target"])))
-
-
 def displacement_curves(runs: dict[str, tuple]) -> dict[str, dict]:
     """dataset name -> {"trained_in", "runs": label -> evaluation.displacement.by_displacement}: the models trained
     on each dataset recorded where objects have usual places (not full random), and every reference run that
@@ -58,9 +52,9 @@ def displacement_curves(runs: dict[str, tuple]) -> dict[str, dict]:
     out = {}
     for name, cond in dict.fromkeys(train for _, train in runs.values() if train is not None):
         mine = {label: run for label, (run, train) in runs.items() if train == (name, cond)}
-        played = {_played(run) for run in mine.values()}
+        played = {run.played for run in mine.values()}
         with_refs = {**mine, **{label: run for label, (run, train) in runs.items()
-                                if train is None and _played(run) in played}}
+                                if train is None and run.played in played}}
         curves = {label: by_displacement(run.episodes, cond) for label, run in with_refs.items()}
         if all(c is not None for c in curves.values()):
             out[name] = {"trained_in": cond, "runs": curves}

@@ -52,8 +52,7 @@ def displacement_table(curves: dict[str, dict], trained_in: str) -> str:
             f"nearest place it stands in training ({html.escape(trained_in)}'s regions), pooled over the runs' "
             f"regimes: the curve between the ladder's rungs. Beyond {far_cm:g} cm the object and its usual place are "
             "more than two reach thresholds apart: the gripper ends at one or the other, or elsewhere. Odds ratio per "
-            "10 cm: a logistic regression of success "
-            "on the distance (Wald interval); about 1 for a policy that finds the object wherever it stands, far "
-            "below 1 for one that goes where the object usually is; none where success is all-or-nothing either "
-            "side of a distance (read the bins).</p>")
+            "10 cm: a logistic regression of success on the distance (profile-likelihood interval); about 1 for a "
+            "policy that finds the object wherever it stands, far below 1 for one that goes where the object usually "
+            "is; none where success is all-or-nothing either side of a distance (read the bins).</p>")
     return f"<table><tr><th>policy</th>{head}<th>odds ratio / 10 cm [95% CI]</th></tr>{''.join(rows)}</table>{note}"
