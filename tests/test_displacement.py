@@ -71,6 +71,8 @@ def test_a_flat_policy_has_odds_near_one_and_a_step_has_none():
     step = by_displacement(_ladder(lambda d, rng: d < 0.05)[0], TRAINED)
     assert step["trend"]["success"]["odds_ratio_per_10cm"] is None
     assert "separates" in step["trend"]["success"]["why"]
+    lo, hi = step["trend"]["success"]["ci95"]  # no estimate, but the data bound it: one-sided
+    assert lo == 0 and 0 < hi < 1 and step["trend"]["success"]["p_value"] < 1e-6
     assert step["bins"][0]["success"] == 1.0 and step["bins"][-1]["success"] == 0.0
 
 
@@ -152,3 +154,31 @@ def test_a_study_draws_each_datasets_curve_with_the_references_that_played_its_e
     assert list(curves) == ["sj"] and curves["sj"]["trained_in"] == TRAINED.key
     assert list(curves["sj"]["runs"]) == ["model (sj)", "nearest"]
     assert curves["sj"]["runs"]["nearest"] == by_displacement(same.iloc[::-1], TRAINED)  # its own episodes
+
+
+def test_separated_outcomes_get_the_one_sided_profile_bound():
+    """Every success nearer than every failure: no finite slope, and the log-likelihood rises towards 0 as the slope
+    falls; the bound is the slope whose best fit (statsmodels' Logit, the slope as an offset) loses chi2_1(0.95) / 2
+    of that. A wider gap between the last success and the first failure bounds it less tightly (a gentler slope fits
+    it as well); the mirror image gets a bound from below."""
+    import statsmodels.api as sm
+    from scipy.stats import chi2
+
+    from vla_ladder.report.displacement import odds_text
+
+    d = np.linspace(0, 0.3, 61)
+    y = d < 0.08
+    trend = logistic_trend(d, y)
+    assert trend["odds_ratio_per_10cm"] is None and trend["ci95"][0] == 0
+    assert "every success within 7.5 cm, every failure beyond 8.0 cm" in trend["why"]
+    bound = np.log(trend["ci95"][1])
+    held = sm.Logit(y.astype(float), np.ones((len(y), 1)), offset=bound * d * 10).fit(disp=0)
+    assert -2 * held.llf == pytest.approx(chi2.ppf(0.95, 1), abs=1e-4)
+    assert odds_text(trend) == f"< {trend['ci95'][1]:.2g}"
+    wider = logistic_trend(d[(d < 0.04) | (d > 0.12)], y[(d < 0.04) | (d > 0.12)])
+    assert trend["ci95"][1] < wider["ci95"][1] < 1
+    mirror = logistic_trend(d, ~y)
+    assert mirror["ci95"][1] is None and mirror["ci95"][0] == pytest.approx(1 / trend["ci95"][1], rel=1e-6)
+    assert odds_text(mirror).startswith("> ")
+    one_off = logistic_trend(d, (d < 0.08) ^ (d == d[3]))  # one near failure: no longer separated, an estimate
+    assert one_off["odds_ratio_per_10cm"] is not None and one_off["ci95"][1] < 1

@@ -109,8 +109,10 @@ def _share(name: str, k: int, n: int, known: bool = True) -> dict:
 
 def logistic_trend(d: np.ndarray, y: np.ndarray, confidence: float = CONFIDENCE) -> dict:
     """Logit P(y) = a + b * d / 10 cm, by maximum likelihood: the odds ratio exp(b) per 10 cm with its
-    profile-likelihood interval and likelihood-ratio p-value; "odds_ratio_per_10cm" None with "why" where no finite
-    slope fits (every episode alike, no spread of distances, or outcomes that separate at a distance)."""
+    profile-likelihood interval and likelihood-ratio p-value. "odds_ratio_per_10cm" is None, with "why", where no
+    finite slope fits: every episode alike or at one distance (no interval either), or outcomes that separate at a
+    distance, where the interval is one-sided ([0, bound] for success only nearer than some distance:
+    `separation_bound`)."""
     import statsmodels.api as sm
     from statsmodels.tools.sm_exceptions import ConvergenceWarning, PerfectSeparationWarning
 
@@ -120,21 +122,51 @@ def logistic_trend(d: np.ndarray, y: np.ndarray, confidence: float = CONFIDENCE)
                 f"{'every' if y.all() else 'no'} episode has this outcome: no trend to fit"}
     if np.ptp(d) < 1e-6:
         return {**out, "why": "every episode at the same displacement"}
-    x = sm.add_constant(d * 100 / PER_CM)
+    x, y = d * 100 / PER_CM, y.astype(float)
+    if (separated := separation_bound(x, y, confidence)) is not None:
+        return {**out, **separated}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            fit = sm.Logit(y.astype(float), x).fit(disp=0, maxiter=200)
+            fit = sm.Logit(y, sm.add_constant(x)).fit(disp=0, maxiter=200)
         except np.linalg.LinAlgError as e:
             return {**out, "why": f"no fit ({e})"}
     if not fit.mle_retvals.get("converged", False) or any(
             issubclass(w.category, (PerfectSeparationWarning, ConvergenceWarning)) for w in caught):
-        return {**out, "why": "the outcome separates at a distance (all on one side, none on the other): the slope "
-                              "is unbounded; read the bins"}
-    lo, hi = profile_interval(fit, x[:, 1], y.astype(float), confidence)
+        return {**out, "why": "no maximum-likelihood fit (the outcomes nearly separate at a distance); read the bins"}
+    lo, hi = profile_interval(fit, x, y, confidence)
     return {**out, "odds_ratio_per_10cm": float(np.exp(fit.params[1])), "ci95": [float(np.exp(lo)), float(np.exp(hi))],
-            "p_value": float(fit.llr_pvalue),
-            "method": "logistic regression (statsmodels Logit), profile-likelihood interval, likelihood-ratio p-value"}
+            "p_value": float(fit.llr_pvalue), "method": METHOD}
+
+
+METHOD = "logistic regression (statsmodels Logit), profile-likelihood interval, likelihood-ratio p-value"
+
+
+def profile_log_likelihood(x: np.ndarray, y: np.ndarray, a_start: float = 0.0):
+    """b -> the log-likelihood of the best fit with the slope held at b (the intercept refitted). For a fixed slope
+    the intercept's likelihood is concave in one variable, so a scalar search finds it; statsmodels' IRLS diverges
+    from its own start when the offsets b * x are large, as they are far along a steep slope."""
+    from scipy import optimize
+
+    def log_likelihood(a: float, b: float) -> float:
+        eta = a + b * x
+        return float(np.sum(y * eta - np.logaddexp(0.0, eta)))  # log(1 + e^eta) without overflow
+
+    def best(b: float) -> float:
+        return -float(optimize.minimize_scalar(lambda a: -log_likelihood(a, b), bracket=(a_start - 1, a_start + 1)).fun)
+    return best
+
+
+def _crossing(above_floor, inside: float, step: float) -> float:
+    """Where above_floor (> 0 at `inside`, falling without bound away from it in the direction of `step`) crosses 0."""
+    from scipy import optimize
+
+    far = inside + step
+    for _ in range(60):
+        if above_floor(far) < 0:
+            break
+        far = inside + 2 * (far - inside)
+    return optimize.brentq(above_floor, min(inside, far), max(inside, far), xtol=1e-10)
 
 
 def profile_interval(fit, x: np.ndarray, y: np.ndarray, confidence: float = CONFIDENCE) -> tuple[float, float]:
@@ -142,27 +174,44 @@ def profile_interval(fit, x: np.ndarray, y: np.ndarray, confidence: float = CONF
     loses at most chi2_1(confidence) / 2 of log-likelihood. Near separation, where a policy succeeds only close to
     the usual place, the likelihood is far from quadratic and Wald's interval (estimate +- 1.96 SE) is too wide on
     one side and too narrow on the other; the profile interval is what R's confint(glm) gives."""
-    from scipy import optimize, stats
+    from scipy import stats
 
     floor = fit.llf - stats.chi2.ppf(confidence, 1) / 2
     (a_hat, b_hat), step = (float(v) for v in fit.params), max(float(fit.bse[1]), 1e-3)
+    profile = profile_log_likelihood(x, y, a_hat)
+    return (_crossing(lambda b: profile(b) - floor, b_hat, -step),
+            _crossing(lambda b: profile(b) - floor, b_hat, step))
 
-    def log_likelihood(a: float, b: float) -> float:
-        eta = a + b * x
-        return float(np.sum(y * eta - np.logaddexp(0.0, eta)))  # log(1 + e^eta) without overflow
 
-    def above_floor(b: float) -> float:
-        # For a fixed slope the intercept's likelihood is concave in one variable (statsmodels' IRLS diverges from
-        # its own start when the offsets are large, as they are far along a steep slope).
-        best = optimize.minimize_scalar(lambda a: -log_likelihood(a, b), bracket=(a_hat - 1, a_hat + 1))
-        return -float(best.fun) - floor
+def separation_bound(x: np.ndarray, y: np.ndarray, confidence: float = CONFIDENCE) -> dict | None:
+    """None unless the outcomes separate completely at a distance (every success nearer than every failure, or
+    farther): the pure location shortcut. Then no finite slope fits (the likelihood rises towards 1, log-likelihood
+    0, as the slope grows without bound), but the data still bound it on the other side: the slopes whose best fit
+    loses at most chi2_1(confidence) / 2 of that supremum. The odds ratio per 10 cm is then at most (at least)
+    exp(bound); the p-value is the likelihood-ratio test's against no trend (supremum 0)."""
+    from scipy import stats
 
-    ends = []
-    for sign in (-1.0, 1.0):
-        far = b_hat + sign * step
-        for _ in range(60):  # the likelihood falls without bound on both sides when the outcomes do not separate
-            if above_floor(far) < 0:
-                break
-            far = b_hat + 2 * (far - b_hat)
-        ends.append(optimize.brentq(above_floor, min(b_hat, far), max(b_hat, far), xtol=1e-10))
-    return ends[0], ends[1]
+    if x[y == 1].max() < x[y == 0].min():
+        sign = -1.0  # success only nearer: the slope runs to minus infinity
+    elif x[y == 1].min() > x[y == 0].max():
+        sign = 1.0
+    else:
+        return None
+    floor = -stats.chi2.ppf(confidence, 1) / 2
+    profile = profile_log_likelihood(x, y)
+    inside = sign
+    for _ in range(200):  # steep enough to be within the bound (the profile rises towards 0 that way)
+        if profile(inside) >= floor:
+            break
+        inside *= 2
+    bound = float(np.exp(_crossing(lambda b: profile(b) - floor, inside, -inside)))
+    k, n = y.sum(), len(y)
+    null = k * np.log(k / n) + (n - k) * np.log1p(-k / n)
+    near, far = sorted((x[y == 1].max(), x[y == 0].min()) if sign < 0 else (x[y == 0].max(), x[y == 1].min()))
+    first, then = ("success", "failure") if sign < 0 else ("failure", "success")
+    return {"ci95": [0.0, bound] if sign < 0 else [bound, None],  # the open end: no finite limit
+            "p_value": float(stats.chi2.sf(-2 * null, 1)), "method": METHOD,
+            "why": f"the outcome separates at a distance (every {first} within {near * PER_CM:.1f} cm, every "
+                   f"{then} beyond {far * PER_CM:.1f} cm): the slope is unbounded; the odds ratio per 10 cm is "
+                   f"{'at most' if sign < 0 else 'at least'} {bound:.2g} ({100 * confidence:.0f}%, profile "
+                   "likelihood)"}

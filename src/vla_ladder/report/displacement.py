@@ -8,9 +8,13 @@ import html
 
 
 def odds_text(trend: dict) -> str:
-    """An odds ratio per 10 cm with its interval ("–" where no finite slope fits)."""
+    """An odds ratio per 10 cm with its interval; where outcomes separate at a distance, the one-sided bound the data
+    give ("< 0.012"); "–" where nothing fits."""
     if trend["odds_ratio_per_10cm"] is None:
-        return "–"
+        if trend["ci95"] is None:
+            return "–"
+        lo, hi = trend["ci95"]
+        return f"< {hi:.2g}" if hi is not None else f"> {lo:.2g}"
     lo, hi = trend["ci95"]
     return f"x{trend['odds_ratio_per_10cm']:.2g} [{lo:.2g}, {hi:.2g}]"
 
@@ -45,7 +49,7 @@ def displacement_table(curves: dict[str, dict], trained_in: str) -> str:
                   f"{_pct(b['ci95']['success'][1])}] n={b['n']}</span>") for key in bins]
         trend = curve["trend"]["success"]
         odds = (odds_text(trend) if trend["odds_ratio_per_10cm"] is not None
-                else f"– <span class=ci>{html.escape(trend['why'])}</span>")
+                else f"{odds_text(trend)} <span class=ci>{html.escape(trend['why'])}</span>")
         far = [_share(curve["far"][k]) for k in ("reach", "ends_at_place")]
         rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in (html.escape(label), *cells, *far, odds)) + "</tr>")
     note = ("<p class=note>Success (%) of each run's episodes, binned by how far the named object stands from the "

@@ -13,6 +13,7 @@ import numpy as np
 
 from vla_ladder.contract import METRICS
 from vla_ladder.files import atomic_path
+from vla_ladder.report.displacement import odds_text
 from vla_ladder.report.tables import METRIC_NAMES, REGIME_NAMES, REGIME_SHORT, SPLIT_NAMES
 from vla_ladder.task.objects import OBJECTS
 
@@ -167,9 +168,9 @@ def plot_displacement(curves: dict[str, dict], path: str | Path) -> Path:
         for j, (label, curve) in enumerate(curves.items()):
             v, e = _err(curve["bins"], m)
             x = np.array([b["mean_cm"] for b in curve["bins"]]) + (j - (len(curves) - 1) / 2) * 0.25
-            trend = curve["trend"]["success"]["odds_ratio_per_10cm"]
+            odds = odds_text(curve["trend"]["success"]).split(" [")[0]  # the estimate, or the bound
             ax.errorbar(x, v, yerr=e, marker="o", capsize=3,
-                        label=label + ("" if trend is None else f" (x{trend:.2g} / 10 cm)"))
+                        label=label + ("" if odds == "–" else f" ({odds} / 10 cm)"))
         ax.set_title(METRIC_NAMES[m])
         ax.set_ylim(-3, 103)
         ax.grid(alpha=0.3)
