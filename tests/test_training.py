@@ -74,11 +74,15 @@ def test_a_dataset_recorded_under_another_task_contract_is_refused(data, tmp_pat
 
 
 @pytest.mark.slow
-def test_a_killed_training_leaves_checkpoints_that_say_their_contract(data, tmp_path):
-    """Each checkpoint gets the data's task contract as LeRobot saves it, not when training ends: a run killed after
-    a save leaves a `checkpoints/last` that `lerobot:` can check instead of taking on trust."""
+def test_a_killed_training_resumes_from_its_last_checkpoint(data, tmp_path, capsys):
+    """Each checkpoint gets the data's task contract as LeRobot saves it, not when training ends, so a run killed
+    after a save leaves a `checkpoints/last` that `lerobot:` can check. The same command then resumes it there
+    (LeRobot's resume: the steps before the kill are not trained again), a finished run is left as it is, and
+    other arguments on the same directory are refused, naming what differs."""
+    from vla_ladder.training.train import REQUEST_FILE, RUN_FILE
+
     out = tmp_path / "run"
-    args = H.train_args("act", data, out, steps=100_000)
+    args = H.train_args("act", data, out, steps=30)
     args[args.index("--"):args.index("--")] = ["--save-freq", "1"]
     proc = subprocess.Popen([sys.executable, "-m", "vla_ladder.cli", *args], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, env={**os.environ, "HF_HUB_OFFLINE": "1"})
@@ -88,12 +92,33 @@ def test_a_killed_training_leaves_checkpoints_that_say_their_contract(data, tmp_
         while not last.exists():
             assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
             assert time.monotonic() < deadline, "no checkpoint in 300 s"
-            time.sleep(0.1)
+            time.sleep(0.05)
     finally:
         proc.kill()
         proc.wait()
-    assert not (out / "vla_ladder_train.json").exists()  # killed mid-run: the end-of-run files were never written
+    assert not (out / RUN_FILE).exists()  # killed mid-run: the end-of-run file was never written
     assert json.loads((last / "pretrained_model" / TRAINED_CONTRACT_FILE).read_text()) == policy_fingerprint()
+    assert (out / REQUEST_FILE).is_file()
+    saved = {p.name: p.stat().st_mtime_ns for p in (out / "checkpoints").glob("0*")}
+    killed_at = max(int(n) for n in saved)
+    assert killed_at < 30, "the run ended before it was killed: nothing to resume"
+
+    other = H.train_args("act", data, out, steps=31)
+    other[other.index("--"):other.index("--")] = ["--save-freq", "1"]
+    assert main(other) == 2
+    assert "holds a training run with other arguments (steps was 30, now 31)" in capsys.readouterr().err
+
+    assert main(args) == 0
+    steps = sorted(int(p.name) for p in (out / "checkpoints").glob("0*"))
+    assert steps == list(range(1, 31))
+    for name, mtime in saved.items():  # the checkpoints before the kill were not trained again
+        assert (out / "checkpoints" / name).stat().st_mtime_ns == mtime or int(name) == killed_at
+    state = json.loads((last / "training_state" / "training_step.json").read_text())
+    assert state["step"] == 30 and os.path.realpath(last) == str(out / "checkpoints" / "000030")
+    assert all((out / "checkpoints" / f"{s:06d}" / "pretrained_model" / TRAINED_CONTRACT_FILE).is_file()
+               for s in steps)
+    finished = (out / RUN_FILE).stat().st_mtime_ns
+    assert main(args) == 0 and (out / RUN_FILE).stat().st_mtime_ns == finished  # finished: nothing to do
 
 
 @pytest.mark.slow
@@ -144,7 +169,8 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     (tmp_path / "busy").mkdir()
     (tmp_path / "busy" / "x").write_text("")
     assert main(base[:-4] + ["--out", str(tmp_path / "busy"), "--policy-type", "act"]) == 2
-    assert "not empty" in capsys.readouterr().err
+    assert "exists and holds no resumable training run" in capsys.readouterr().err
+    assert (tmp_path / "busy" / "x").is_file()
     assert main(base + ["--policy-type", "act", "--chunk-size", "4", "--n-action-steps", "8"]) == 2
     assert not (tmp_path / "run").exists()
 

@@ -206,10 +206,10 @@ def record_unit(config: dict) -> dict:
 
 
 def train_unit(config: dict) -> dict:
-    from vla_ladder.training.train import TrainConfig, train
+    from vla_ladder.training.train import REQUEST_FILE, TrainConfig, train
     out = Path(config["out"])
-    if out.exists():  # a training run killed half-way starts over
-        shutil.rmtree(out)
+    if out.exists() and not (out / REQUEST_FILE).is_file():  # killed before its first checkpoint: start over
+        shutil.rmtree(out)  # (killed after one, `train` resumes it from there)
     ckpt = train(TrainConfig(**config))
     info = json.loads((out / "vla_ladder_train.json").read_text())
     return {"checkpoint": str(ckpt), "wall_s": info["wall_s"]}

@@ -268,30 +268,90 @@ def checkpoint_dir(out: str | Path) -> Path:
     return Path(out) / "checkpoints" / "last" / "pretrained_model"
 
 
+RUN_FILE = "vla_ladder_train.json"
+"""In a finished run's directory: the request, the lerobot-train command, the dataset and the wall time."""
+REQUEST_FILE = "vla_ladder_request.json"
+"""In a run's directory from its first checkpoint on: the request, so that a re-run resumes only the same one."""
+RESUMES_WITH_OTHER = ("num_workers", "log_freq", "wandb", "print_command")
+"""Request fields a resumed run may change: how it loads and logs, not what it learns."""
+
+
+def _request(req: TrainConfig) -> dict:
+    return {k: v for k, v in files.plain(asdict(req)).items() if k not in RESUMES_WITH_OTHER}
+
+
+def resume_point(req: TrainConfig) -> Path | None:
+    """Where a re-run of `req` picks up: None for a new run (`out` absent or empty), else the checkpoint a killed
+    run of the same request saved last (`checkpoints/last`, which points to a checkpoint only once it is whole).
+    ValueError for a directory that holds anything else: another request (named), or files that are not a run."""
+    out = req.out
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {str(out)!r} is a file; give a directory")
+    if not out.is_dir() or not any(out.iterdir()):
+        return None
+    saved = out / REQUEST_FILE
+    last = out / "checkpoints" / "last"
+    if not saved.is_file() or not (last / "training_state").is_dir():
+        raise ValueError(f"output directory {str(out)!r} exists and holds no resumable training run (no "
+                         f"{REQUEST_FILE} and checkpoints/last); pick a new --out")
+    was, now = json.loads(saved.read_text()), _request(req)
+    if changed := [f"{k} was {was.get(k)!r}, now {now.get(k)!r}" for k in sorted({*was, *now})
+                   if was.get(k) != now.get(k)]:
+        raise ValueError(f"output directory {str(out)!r} holds a training run with other arguments "
+                         f"({'; '.join(changed)[:300]}); re-run it with its own, or pick a new --out")
+    return last.resolve()
+
+
+@contextlib.contextmanager
+def resuming_from(checkpoint: Path):
+    """LeRobot resumes a run from `--config_path` on its command line, which its config reads from sys.argv when it
+    validates (TrainPipelineConfig._resolve_resume_checkpoint): give it the checkpoint's there for the call."""
+    import sys
+
+    argv = sys.argv
+    sys.argv = [argv[0], f"--config_path={checkpoint / 'pretrained_model' / 'train_config.json'}"]
+    try:
+        yield
+    finally:
+        sys.argv = argv
+
+
 def train(req: TrainConfig) -> Path:
-    """Run LeRobot training for `req`; returns the final checkpoint's pretrained_model directory."""
+    """Run LeRobot training for `req`; returns the final checkpoint's pretrained_model directory. A re-run of a
+    killed run (the same request, the same `out`) resumes from its last checkpoint (`resume_point`), with LeRobot's
+    own resume: weights, optimizer, scheduler, step and the data order; a finished one does nothing."""
     from lerobot.scripts.lerobot_train import train as lerobot_train
 
     if req.out is None:
         raise ValueError("a training run needs an output directory (out)")
-    check_new_dir(req.out)
+    resume = resume_point(req)
+    if resume is not None and (req.out / RUN_FILE).is_file():
+        log.info("%s is a finished run of this request: nothing to do", req.out)
+        return checkpoint_dir(req.out)
     cfg = req.build_config()
     check_offline_assets(cfg.policy)
     cpu_threads(req)
-    if req.out.exists():
+    if resume is None and req.out.exists():
         req.out.rmdir()  # empty (checked above); LeRobot refuses to reuse an existing directory
+    if resume is not None:
+        cfg.resume = True
+        # LeRobot sets the optimizer and scheduler presets only for new runs; a resumed one loads their state into
+        # the same ones (what the first run used: the policy's presets).
+        cfg.optimizer, cfg.scheduler = cfg.policy.get_optimizer_preset(), cfg.policy.get_scheduler_preset()
+        log.info("resuming %s from %s", req.out, resume)
     log.info("training %s on %s for %d steps (batch %d, chunk %d): %s", req.policy_type, req.dataset,
              req.steps, req.batch_size, req.chunk_size, shlex.join(req.lerobot_command()))
     start = time.time()
     try:
-        with contract_in_each_checkpoint(req.contract):
+        with contract_in_each_checkpoint(req.contract, req.out, _request(req)), \
+                (resuming_from(resume) if resume is not None else contextlib.nullcontext()):
             lerobot_train(cfg)
     except URLError as e:  # a download without network (ACT's ImageNet backbone, a tokenizer, a hub checkpoint)
         raise ValueError(f"lerobot-train tried to download something and could not ({e.reason}); on a machine "
                          "without network export HF_HUB_OFFLINE=1, so that ACT's backbone trains from scratch and "
                          "tokenizers and checkpoints are looked up locally") from None
     if int(os.environ.get("RANK", "0")) == 0:
-        files.write_json(req.out / "vla_ladder_train.json", {
+        files.write_json(req.out / RUN_FILE, {
             "request": asdict(req),
             "lerobot_train_command": shlex.join(req.lerobot_command()),
             "dataset": {"root": str(req.dataset), "condition": req.condition and req.condition.key,
@@ -305,23 +365,24 @@ def train(req: TrainConfig) -> Path:
 
 
 @contextlib.contextmanager
-def contract_in_each_checkpoint(contract: dict | None):
+def contract_in_each_checkpoint(contract: dict | None, out: Path, request: dict):
     """While LeRobot trains, every checkpoint it saves gets TRAINED_CONTRACT_FILE (the data's task contract) before
     `checkpoints/last` points to it, so that each checkpoint says what it was trained on wherever it is copied to,
-    and a run killed after any save leaves checkpoints that `lerobot:` checks, not ones it takes on trust.
-    LeRobot's loop offers no hook, so its module's save_checkpoint is wrapped for the call (the main process saves)."""
+    and a run killed after any save leaves checkpoints that `lerobot:` checks, not ones it takes on trust; the run
+    directory gets REQUEST_FILE, so that a re-run resumes it only with the same request. LeRobot's loop offers no
+    hook, so its module's save_checkpoint is wrapped for the call (the main process saves)."""
     import lerobot.scripts.lerobot_train as loop
     from lerobot.utils.constants import PRETRAINED_MODEL_DIR
 
-    if contract is None:  # data recorded before contracts were kept: nothing to say
-        yield
-        return
     save = loop.save_checkpoint
 
     def save_with_contract(checkpoint_dir, *args, **kwargs):
-        out = save(checkpoint_dir, *args, **kwargs)
-        files.write_json(Path(checkpoint_dir) / PRETRAINED_MODEL_DIR / TRAINED_CONTRACT_FILE, contract)
-        return out
+        result = save(checkpoint_dir, *args, **kwargs)
+        if contract is not None:  # None: data recorded before contracts were kept, nothing to say
+            files.write_json(Path(checkpoint_dir) / PRETRAINED_MODEL_DIR / TRAINED_CONTRACT_FILE, contract)
+        if not (out / REQUEST_FILE).is_file():
+            files.write_json(out / REQUEST_FILE, request)
+        return result
 
     loop.save_checkpoint = save_with_contract
     try:
@@ -339,14 +400,6 @@ def cpu_threads(req: TrainConfig) -> None:
     from vla_ladder.machine import cores
     if "OMP_NUM_THREADS" not in os.environ and not (req.device or "").startswith("cuda"):
         torch.set_num_threads(max(1, cores() - req.num_workers))
-
-
-def check_new_dir(out: Path) -> None:
-    """ValueError unless `out` is absent or an empty directory that can be written (checked before training)."""
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {str(out)!r} is a file; give a directory")
-    if out.is_dir() and any(out.iterdir()):
-        raise ValueError(f"output directory {str(out)!r} exists and is not empty; pick a new --out")
 
 
 def run(cfg: TrainConfig) -> int:
