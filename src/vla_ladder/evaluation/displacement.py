@@ -16,7 +16,8 @@ so one run directory of `vla-ladder eval --regimes all` says where along the way
   interval, likelihood-ratio p-value), as the odds ratio per 10 cm. A policy that goes to the named object wherever
   it stands is flat (about 1); one that goes to where the object usually stands falls off steeply. Where success is
   all-or-nothing on either side of some distance (a pure location shortcut: every near episode succeeds, no far one
-  does) the slope is unbounded and none is given, with the reason; the bins still show it.
+  does) the slope is unbounded: no estimate is given, but the one-sided bound the data allow is (the odds ratio per
+  10 cm is at most X), with the reason; the bins show where it falls.
 
 A policy trained in full random has no usual place (no regions): there is nothing to measure then (None).
 Simulator-free: it reads the episodes' recorded layouts.

@@ -343,7 +343,7 @@ def train(req: TrainConfig) -> Path:
              req.steps, req.batch_size, req.chunk_size, shlex.join(req.lerobot_command()))
     start = time.time()
     try:
-        with contract_in_each_checkpoint(req.contract, req.out, _request(req)), \
+        with stamp_checkpoints(req.contract, req.out, _request(req)), \
                 (resuming_from(resume) if resume is not None else contextlib.nullcontext()):
             lerobot_train(cfg)
     except URLError as e:  # a download without network (ACT's ImageNet backbone, a tokenizer, a hub checkpoint)
@@ -365,7 +365,7 @@ def train(req: TrainConfig) -> Path:
 
 
 @contextlib.contextmanager
-def contract_in_each_checkpoint(contract: dict | None, out: Path, request: dict):
+def stamp_checkpoints(contract: dict | None, out: Path, request: dict):
     """While LeRobot trains, every checkpoint it saves gets TRAINED_CONTRACT_FILE (the data's task contract) before
     `checkpoints/last` points to it, so that each checkpoint says what it was trained on wherever it is copied to,
     and a run killed after any save leaves checkpoints that `lerobot:` checks, not ones it takes on trust; the run
