@@ -120,6 +120,13 @@ def test_a_killed_training_resumes_from_its_last_checkpoint(data, tmp_path, caps
     finished = (out / RUN_FILE).stat().st_mtime_ns
     assert main(args) == 0 and (out / RUN_FILE).stat().st_mtime_ns == finished  # finished: nothing to do
 
+    # Killed during its first save: the request is there, no whole checkpoint. The same command starts afresh.
+    for p in [out / RUN_FILE, last, *(out / "checkpoints").glob("0*")]:
+        shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+    (out / "checkpoints" / "000001" / "pretrained_model").mkdir(parents=True)
+    assert main(args) == 0
+    assert sorted(int(p.name) for p in (out / "checkpoints").glob("0*")) == list(range(1, 31))
+
 
 @pytest.mark.slow
 def test_pi05_gets_the_paper_settings_and_a_clear_offline_error(data, tmp_path):
@@ -169,7 +176,7 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     (tmp_path / "busy").mkdir()
     (tmp_path / "busy" / "x").write_text("")
     assert main(base[:-4] + ["--out", str(tmp_path / "busy"), "--policy-type", "act"]) == 2
-    assert "exists and holds no resumable training run" in capsys.readouterr().err
+    assert "exists and holds no training run of vla-ladder" in capsys.readouterr().err
     assert (tmp_path / "busy" / "x").is_file()
     assert main(base + ["--policy-type", "act", "--chunk-size", "4", "--n-action-steps", "8"]) == 2
     assert not (tmp_path / "run").exists()

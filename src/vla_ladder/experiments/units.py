@@ -208,9 +208,9 @@ def record_unit(config: dict) -> dict:
 def train_unit(config: dict) -> dict:
     from vla_ladder.training.train import REQUEST_FILE, TrainConfig, train
     out = Path(config["out"])
-    if out.exists() and not (out / REQUEST_FILE).is_file():  # killed before its first checkpoint: start over
-        shutil.rmtree(out)  # (killed after one, `train` resumes it from there)
-    ckpt = train(TrainConfig(**config))
+    if out.is_dir() and not (out / REQUEST_FILE).is_file():  # killed before runs kept their request: start over
+        shutil.rmtree(out)
+    ckpt = train(TrainConfig(**config))  # a run killed half-way since resumes from its last checkpoint
     info = json.loads((out / "vla_ladder_train.json").read_text())
     return {"checkpoint": str(ckpt), "wall_s": info["wall_s"]}
 

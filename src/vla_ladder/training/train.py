@@ -15,6 +15,7 @@ import json
 import logging
 import os
 import shlex
+import shutil
 import time
 from urllib.error import URLError
 from dataclasses import asdict, dataclass
@@ -281,25 +282,26 @@ def _request(req: TrainConfig) -> dict:
 
 
 def resume_point(req: TrainConfig) -> Path | None:
-    """Where a re-run of `req` picks up: None for a new run (`out` absent or empty), else the checkpoint a killed
-    run of the same request saved last (`checkpoints/last`, which points to a checkpoint only once it is whole).
-    ValueError for a directory that holds anything else: another request (named), or files that are not a run."""
+    """Where a re-run of `req` picks up: the checkpoint a killed run of the same request saved last
+    (`checkpoints/last`, which LeRobot points to a checkpoint only once it is whole), or None to start afresh (`out`
+    absent, empty, or a run of this request killed before its first whole checkpoint). ValueError for a directory
+    that holds anything else: another request (named), or files that are not a training run."""
     out = req.out
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {str(out)!r} is a file; give a directory")
     if not out.is_dir() or not any(out.iterdir()):
         return None
     saved = out / REQUEST_FILE
-    last = out / "checkpoints" / "last"
-    if not saved.is_file() or not (last / "training_state").is_dir():
-        raise ValueError(f"output directory {str(out)!r} exists and holds no resumable training run (no "
-                         f"{REQUEST_FILE} and checkpoints/last); pick a new --out")
+    if not saved.is_file():
+        raise ValueError(f"output directory {str(out)!r} exists and holds no training run of vla-ladder (no "
+                         f"{REQUEST_FILE}); pick a new --out")
     was, now = json.loads(saved.read_text()), _request(req)
     if changed := [f"{k} was {was.get(k)!r}, now {now.get(k)!r}" for k in sorted({*was, *now})
                    if was.get(k) != now.get(k)]:
         raise ValueError(f"output directory {str(out)!r} holds a training run with other arguments "
                          f"({'; '.join(changed)[:300]}); re-run it with its own, or pick a new --out")
-    return last.resolve()
+    last = out / "checkpoints" / "last"
+    return last.resolve() if (last / "training_state").is_dir() else None
 
 
 @contextlib.contextmanager
@@ -332,7 +334,9 @@ def train(req: TrainConfig) -> Path:
     check_offline_assets(cfg.policy)
     cpu_threads(req)
     if resume is None and req.out.exists():
-        req.out.rmdir()  # empty (checked above); LeRobot refuses to reuse an existing directory
+        # Empty, or this request's run killed before a whole checkpoint (resume_point): nothing to keep, and LeRobot
+        # refuses to start a run in an existing directory.
+        shutil.rmtree(req.out)
     if resume is not None:
         cfg.resume = True
         # LeRobot sets the optimizer and scheduler presets only for new runs; a resumed one loads their state into
@@ -377,11 +381,12 @@ def stamp_checkpoints(contract: dict | None, out: Path, request: dict):
     save = loop.save_checkpoint
 
     def save_with_contract(checkpoint_dir, *args, **kwargs):
+        if not (out / REQUEST_FILE).is_file():  # first, so that a kill during the first save leaves a run of ours
+            out.mkdir(parents=True, exist_ok=True)
+            files.write_json(out / REQUEST_FILE, request)
         result = save(checkpoint_dir, *args, **kwargs)
         if contract is not None:  # None: data recorded before contracts were kept, nothing to say
             files.write_json(Path(checkpoint_dir) / PRETRAINED_MODEL_DIR / TRAINED_CONTRACT_FILE, contract)
-        if not (out / REQUEST_FILE).is_file():
-            files.write_json(out / REQUEST_FILE, request)
         return result
 
     loop.save_checkpoint = save_with_contract
