@@ -206,12 +206,12 @@ def record_unit(config: dict) -> dict:
 
 
 def train_unit(config: dict) -> dict:
-    from vla_ladder.training.train import REQUEST_FILE, TrainConfig, train
+    from vla_ladder.training.train import REQUEST_FILE, RUN_FILE, TrainConfig, train
     out = Path(config["out"])
     if out.is_dir() and not (out / REQUEST_FILE).is_file():  # killed before runs kept their request: start over
         shutil.rmtree(out)
-    ckpt = train(TrainConfig(**config))  # a run killed half-way since resumes from its last checkpoint
-    info = json.loads((out / "vla_ladder_train.json").read_text())
+    ckpt = train(TrainConfig(**config))  # a run killed after its request was kept resumes from its last checkpoint
+    info = json.loads((out / RUN_FILE).read_text())
     return {"checkpoint": str(ckpt), "wall_s": info["wall_s"]}
 
 

@@ -7,16 +7,16 @@ from __future__ import annotations
 import html
 
 
-def odds_text(trend: dict) -> str:
-    """An odds ratio per 10 cm with its interval; where outcomes separate at a distance, the one-sided bound the data
-    give ("< 0.012"); "–" where nothing fits."""
+def odds_text(trend: dict, interval: bool = True) -> str:
+    """An odds ratio per 10 cm with its interval (without, when not `interval`); where outcomes separate at a
+    distance, the one-sided bound the data give ("< 0.012"); "–" where nothing fits."""
     if trend["odds_ratio_per_10cm"] is None:
         if trend["ci95"] is None:
             return "–"
         lo, hi = trend["ci95"]
         return f"< {hi:.2g}" if hi is not None else f"> {lo:.2g}"
     lo, hi = trend["ci95"]
-    return f"x{trend['odds_ratio_per_10cm']:.2g} [{lo:.2g}, {hi:.2g}]"
+    return f"x{trend['odds_ratio_per_10cm']:.2g}" + (f" [{lo:.2g}, {hi:.2g}]" if interval else "")
 
 
 def _pct(x: float) -> str:
@@ -48,8 +48,8 @@ def displacement_table(curves: dict[str, dict], trained_in: str) -> str:
                   f"{_pct(b['success'])} <span class=ci>[{_pct(b['ci95']['success'][0])}, "
                   f"{_pct(b['ci95']['success'][1])}] n={b['n']}</span>") for key in bins]
         trend = curve["trend"]["success"]
-        odds = (odds_text(trend) if trend["odds_ratio_per_10cm"] is not None
-                else f"{odds_text(trend)} <span class=ci>{html.escape(trend['why'])}</span>")
+        odds = odds_text(trend) + ("" if trend["odds_ratio_per_10cm"] is not None
+                                   else f" <span class=ci>{html.escape(trend['why'])}</span>")
         far = [_share(curve["far"][k]) for k in ("reach", "ends_at_place")]
         rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in (html.escape(label), *cells, *far, odds)) + "</tr>")
     note = ("<p class=note>Success (%) of each run's episodes, binned by how far the named object stands from the "
@@ -58,5 +58,6 @@ def displacement_table(curves: dict[str, dict], trained_in: str) -> str:
             "more than two reach thresholds apart: the gripper ends at one or the other, or elsewhere. Odds ratio per "
             "10 cm: a logistic regression of success on the distance (profile-likelihood interval); about 1 for a "
             "policy that finds the object wherever it stands, far below 1 for one that goes where the object usually "
-            "is; none where success is all-or-nothing either side of a distance (read the bins).</p>")
+            "is; where success is all-or-nothing either side of a distance, no estimate but the bound the data allow "
+            "(&lt; X: at most X).</p>")
     return f"<table><tr><th>policy</th>{head}<th>odds ratio / 10 cm [95% CI]</th></tr>{''.join(rows)}</table>{note}"

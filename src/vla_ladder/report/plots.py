@@ -168,7 +168,7 @@ def plot_displacement(curves: dict[str, dict], path: str | Path) -> Path:
         for j, (label, curve) in enumerate(curves.items()):
             v, e = _err(curve["bins"], m)
             x = np.array([b["mean_cm"] for b in curve["bins"]]) + (j - (len(curves) - 1) / 2) * 0.25
-            odds = odds_text(curve["trend"]["success"]).split(" [")[0]  # the estimate, or the bound
+            odds = odds_text(curve["trend"]["success"], interval=False)  # the estimate, or the bound
             ax.errorbar(x, v, yerr=e, marker="o", capsize=3,
                         label=label + ("" if odds == "–" else f" ({odds} / 10 cm)"))
         ax.set_title(METRIC_NAMES[m])
