@@ -90,7 +90,9 @@ def _grasp(env, name, steps=50):
 
 @pytest.mark.slow
 def test_metrics_target_grasped_and_lifted(make_env):
-    env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=1, target="rubiks_cube")
+    # The scene kept between episodes (as PPO's envs keep it): the next episode must not inherit the grasp.
+    env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=1, target="rubiks_cube",
+                   reconfiguration_freq=0)
     env.reset(seed=0)
     infos = _grasp(env, "rubiks_cube")
     last = infos[-1]
@@ -98,6 +100,12 @@ def test_metrics_target_grasped_and_lifted(make_env):
     assert last["lifted"].item() and last["held"].item() == OBJECT_NAMES.index("rubiks_cube")
     assert not any(i["success"].item() for i in infos[:20]), "nothing is grasped before the fingers close"
     assert infos[-1]["elapsed_steps"].item() == EPISODE_STEPS
+    _, info = env.reset(seed=1)
+    assert not (info["grasp_any"].item() or info["success"].item() or info["is_grasped"].any().item())
+    assert info["held"].item() == -1
+    for _ in range(3):
+        info = env.step(torch.tensor([[0, 0, 0, 0, 0, 0, 1.0]]))[4]
+    assert not info["grasp_any"].item(), "the last episode's grasp carried into this one"
 
 
 @pytest.mark.slow
@@ -251,3 +259,20 @@ def test_lite_robot_renders_like_the_full_one_with_identical_physics(make_env):
         assert (a - b).abs().mean() < 6, cam
     with pytest.raises(ValueError, match="allowed: lite, full"):
         make_env(robot_mesh="cartoon")
+
+
+def test_each_cpu_worker_takes_its_own_row_of_per_env_reset_options(make_env):
+    """AsyncVectorEnv sends every worker the batch's options whole: each (SlotEnv) must play its own row of every
+    option given per env, as one batched env would, not refuse a list of N for its one env."""
+    from vla_ladder.task.vector import SlotEnv
+
+    options = {"conditions": [Condition("small_jitter", "canonical", 3), Condition("full_random", "canonical", 2)],
+               "alone": [False, True], "switch_at": [10, None]}
+    base = make_env(obs_mode="state_dict")
+    first, second = SlotEnv(base, 0), SlotEnv(base, 1)
+    first.reset(seed=5, options=options)
+    lay = base.unwrapped.layouts[0]
+    assert lay.condition == options["conditions"][0] and lay.switch is not None and lay.removed is None
+    second.reset(seed=5, options=options)
+    lay = base.unwrapped.layouts[0]
+    assert lay.condition == options["conditions"][1] and lay.switch is None and lay.removed is not None

@@ -54,8 +54,10 @@ STATE_NAMES: tuple[str, ...] = (*(f"joint_pos_{i}" for i in range(7)), *(f"joint
 """The proprioceptive state: 7 arm joint positions, 7 joint velocities, the gripper's opening (m)."""
 STATE_DIM = len(STATE_NAMES)
 ACTION_NAMES: tuple[str, ...] = ("dx", "dy", "dz", "drx", "dry", "drz", "gripper")
-"""pd_ee_delta_pose, normalised to [-1, 1]: root-frame translation and axis-angle rotation (x 0.1 m / 0.1 rad),
-then the gripper (-1 closed, +1 open)."""
+"""pd_ee_delta_pose, normalised to [-1, 1]: root-frame translation (x 0.1 m), then a rotation about the root
+axes as XYZ Euler angles (at most 0.1 rad a step, where they are nearly an axis-angle): ManiSkill 3.0.1 clips the
+three to norm 1 and scales them by the Panda's rot_lower, -0.1 rad, so +1 turns the TCP the negative way about
+its axis; then the gripper (-1 closed, +1 open)."""
 ACTION_DIM = len(ACTION_NAMES)
 
 STATE_KEY = OBS_STATE

@@ -226,8 +226,8 @@ class ScriptedPolicy(Policy):
 
         action = torch.zeros(n, ACTION_DIM, device=self.device)
         action[:, :3] = (err * self.gain[:, None] / ACTION_SCALE).clamp(-1, 1)
-        # Measured on ManiSkill 3.0.1: a positive rotation action turns the TCP the negative way about
-        # the root axes, hence the minus sign.
+        # ManiSkill 3.0.1 scales the rotation action by the Panda's rot_lower (-0.1 rad), not by +0.1: a positive
+        # action turns the TCP the negative way about the root axes (measured), hence the minus sign.
         action[:, 3:6] = (-rot * cfg.rot_gain / ACTION_SCALE).clamp(-1, 1)
         action[:, 6] = torch.where(new <= DESCEND, _gripper_action(self._open_width[tgt]),
                                    torch.full_like(yaw_cur, -1.0))

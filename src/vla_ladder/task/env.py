@@ -75,6 +75,10 @@ def freeze_long_lived_objects() -> None:
         _FROZEN = True
 
 
+# Reset options that may be given as a list with one value per reset env (GraspObjectEnv.reset); "conditions" only so.
+PER_ENV_OPTIONS = ("conditions", "instruct", "instruct_absent", "swap_positions", "switch_at", "alone")
+
+
 def _per_env(value, n: int) -> list:
     """A reset option given once for all reset envs, or as a list with one value each, as a list of n."""
     return list(value) if isinstance(value, (list, tuple)) else [value] * n
@@ -273,7 +277,7 @@ class GraspObjectEnv(BaseEnv):
             if len(seeds) != len(idx):
                 raise ValueError(f"got {len(seeds)} seeds for {len(idx)} envs being reset")
         else:
-            seeds = int(seed) + np.arange(len(idx))
+            seeds = int(seed) + idx  # env i plays s + i, in a partial reset (env_idx) as in a full one
             self._seed_rng = np.random.default_rng(int(seed))
         self._layout_seeds[idx] = seeds
         if options.get("target") is not None:
@@ -286,7 +290,7 @@ class GraspObjectEnv(BaseEnv):
             check_instruction_set(options["instructions"])
         if options.get("appearance") is not None and check_appearance(options["appearance"]) != "original":
             self._check_paintable()
-        for name in ("instruct", "instruct_absent", "swap_positions", "switch_at", "alone"):
+        for name in PER_ENV_OPTIONS[1:]:
             value = options.get(name)
             if isinstance(value, (list, tuple)) and len(value) != len(idx):
                 raise ValueError(f"got {len(value)} {name} values for {len(idx)} envs being reset")
@@ -455,7 +459,10 @@ class GraspObjectEnv(BaseEnv):
 
     def evaluate(self) -> dict[str, torch.Tensor]:
         c = self._refresh()
-        grasped = self._grasp_flags() & self.present
+        # At reset (step 0) nothing has been simulated yet: the contacts PhysX reports are the previous episode's last
+        # ones wherever the scene is kept between episodes (PPO's envs, record --no-rebuild-scenes, physx_cuda), and
+        # would count a grasp the new episode never made.
+        grasped = self._grasp_flags() & self.present & (self.elapsed_steps > 0)[:, None]
         any_now = grasped.any(dim=1)
         self._grasp_any |= any_now
         held = torch.where(any_now, grasped.float().argmax(dim=1), torch.full_like(self.target_idx, -1))

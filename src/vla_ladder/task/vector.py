@@ -24,16 +24,19 @@ from vla_ladder.machine import exit_with_parent, limit_threads
 
 class SlotEnv(gym.Wrapper):
     """One CPU env of an AsyncVectorEnv: AsyncVectorEnv sends every sub-env the same reset options,
-    so each picks its own row of the batched "conditions"."""
+    so each picks its own row of every option given per env (a list: "conditions", "alone", ...)."""
 
     def __init__(self, env: gym.Env, index: int):
         super().__init__(env)
         self.index = index
 
     def reset(self, *, seed=None, options=None):
+        from vla_ladder.task.env import PER_ENV_OPTIONS
+
         options = dict(options or {})
-        if "conditions" in options:
-            options["conditions"] = [options["conditions"][self.index]]
+        for name in PER_ENV_OPTIONS:
+            if isinstance(options.get(name), (list, tuple)):
+                options[name] = [options[name][self.index]]
         return self.env.reset(seed=seed, options=options)
 
 
