@@ -164,6 +164,14 @@ def test_a_killed_run_resumes_and_another_request_is_refused(tmp_path, capsys):
     # The timing goes on from the first invocation's: 3 episodes played there, 2 here.
     assert summary["complete"] and summary["timing"]["episodes"] == 5
     assert summary["timing"]["lockstep_steps"] == 5 * 50
+    # Rows this request never plays, or plays once (an edited or mixed file), are refused, not counted.
+    for odd in (full.iloc[[0]].assign(episode=3, seed=3), full.iloc[[1]]):
+        pd.concat([full, odd]).to_parquet(out / "episodes.parquet", index=False)
+        capsys.readouterr()
+        assert main(argv) == 2
+        assert f"small_jitter/canonical/2 episode {odd['episode'].item()}); its files were edited" in \
+            capsys.readouterr().err
+    full.to_parquet(out / "episodes.parquet", index=False)
     # The same request with another worker count, or played as a batch, is the same run; another policy is
     # refused, or replaces it.
     assert main([*argv[:-1], "2"]) == 0

@@ -68,10 +68,37 @@ def test_the_reports_paper_tables_follow_the_regimes_played(tmp_path):
     run = load_run(make_run(tmp_path / "r", "nearest", conds, ["success", "nothing"]))
     found = {name: (table, kwargs) for name, table, kwargs in _paper_tables({run.label: run.summary["conditions"]})}
     assert set(found) == {"pairings", "object_count"}
-    assert found["pairings"][1] == {"regime": "large_jitter"} and len(found["pairings"][0].groups["nearest"]) == 2
-    assert "(large jitter)" in found["pairings"][0].caption
+    assert found["pairings"][1] == {"regime": "large_jitter", "num_objects": 5}
+    assert len(found["pairings"][0].groups["nearest"]) == 2 and "(large jitter)" in found["pairings"][0].caption
     assert found["object_count"][1] == {"regime": "medium_jitter"}
     assert [row for row, _ in found["object_count"][0].groups["nearest"]] == ["1", "3"]
+    # Pairings played with three objects (docs/evaluation.md's example) fill the table too (it came out empty).
+    three = load_run(make_run(tmp_path / "r3", "nearest", [("small_jitter", "pairings_id", 3),
+                                                            ("small_jitter", "pairings_ood", 3)], ["success"]))
+    (_, table, kwargs), = _paper_tables({three.label: three.summary["conditions"]})
+    assert kwargs == {"regime": "small_jitter", "num_objects": 3} and len(table.groups["nearest"]) == 2
+    assert "(3 objects)" in table.caption
+
+
+def test_runs_of_one_policy_keep_their_own_rows_and_curves(tmp_path):
+    """Runs of one policy spec merge when they cover different conditions and keep rows of their own when they
+    played the same one: three (diagnose's DIR/policy/ladder) were shown as two, the third's numbers replacing the
+    second's; and `--trained-in` pools the episodes of a label's runs (it kept the last run's only)."""
+    from vla_ladder.report.html import displacement_curves, results_by_label, run_labels
+
+    cond = [("small_jitter", "canonical", 2)]
+    same = [load_run(make_run(tmp_path / d / "ladder", "nearest", cond, kinds))
+            for d, kinds in (("a", ["success"] * 2), ("b", ["nothing"] * 2), ("c", ["success", "nothing"]))]
+    other = load_run(make_run(tmp_path / "d" / "ladder", "nearest", [("medium_jitter", "canonical", 2)],
+                              ["success"] * 3))
+    runs = [*same, other]
+    labels = run_labels(runs)
+    assert labels == ["nearest", "nearest (ladder)", "nearest (c/ladder)", "nearest"]
+    results = results_by_label(runs)
+    assert [results[label]["small_jitter/canonical/2"]["success"] for label in labels[:3]] == [1.0, 0.0, 0.5]
+    assert set(results["nearest"]) == {"small_jitter/canonical/2", "medium_jitter/canonical/2"}
+    curves = displacement_curves(runs, "small_jitter/canonical/2")
+    assert list(curves) == labels[:3] and [curves[label]["n"] for label in labels[:3]] == [5, 2, 2]
 
 
 def test_data_scaling_keeps_each_dataset_size_in_results_json(tmp_path):

@@ -102,8 +102,9 @@ SHOWN = 3  # problems of one kind named in an error message; the rest are counte
 def check_run(run: Run) -> None:
     """ValueError naming every way the run's files contradict each other, and what to do about it. Missing
     episodes and a stale summary.json (a run killed between its two writes) are what the evaluation runner
-    repairs when the same command runs again; duplicated episodes, foreign seeds and non-boolean outcomes are not."""
-    broken = [*_duplicates(run), *_bad_values(run), *_wrong_seeds(run)]
+    repairs when the same command runs again; duplicated episodes, episodes beyond the count, foreign seeds and
+    non-boolean outcomes are not."""
+    broken = [*_duplicates(run), *_beyond(run), *_bad_values(run), *_wrong_seeds(run)]
     repairable = [*_missing(run), *_summary_disagrees(run)]
     if broken:
         raise ValueError(f"{run.path} is not a consistent run directory: {'; '.join(broken + repairable)}; its "
@@ -189,14 +190,23 @@ def _missing(run: Run) -> list[str]:
     if per is not None:
         for key, got in have.items():
             lacking = sorted(set(range(int(per))) - got)
-            beyond = sorted(j for j in got if not 0 <= j < int(per))
             if lacking:
                 out.append(f"{key} lacks episodes {_some([str(j) for j in lacking])} of 0..{int(per) - 1}")
-            if beyond:
-                out.append(f"{key} has episodes {_some([str(j) for j in beyond])} beyond episodes_per_condition "
-                           f"{int(per)}")
     if not out and run.summary.get("complete") is False:
         out.append("summary.json says complete: false")
+    return out
+
+
+def _beyond(run: Run) -> list[str]:
+    """Episodes the run's request never plays (an index past episodes_per_condition): a rerun would count them."""
+    per = run.summary.get("episodes_per_condition")
+    if per is None:
+        return []
+    out = []
+    for k, g in run.episodes.groupby(list(CONDITION_KEYS), sort=False):
+        if beyond := sorted(j for j in set(g["episode"]) if not 0 <= j < int(per)):
+            out.append(f"{Condition(*k).key} has episodes {_some([str(j) for j in beyond])} beyond "
+                       f"episodes_per_condition {int(per)}")
     return out
 
 

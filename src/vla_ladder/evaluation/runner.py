@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -219,7 +220,16 @@ def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     if not path.is_file():
         return []
     import pandas as pd
-    return pd.read_parquet(path).to_dict("records")
+    rows = pd.read_parquet(path).to_dict("records")
+    # What this request plays, each once: anything else (an edited or mixed file) would be counted in its summary.
+    played = Counter((r["regime"], r["split"], r["num_objects"], r["episode"]) for r in rows)
+    planned = {(j.condition.regime, j.condition.split, j.condition.num_objects, j.episode) for j in cfg.jobs()}
+    if odd := sorted({k for k, n in played.items() if n > 1 or k not in planned}):
+        raise ValueError(f"{path} holds episodes this request does not play, or holds them twice ("
+                         f"{', '.join(f'{Condition(*k[:3]).key} episode {k[3]}' for k in odd[:3])}"
+                         f"{f' and {len(odd) - 3} more' if len(odd) > 3 else ''}); its files were edited or mixed: "
+                         "evaluate into a new --out")
+    return rows
 
 
 def timing_summary(totals: dict[str, float]) -> dict:

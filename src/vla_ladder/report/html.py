@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import base64
 import html
+import itertools
 import tempfile
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -19,6 +20,7 @@ from pathlib import Path
 import tyro
 
 import numpy as np
+import pandas as pd
 
 from vla_ladder.conditions import JITTER_REGIMES, LADDER, REGIMES, Condition
 from vla_ladder.contract import CONTROL_HZ, METRICS
@@ -102,15 +104,27 @@ def _read_frames(path: Path) -> np.ndarray:
     return iio.imread(path, index=None)
 
 
-def results_by_label(runs: list[Run], labels: list[str] | None = None) -> dict[str, dict]:
-    """model label -> merged conditions; runs of one policy that cover different conditions merge,
-    and labels stay unique when two runs evaluated the same condition."""
-    out: dict[str, dict] = {}
+def run_labels(runs: list[Run], labels: list[str] | None = None) -> list[str]:
+    """The label each run is shown under (default: its policy spec). Runs of one label that cover different
+    conditions keep it, and their results merge; a run that evaluated a condition already shown under its label
+    gets one of its own: the label with its directory's name, then with its parent's too, then numbered."""
+    shown: dict[str, set] = {}
+    out = []
     for r, label in zip(runs, labels or [r.label for r in runs]):
-        conds = r.summary.get("conditions", {})
-        if label in out and set(out[label]) & set(conds):
-            label = f"{label} ({r.path.name})"
-        out.setdefault(label, {}).update(conds)
+        conds = set(r.summary.get("conditions", {}))
+        tries = itertools.chain([label, f"{label} ({r.path.name})", f"{label} ({r.path.parent.name}/{r.path.name})"],
+                                (f"{label} ({r.path.name} {k})" for k in itertools.count(2)))
+        label = next(t for t in tries if not shown.get(t, set()) & conds)
+        shown.setdefault(label, set()).update(conds)
+        out.append(label)
+    return out
+
+
+def results_by_label(runs: list[Run], labels: list[str] | None = None) -> dict[str, dict]:
+    """label (run_labels) -> the merged conditions of its runs."""
+    out: dict[str, dict] = {}
+    for r, label in zip(runs, run_labels(runs, labels)):
+        out.setdefault(label, {}).update(r.summary.get("conditions", {}))
     return out
 
 
@@ -160,7 +174,11 @@ def _paper_tables(results: dict[str, dict]) -> list[tuple[str, tables.Table, dic
         out.append(("ladder", tables.ladder_table(results), {}))
     paired = [r for r in REGIMES if any(k.startswith(f"{r}/pairings_") for k in keys)]
     if paired:
-        out.append(("pairings", tables.pairings_table(results, paired[0]), {"regime": paired[0]}))
+        # With the paper's five objects where the runs have them, else with the most they have (docs/evaluation.md's
+        # example pairs three).
+        counts = {int(k.split("/")[2]) for k in keys if k.startswith(f"{paired[0]}/pairings_")}
+        kwargs = {"regime": paired[0], "num_objects": 5 if 5 in counts else max(counts)}
+        out.append(("pairings", tables.pairings_table(results, **kwargs), kwargs))
     counted = [r for r in REGIMES if len({k for k in keys if k.startswith(f"{r}/canonical/")}) >= 2]
     if counted:
         regime = "full_random" if "full_random" in counted else counted[0]
@@ -331,9 +349,9 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
     figures and rollouts of `runs`); `displacement`, (the condition the policies were trained in, label -> its
     run's evaluation.displacement.by_displacement), adds their success against the named object's distance from
     its place there (displacement_section)."""
-    labels = labels or [r.label for r in runs]
-    if len(labels) != len(runs):
+    if labels is not None and len(labels) != len(runs):
         raise ValueError(f"got {len(labels)} labels for {len(runs)} runs")
+    labels = run_labels(runs, labels)
     results = results_by_label(runs, labels)
     prov = runs[0].summary.get("provenance", {})
     with tempfile.TemporaryDirectory() as tmp:
@@ -375,11 +393,19 @@ def displacement_section(curves: dict[str, dict], trained_in: str, tmp: Path) ->
             f"<figcaption class=note>{html.escape(DISPLACEMENT_CAPTION)}</figcaption></figure>")
 
 
-def _displacement(run: Run, trained_in: str) -> dict:
-    try:
-        return by_displacement(run.episodes, trained_in)
-    except ValueError as e:  # an absent-object variant: its named object is not on the table
-        raise ValueError(f"{run.path}: {e}; --trained-in reads ladder runs") from None
+def displacement_curves(runs: list[Run], trained_in: str) -> dict[str, dict]:
+    """label (run_labels) -> evaluation.displacement.by_displacement of the episodes of its runs, pooled as the
+    tables pool their conditions."""
+    grouped: dict[str, list[Run]] = {}
+    for r, label in zip(runs, run_labels(runs)):
+        grouped.setdefault(label, []).append(r)
+    curves = {}
+    for label, group in grouped.items():
+        try:
+            curves[label] = by_displacement(pd.concat([r.episodes for r in group], ignore_index=True), trained_in)
+        except ValueError as e:  # an absent-object variant: its named object is not on the table
+            raise ValueError(f"{', '.join(str(r.path) for r in group)}: {e}; --trained-in reads ladder runs") from None
+    return curves
 
 
 @dataclass
@@ -418,8 +444,7 @@ class ReportConfig:
 
 def run(cfg: ReportConfig) -> int:
     runs = load_runs(cfg.runs)
-    displacement = None if cfg.trained_in is None else (
-        cfg.trained_in, {r.label: _displacement(r, cfg.trained_in) for r in runs})
+    displacement = None if cfg.trained_in is None else (cfg.trained_in, displacement_curves(runs, cfg.trained_in))
     out = build_report(runs, cfg.out, cfg.title, cfg.samples, cfg.video, cfg.placements, displacement=displacement)
     print(out.resolve())
     return 0

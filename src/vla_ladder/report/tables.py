@@ -141,7 +141,10 @@ def ladder_table(results: dict[str, dict], num_objects: int = 5) -> Table:
 
 
 def pairings_table(results: dict[str, dict], regime: str = "small_jitter", num_objects: int = 5) -> Table:
-    where = "" if regime == "small_jitter" else f" ({REGIME_NAMES[regime].lower()})"  # the paper's is small jitter
+    # The paper's: small jitter, five objects.
+    where = ", ".join(([] if regime == "small_jitter" else [REGIME_NAMES[regime].lower()])
+                      + ([] if num_objects == 5 else [f"{num_objects} object{'s' * (num_objects > 1)}"]))
+    where = where and f" ({where})"
     t = Table("pairings", f"Compositional generalization to held-out object-region pairings{where}.", "Split")
     for model, conds in results.items():
         for split in ("pairings_id", "pairings_ood"):
