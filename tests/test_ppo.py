@@ -5,6 +5,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 
 import pytest
 import torch
@@ -127,6 +128,33 @@ def test_resume_continues_step_count_and_optimizer(run_dir):
     # A fresh optimizer would have counted 8 steps; the restored one goes on from 16.
     assert _optimizer_steps(run_dir) == 24
     assert json.loads((run_dir / "config.json").read_text())["total_timesteps"] == 150
+    # Another batch size on resume: the run still ends at --total-timesteps (it counted the saved iterations
+    # against the new batch, and went on to 275 here).
+    # And an evaluation written by a run killed before its checkpoint is made again, not kept twice.
+    evals = json.loads((run_dir / "evals.json").read_text())
+    (run_dir / "evals.json").write_text(json.dumps([*evals, {**evals[-1], "global_step": 175}]))
+    state = train(cli_config(["--out", str(run_dir), "--resume", "--num-steps", "25", "--total-timesteps", "200"]))
+    assert state["global_step"] == 200 and state["iteration"] == 5
+    assert [e["global_step"] for e in json.loads((run_dir / "evals.json").read_text())] == [50, 100, 150, 175, 200]
+
+
+def test_a_run_saved_for_the_gpu_resumes_on_a_cpu_machine_with_the_flags_that_fit(tmp_path):
+    """--resume takes the flags not given from the run's config.json; the result is validated, not the saved config
+    alone: a run of 1024 physx_cuda envs is refused on a CPU machine until --sim-backend physx_cpu --num-envs N."""
+    from dataclasses import asdict
+
+    from vla_ladder.files import write_json
+
+    out = tmp_path / "run"
+    saved = {**asdict(Args(out=out, **{**TINY, "eval_freq": 7})), "sim_backend": "physx_cuda", "num_envs": 1024,
+             "total_timesteps": 30_000_000}
+    write_json(out / "config.json", saved)
+    args = cli_config(["--out", str(out), "--resume", "--sim-backend", "physx_cpu", "--num-envs", "1"])
+    assert (args.sim_backend, args.num_envs, args.eval_freq, args.total_timesteps) == ("physx_cpu", 1, 7, 30_000_000)
+    assert args.grid == TINY["grid"] and args.resume
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="needs a CUDA GPU"):
+            cli_config(["--out", str(out), "--resume"])
 
 
 @pytest.mark.slow
@@ -157,6 +185,14 @@ def test_bad_input_errors(tmp_path, run_dir):
         Args(out="x", sim_backend="gpu")
     with pytest.raises(ValueError, match="at least one batch"):
         Args(out="x", num_envs=4, total_timesteps=10)
+    for flag, value, words in (("gamma", 1.5, "--gamma must be in [0, 1], got 1.5"),
+                               ("max_grad_norm", 0.0, "--max-grad-norm must be positive, got 0.0"),
+                               ("target_kl", -0.1, "--target-kl must be >= 0, got -0.1")):
+        with pytest.raises(ValueError, match=re.escape(words)):
+            Args(out="x", **{**TINY, flag: value})
+    # A network of other sizes cannot go on from the run's weights: refused before any env starts.
+    with pytest.raises(ValueError, match=re.escape("network has hidden sizes [256, 256, 256], not [16]")):
+        train(cli_config(["--out", str(run_dir), "--resume", "--hidden-sizes", "16"]))
 
 
 def test_a_checkpoint_trained_under_another_task_contract_is_refused(tmp_path):

@@ -22,6 +22,23 @@ def parse_config(cls: type[T], argv: list[str], prog: str, description: str | No
         return tyro.cli(cls, args=argv, prog=prog, description=description, default=default)
 
 
+def unchecked(cls: type[T], values: dict) -> T:
+    """An instance of dataclass `cls` holding `values` (fields not in it take their defaults) without running its
+    __post_init__: parse_config's `default` when the values were saved for another machine (a run resumed here),
+    so that only the command line's result is validated, once the flags given have replaced them."""
+    import dataclasses
+
+    obj = object.__new__(cls)
+    for f in dataclasses.fields(cls):
+        if f.name in values:
+            object.__setattr__(obj, f.name, values[f.name])
+        elif f.default is not dataclasses.MISSING:
+            object.__setattr__(obj, f.name, f.default)
+        elif f.default_factory is not dataclasses.MISSING:
+            object.__setattr__(obj, f.name, f.default_factory())
+    return obj
+
+
 def check_no_repeated_flags(argv: list[str]) -> None:
     """ValueError for a flag given twice. tyro (like argparse) would keep the last one only, so
     `--policy a --policy b` would silently evaluate b alone; a list flag takes all its values after one flag."""

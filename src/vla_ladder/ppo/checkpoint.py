@@ -1,5 +1,7 @@
 """Training checkpoints of the PPO expert: the network (the policy's own format), the optimizer state and the
-run state, written so that a crash leaves the previous checkpoint in charge and `--resume` continues exactly."""
+run state, written so that a crash leaves the previous checkpoint in charge and `--resume` continues from it:
+the same weights, optimizer state, step count and training seeds, with fresh (seeded) action noise and minibatch
+order, so a resumed run is reproducible but not the uninterrupted run's twin."""
 
 from __future__ import annotations
 

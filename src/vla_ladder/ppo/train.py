@@ -23,6 +23,7 @@ import torch
 import torch.nn as nn
 
 from vla_ladder import files
+from vla_ladder.conditions import ConditionGrid
 from vla_ladder.policies.ppo import Agent, checkpoint_dir, load_agent
 from vla_ladder.ppo.checkpoint import load_optimizer, save_checkpoint
 from vla_ladder.ppo.config import Args
@@ -76,12 +77,17 @@ def train(args: Args) -> dict:
         if not (out / "state.json").exists():
             raise ValueError(f"--resume: no run to continue in {out} (state.json missing)")
         state.update(json.loads((out / "state.json").read_text()))
+        saved = load_agent(checkpoint_dir(out))  # before any env starts: a network of other sizes cannot go on
+        if saved.hidden_sizes != args.hidden_sizes:
+            raise ValueError(f"--resume: the run's network has hidden sizes {list(saved.hidden_sizes)}, not "
+                             f"{list(args.hidden_sizes)}; resume without --hidden-sizes, or train into a new --out")
     cuda = args.sim_backend == "physx_cuda" or (args.cuda and torch.cuda.is_available())
     device = torch.device("cuda" if cuda else "cpu")
     if not cuda:
         torch.set_num_threads(args.torch_threads)
-    torch.manual_seed(args.train_seed + state["iteration"])  # a resumed run draws fresh, reproducible noise
-    np.random.seed(args.train_seed + state["iteration"])
+    seed = (args.train_seed + state["iteration"]) % 2**32  # a resumed run draws fresh, reproducible noise
+    torch.manual_seed(seed)
+    np.random.seed(seed)
 
     envs = TrainEnvs(args, device)
     agent = Agent(envs.obs_dim, envs.act_dim, args.hidden_sizes, args.init_logstd).to(device)
@@ -98,6 +104,9 @@ def train(args: Args) -> dict:
                                            "provenance": files.provenance(envs.object_set)})
     writer = SummaryWriter(str(out / "tb"), purge_step=state["global_step"] or None)
     evals = json.loads((out / "evals.json").read_text()) if args.resume and (out / "evals.json").exists() else []
+    # evals.json is written just before its checkpoint: a run killed between the two has an evaluation the resumed
+    # run makes again.
+    evals = [e for e in evals if e["global_step"] <= state["global_step"]]
 
     T, N = args.num_steps, args.num_envs
     obs = torch.zeros((T, N, envs.obs_dim), device=device)
@@ -130,13 +139,16 @@ def train(args: Args) -> dict:
                   f"grasp_any {result['all']['grasp_any']:.3f} reach {result['all']['reach']:.3f} | success by target: "
                   f"{by_target}")
 
-    bar = tqdm(total=args.num_iterations * args.batch_size, initial=state["global_step"], unit="step",
-               disable=not args.progress, dynamic_ncols=True)
+    # Counted in steps, not iterations: a resumed run may change the batch (--num-envs, --num-steps), which would
+    # change what its saved iteration count means.
+    last_iteration = state["iteration"] + max(0, args.total_timesteps - state["global_step"]) // args.batch_size
+    bar = tqdm(total=state["global_step"] + (last_iteration - state["iteration"]) * args.batch_size,
+               initial=state["global_step"], unit="step", disable=not args.progress, dynamic_ncols=True)
     next_obs = new_episodes()
     ep_return = torch.zeros(N, device=device)
     sps = 0.0
     try:
-        for iteration in range(state["iteration"] + 1, args.num_iterations + 1):
+        for iteration in range(state["iteration"] + 1, last_iteration + 1):
             t0 = time.perf_counter()
             finished = {"success": [], "grasp_any": [], "reach": [], "return": []}
             for step in range(T):
@@ -209,7 +221,7 @@ def train(args: Args) -> dict:
             if state["eval"]:
                 post["eval_success"] = f"{state['eval']['all']['success']:.2f}"
             bar.set_postfix(post)
-            if iteration % args.eval_freq == 0 or iteration == args.num_iterations:
+            if iteration % args.eval_freq == 0 or iteration == last_iteration:
                 eval_and_checkpoint()
                 next_obs = new_episodes()
                 ep_return.zero_()
@@ -223,7 +235,7 @@ def train(args: Args) -> dict:
 # ----------------------------------------------------------------------------------------------- CLI
 def cli_config(argv: list[str]) -> Args:
     """Args from the command line; with --resume, the run's saved config.json supplies every flag not given."""
-    from vla_ladder.commandline import parse_config
+    from vla_ladder.commandline import parse_config, unchecked
 
     prog, help_ = "vla-ladder train-expert", Args.__doc__.splitlines()[0]
     default = None
@@ -231,7 +243,12 @@ def cli_config(argv: list[str]) -> Args:
                next((a.split("=", 1)[1] for a in argv if a.startswith("--out=")), None))
     if "--resume" in argv and out is not None and (Path(out) / "config.json").is_file():
         data = json.loads((Path(out) / "config.json").read_text())
-        default = Args(**{k: v for k, v in data.items() if k in Args.__dataclass_fields__})
+        saved = {k: v for k, v in data.items() if k in Args.__dataclass_fields__}
+        saved.update(out=Path(saved["out"]), hidden_sizes=tuple(saved["hidden_sizes"]),
+                     grid=ConditionGrid(**saved["grid"]))
+        # Checked once the flags given have replaced the saved values, not before: a run saved with 1024 GPU envs
+        # resumes on a CPU machine with --sim-backend physx_cpu --num-envs N (the saved config alone is refused here).
+        default = unchecked(Args, saved)
     return parse_config(Args, argv, prog, help_, default=default)
 
 
