@@ -56,6 +56,9 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         # Validation starts below the dataset but runs into it; probes reach into the dataset's seeds.
         "the validation (grid.select_first_seed) seeds (999990-": _micro(**{"grid.select_first_seed": 999_990,
                                                                           "grid.select_episodes": 20}),
+        # Seeds past numpy's were refused by the validation's eval, after recording and training.
+        "the validation (grid.select_first_seed) seeds (4294967295-4294967296) must lie in 0..2**32-1": _micro(
+            **{"grid.select_first_seed": 2**32 - 1, "grid.select_episodes": 2}),
         "overlap the datasets[": _micro(**{"evaluation.probes": ["instruction-swap"],
                                           "evaluation.probe_episodes": 5000, "datasets.0.first_seed": 1000}),
         "policies[x].datasets: unknown dataset 'fr'": {**_micro(), "policies": [
@@ -130,6 +133,10 @@ def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
     trains = {u.id: u for u in study.train_units()}
     assert sorted(trains) == sorted(f"train-{p}-{d}-b16c16" for p, d in models)
     assert trains["train-SmolVLA-scratch-blind-sj-b16c16"].config["dataset"] == str(tmp_path / "s/data/sj-blind")
+    # device auto stays auto in the plan (each training unit resolves it where it runs): the units a GPU machine
+    # marked done are the same units on the CPU machine that finishes the study (it planned them with "cuda").
+    study.cfg.device = "auto"
+    assert {u.config["device"] for u in study.train_units()} == {"auto"}
     assert study.select_units() == []  # one horizon, chosen while tuning: nothing to select
     chosen = study.best({})
     assert {k: v["horizon"] for k, v in chosen.items()} == {m: 4 for m in models}

@@ -122,10 +122,6 @@ class Study:
 
     def __init__(self, cmd: StudyCommand):
         self.cmd, self.cfg, self.root = cmd, cmd.study, cmd.out
-        self.device = self.cfg.device
-        if self.device == "auto":
-            import torch
-            self.device = "cuda" if torch.cuda.is_available() else "cpu"
 
     def run_phase(self, units: list[Unit]) -> dict:
         if self.cmd.ray or self.cmd.ray_address:
@@ -164,7 +160,7 @@ class Study:
                           "out": str(self.root / "models" / mid), "pretrained": p.pretrained,
                           "batch_size": b, "chunk_size": c, "n_action_steps": c, "steps": p.steps,
                           "save_freq": save_freq, "log_freq": max(p.steps // 20, 1),
-                          "num_workers": self.cfg.num_workers, "device": self.device,
+                          "num_workers": self.cfg.num_workers, "device": self.cfg.device,
                           "lerobot_args": args}
                 units.append(Unit(f"train-{mid}", "train", "vla_ladder.experiments.units:train_unit",
                                   config, cpus=2, after=[f"record-{d.name}"]))

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
 
+from vla_ladder.checks import SEED_LIMIT
 from vla_ladder.conditions import Condition, ConditionGrid
 
 PRESETS_PACKAGE = "vla_ladder.configs.study"
@@ -224,6 +225,13 @@ class StudyConfig:
                                         sel.select_first_seed + sel.select_episodes + ev.curve_episodes)}
         # Recorded seeds run upwards from first_seed (failures skip seeds, so allow 4x the episodes).
         uses.update({f"datasets[{d.name}]": range(d.first_seed, d.first_seed + 4 * d.episodes) for d in self.datasets})
+        # Every range a unit will play must be numpy seeds, said here rather than after recording and training
+        # (a recording needs first_seed + episodes of them at least, as `vla-ladder record` checks).
+        for name, r in uses.items():
+            last = r.start + (r.stop - r.start) // 4 if name.startswith("datasets[") else r.stop
+            if r.start < 0 or last > SEED_LIMIT:
+                raise ValueError(f"the {name} seeds ({r.start}-{last - 1}) must lie in 0..2**32-1 (numpy seeds); "
+                                 "move its first_seed")
         names = list(uses)
         for i, a in enumerate(names):
             for b in names[i + 1:]:

@@ -1,11 +1,11 @@
 """Units of work that survive kills: each runs in a child process, logs to a file, and is marked done once whole.
 
-A unit is a named call of one stage's library function on one config (record a dataset, train a model,
-evaluate it). `run_units` skips units already marked done and runs the others one after another, each in a
-child process that dies with its parent (so a kill -9 of the study leaves no orphan writing), with its
-stdout/stderr in DIR/logs/<unit>.log. A unit killed half-way is simply run again: the recorder and the
-evaluation runner resume their own files, a training run starts over. `RayExecutor` runs the same units as
-Ray tasks, locally or on a cluster (`ray.init(address=...)`), gathering results the same way.
+A unit is a named call of one stage's library function on one config (record a dataset, train a model, evaluate
+it). `run_units` skips units already marked done and runs the others one after another, each in a child process
+that dies with its parent (so a kill -9 of the study leaves no orphan writing), with its stdout/stderr in
+DIR/logs/<unit>.log. A unit killed half-way is simply run again: the recorder, the evaluation runner and training
+resume their own files (a training run from its last whole checkpoint). `RayExecutor` runs the same units as Ray
+tasks, locally or on a cluster (`ray.init(address=...)`), gathering results the same way.
 """
 
 from __future__ import annotations
@@ -210,6 +210,9 @@ def train_unit(config: dict) -> dict:
     out = Path(config["out"])
     if out.is_dir() and not (out / REQUEST_FILE).is_file():  # killed before runs kept their request: start over
         shutil.rmtree(out)
+    if config.get("device") == "auto":  # resolved here, on the machine that trains: the unit's config stays the same
+        import torch
+        config = {**config, "device": "cuda" if torch.cuda.is_available() else "cpu"}
     ckpt = train(TrainConfig(**config))  # a run killed after its request was kept resumes from its last checkpoint
     info = json.loads((out / RUN_FILE).read_text())
     return {"checkpoint": str(ckpt), "wall_s": info["wall_s"]}

@@ -273,8 +273,8 @@ RUN_FILE = "vla_ladder_train.json"
 """In a finished run's directory: the request, the lerobot-train command, the dataset and the wall time."""
 REQUEST_FILE = "vla_ladder_request.json"
 """In a run's directory from its first checkpoint on: the request, so that a re-run resumes only the same one."""
-RESUMES_WITH_OTHER = ("num_workers", "log_freq", "wandb", "print_command")
-"""Request fields a resumed run may change: how it loads and logs, not what it learns."""
+RESUMES_WITH_OTHER = ("num_workers", "log_freq", "wandb", "print_command", "device")
+"""Request fields a resumed run may change: where it runs, how it loads and logs, not what it learns."""
 
 
 def _request(req: TrainConfig) -> dict:
