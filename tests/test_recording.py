@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import struct
 import subprocess
@@ -279,13 +280,24 @@ def test_malformed_episode_frames_are_rejected_by_the_client():
     frames = {"images.hand_camera": np.zeros((50, 256, 256, 3), np.uint8),
               "images.fixed_camera": np.zeros((50, 128, 128, 3), np.uint8),
               "state": np.zeros((50, 15), np.float32), "action": np.zeros((50, 7), np.float32)}
-    header = {"type": "episode", "seed": 1, "instruction": "grasp the apple", "layout": {}, "metrics": {},
-              "expert": {}, "condition": "small_jitter/canonical/2", "object_set": "standin", "num_frames": 50,
-              "has_frames": True}
+    metrics = {"success": True, "grasp_any": True, "reach": True, "lifted": False, "held": "apple", "reach_dist": 0.0}
+    header = {"type": "episode", "seed": 1, "instruction": "grasp the apple", "target": "apple", "layout": {},
+              "metrics": metrics, "expert": {"spec": "scripted"}, "condition": "small_jitter/canonical/2",
+              "object_set": "standin", "num_frames": 50, "has_frames": True}
     with pytest.raises(P.ProtocolError, match="images.fixed_camera"):
         Episode.from_message(P.decode(P.encode(header, frames)), "test")
-    with pytest.raises(P.ProtocolError, match="num_frames"):
-        Episode.from_message(P.decode(P.encode({**header, "num_frames": "50"}, frames)), "test")
+    # Every header field the writer uses is checked on arrival: a KeyError there lost the uncommitted batch, and a
+    # success without frames was counted as a demo that never came (the recorder waited forever).
+    for edit, words in (({"num_frames": "50"}, "num_frames"), ({"num_frames": 49}, "49 frames"),
+                        ({"metrics": {k: v for k, v in metrics.items() if k != "grasp_any"}}, "grasp_any"),
+                        ({"expert": {}}, "expert['spec']"), ({"target": None}, "'target'"),
+                        ({"condition": "small_jitter/canonical/9"}, "num_objects"),
+                        ({"has_frames": False}, "a successful episode sent without its frames")):
+        with pytest.raises(P.ProtocolError, match=re.escape(words)):
+            Episode.from_message(P.decode(P.encode({**header, **edit}, {})), "test")
+    failed = Episode.from_message(P.decode(P.encode({**header, "metrics": {**metrics, "success": False},
+                                                     "has_frames": False})), "test")
+    assert not failed.success and not failed.has_frames
 
 
 def test_server_dropped_mid_episode_leaves_no_partial_episode(server, recorded, capsys):
@@ -294,6 +306,13 @@ def test_server_dropped_mid_episode_leaves_no_partial_episode(server, recorded, 
     proc, url = server
     root, _ = recorded
     before = read_provenance(root)
+    # The local server's options given with --server must be what the server serves (they were ignored).
+    for flag, value, served in (("--robot-mesh", "full", "lite"), ("--instructions", "paraphrase-train", "canonical")):
+        assert main(["record", *CONDITION, "--episodes", "99", "--out", str(root), "--server", url, "--token", TOKEN,
+                     flag, value]) == 2
+        err = capsys.readouterr().err
+        assert f"serves {flag[2:]} {served!r} but the command asks for {value!r}; drop {flag}" in err, err
+    assert read_provenance(root).equals(before)
 
     def kill_server_mid_episode():
         _wait_for(lambda: _saved(root) >= EPISODES + 1, 900, "an episode from the server", proc)

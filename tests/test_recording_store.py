@@ -206,6 +206,74 @@ def test_attempts_after_the_last_commit_are_counted(tmp_path):
     again.close()
 
 
+def test_writers_sharing_the_seed_book_start_after_the_datasets_seeds(tmp_path):
+    """The work directory (and the seed book in it) may be deleted between runs; parallel writers know only the
+    book, so the recorder's store puts the dataset's next seed there before any writer starts (they replayed seeds
+    from --first-seed, recording episodes twice)."""
+    import shutil
+
+    from vla_ladder.recording.store import SeedBook
+
+    root = tmp_path / "books"
+    store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=1)
+    for seed in store.reserve_seeds(2):
+        store.add(synthetic_episode(seed))
+    store.close()
+    shutil.rmtree(tmp_path / ".books.recording")
+    again = DatasetStore(root, Recording(**CONFIG, video=False))
+    writer = SeedBook(again.seeds.path, Recording(**CONFIG, video=False), floor=CONFIG.get("first_seed", 0))
+    assert writer.reserve(2) == [2, 3] and again.next_seed == 4
+    again.close()
+
+
+def test_ctrl_c_while_an_episode_is_written_commits_it_with_its_batch(tmp_path, monkeypatch):
+    """Ctrl-C lands inside add() most of the time when the writer is the slow stage: it waits for the episode to be
+    whole, then close() commits the batch (it dropped every pending episode, up to --commit-every of them)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    real, frames = LeRobotDataset.add_frame, []
+
+    def add_frame(self, frame):  # LeRobot's own, with a Ctrl-C arriving in the middle of the second episode
+        frames.append(1)
+        if len(frames) == FRAMES + 3:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(self, frame)
+
+    monkeypatch.setattr(LeRobotDataset, "add_frame", add_frame)
+    root = tmp_path / "interrupted"
+    store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=10)
+    first, second = store.reserve_seeds(2)
+    store.add(synthetic_episode(first))
+    with pytest.raises(KeyboardInterrupt):
+        store.add(synthetic_episode(second))
+    assert store.pending == 2 and len(frames) == 2 * FRAMES
+    store.close()
+    assert read_recording_state(root)["counters"]["saved"] == 2
+    assert LeRobotDataset("vla-ladder/interrupted", root=root).meta.total_episodes == 2
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_merge_waits_for_a_shards_writer_to_finish_committing(tmp_path):
+    """A killed recorder's writers commit on the SIGINT they get; a rerun merges each shard only once its writer
+    has let go of it (it merged it half-way)."""
+    from vla_ladder.recording.store import wait_for_writer
+
+    shard = tmp_path / "shards" / "x-00"
+    lock = tmp_path / "shards" / ".x-00.recording" / "lock"
+    lock.parent.mkdir(parents=True)
+    lock.touch()
+    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'a+'); "
+                               "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(1.5)",
+                               str(lock)], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    with pytest.raises(ValueError, match="still holds its lock after 0 s"):
+        wait_for_writer(shard, timeout_s=0.3)
+    started = time.monotonic()
+    wait_for_writer(shard)
+    assert time.monotonic() - started > 0.5 and holder.wait(timeout=10) == 0
+    wait_for_writer(tmp_path / "shards" / "never-written")  # no writer ever: nothing to wait for
+
+
 def test_a_recording_made_under_another_task_contract_is_not_resumed(tmp_path):
     """The recording state keeps contract.fingerprint(): episodes of a task whose length, cameras, state or action
     changed since must not join it (old recordings, without it, resume)."""

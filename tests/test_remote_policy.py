@@ -180,6 +180,28 @@ def test_a_policy_served_under_another_task_contract_is_refused(tmp_path, capsys
         server.shutdown()
 
 
+def test_a_server_error_without_words_is_still_one_clear_error():
+    """openpi-style servers answer a failure as text; an empty one crashed the client with an IndexError."""
+    import threading
+
+    from websockets.sync.server import serve
+
+    from vla_ladder.policies.remote import RemotePolicy
+
+    def server_side(ws):
+        ws.send(pack({}))
+        for _ in ws:
+            ws.send(" \n")
+
+    with serve(server_side, "127.0.0.1", 0) as server:
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        policy = RemotePolicy(f"ws://127.0.0.1:{server.socket.getsockname()[1]}", n_action_steps=2)
+        policy.send({PROMPT_KEY: "grasp the apple"})
+        with pytest.raises(RuntimeError, match=r"the policy server at ws://.* failed: \(no message\)$"):
+            policy.receive()
+        server.shutdown()
+
+
 @pytest.mark.parametrize("depth", [None, 2])
 def test_a_batch_of_envs_pipelines_its_requests_only_to_servers_that_say_so(depth):
     """With --num-envs N, `remote:` sends up to the server's "max_pipelined" requests before it reads an answer, and

@@ -248,7 +248,8 @@ class RemotePolicy(Policy):
         except TimeoutError:
             raise RuntimeError(f"the policy server at {self.url} sent no action in {REPLY_TIMEOUT_S:.0f} s") from None
         if isinstance(reply, str):  # openpi's servers (and ours) answer their error as text, then close
-            raise RuntimeError(f"the policy server at {self.url} failed: {reply.strip().splitlines()[-1][:500]}")
+            last = (reply.strip().splitlines() or ["(no message)"])[-1]
+            raise RuntimeError(f"the policy server at {self.url} failed: {last[:500]}")
         answer = unpack(reply)
         actions = answer.get(ACTIONS_KEY) if isinstance(answer, dict) else None
         if not isinstance(actions, np.ndarray) or actions.dtype.kind != "f" or actions.ndim not in (1, 2) \

@@ -15,7 +15,8 @@ from typing import Callable
 
 import numpy as np
 
-from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, IMAGE_SHAPE, STATE_DIM
+from vla_ladder.conditions import Condition
+from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
 from vla_ladder.recording import protocol as P
 
 log = logging.getLogger(__name__)
@@ -69,12 +70,31 @@ class Episode:
 
     @classmethod
     def from_message(cls, msg: P.Message, server: str) -> "Episode":
+        """The episode of an "episode" message; ProtocolError for any field the recorder uses that is missing or
+        of another type (checked before anything is written: a KeyError inside the writer would lose its batch)."""
         h = msg.header
         seed = P.require(h, "seed", int)
-        for key, kind in (("instruction", str), ("layout", dict), ("metrics", dict), ("expert", dict),
-                          ("condition", str), ("object_set", str), ("num_frames", int), ("has_frames", bool)):
+        for key, kind in (("instruction", str), ("target", str), ("layout", dict), ("metrics", dict),
+                          ("expert", dict), ("condition", str), ("object_set", str), ("num_frames", int),
+                          ("has_frames", bool)):
             P.require(h, key, kind)
+        for key, kind in (("success", bool), ("grasp_any", bool), ("reach", bool), ("lifted", bool), ("held", str),
+                          ("reach_dist", (int, float))):
+            if not isinstance(h["metrics"].get(key), kind):
+                what = "a number" if isinstance(kind, tuple) else kind.__name__
+                raise P.ProtocolError(f"episode {seed}: metrics[{key!r}] missing or not {what}")
+        if not isinstance(h["expert"].get("spec"), str):
+            raise P.ProtocolError(f"episode {seed}: expert['spec'] missing or not str")
+        try:
+            Condition.parse(h["condition"])
+        except ValueError as e:
+            raise P.ProtocolError(f"episode {seed}: condition {h['condition']!r}: {e}") from None
+        if h["num_frames"] != EPISODE_STEPS:
+            raise P.ProtocolError(f"episode {seed}: {h['num_frames']} frames; the task's episodes have "
+                                  f"{EPISODE_STEPS}")
         if not h["has_frames"]:
+            if h["metrics"]["success"]:  # the recorder counts it towards the demos and would wait for it forever
+                raise P.ProtocolError(f"episode {seed}: a successful episode sent without its frames")
             return cls(seed, h, {}, None, None, server)
         T = h["num_frames"]
         expected = {**{f"images.{c}": ((T, *IMAGE_SHAPE), np.uint8) for c in CAMERA_NAMES},
@@ -98,6 +118,7 @@ class EpisodeClient:
         self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
         self.ws = None
         self.welcome: dict | None = None
+        self.requested: set[int] = set()  # seeds asked for on this connection and not yet delivered
 
     async def connect(self, open_timeout: float = 30.0) -> dict:
         from websockets.asyncio.client import connect
@@ -118,16 +139,23 @@ class EpisodeClient:
 
     async def request(self, seeds: list[int], failed_frames: bool = False) -> None:
         await self._send(P.run(seeds, failed_frames))
+        self.requested.update(seeds)
 
     async def receive(self) -> Episode:
+        """The next episode; ServerError (permanent) for a malformed one or one of a seed not asked for on this
+        connection, or delivered already: each seed is played once for a dataset, which the server must not undo."""
         msg = await self._recv()
         if msg.type != "episode":
             raise ServerError(self.url, f"unexpected message {msg.type!r}")
         try:
-            return Episode.from_message(msg, self.url)
+            episode = Episode.from_message(msg, self.url)
+            if episode.seed not in self.requested:
+                raise P.ProtocolError(f"episode {episode.seed} was not asked for, or was sent already")
         except P.ProtocolError as e:
             await self.ws.close(e.code, e.reason[:120])
             raise ServerError(self.url, f"malformed episode: {e.reason}", e.code) from None
+        self.requested.discard(episode.seed)
+        return episode
 
     async def close(self) -> None:
         if self.ws is not None:
@@ -211,7 +239,10 @@ class EpisodeSource:
         if isinstance(item, _Failed):
             self._out.put(item)  # later calls fail the same way
             errors = "; ".join(str(e) for e in item.errors)
-            raise ServerError("all servers", f"no server left to draw episodes from: {errors}")
+            # A server that serves something else (check_server's ValueError) or refused us refuses a rerun too.
+            permanent = all(isinstance(e, ValueError) or (isinstance(e, ServerError) and e.permanent)
+                            for e in item.errors)
+            raise ServerError("all servers", f"no server left to draw episodes from: {errors}", permanent=permanent)
         return item
 
     def stop(self) -> None:

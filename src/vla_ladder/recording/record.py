@@ -147,6 +147,14 @@ def recording_of(cfg: RecordConfig) -> Recording:
     if cfg.condition not in (Condition(), condition):
         raise ValueError(f"--server {cfg.server[0]} serves {condition} but the command asks for {cfg.condition}; "
                          "drop the condition flags (the servers' condition is recorded) or start matching servers")
+    # The local server's options, given with --server: what the servers serve is recorded, so a flag that says
+    # otherwise is refused rather than ignored (only one left at its default cannot be told from one not given).
+    for name, served_value in (("policy", policy), ("robot_mesh", robot_mesh), ("instructions", instructions)):
+        given = getattr(cfg, name)
+        if given not in (RecordConfig.__dataclass_fields__[name].default, served_value):
+            raise ValueError(f"--server {cfg.server[0]} serves {name.replace('_', '-')} {served_value!r} but the "
+                             f"command asks for {given!r}; drop --{name.replace('_', '-')} (the servers' is recorded) "
+                             "or start matching servers")
     return Recording(policy, condition, cfg.first_seed, cfg.video, robot_mesh, instructions, cfg.vcodec)
 
 
@@ -206,8 +214,13 @@ def run(cfg: RecordConfig) -> int:
         report_targets(cfg.out)
         return 0
     except KeyboardInterrupt:
-        log.info("interrupted: committing the %d pending episodes", store.pending)
-        store.close()
+        # A second Ctrl-C (or the recorder passing its own on to its writers) must not cut the commit short.
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            log.info("interrupted: committing the %d pending episodes", store.pending)
+            store.close()
+        finally:
+            signal.signal(signal.SIGINT, previous)
         return 130
     except ServerError as e:
         log.error("%s", e)

@@ -34,6 +34,8 @@ import json
 import logging
 import os
 import shutil
+import signal
+import threading
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -167,16 +169,17 @@ class DatasetStore:
 
         ds = self._dataset()
         task = episode.header["instruction"]
-        self._writing = True
-        for t in range(episode.num_frames):
-            ds.add_frame({**{c.key: episode.images[c.name][t] for c in CAMERAS},
-                          STATE_KEY: episode.state[t], ACTION_KEY: episode.action[t], "task": task})
-        with SuppressProgressBars():
-            ds.save_episode()
-        self._writing = False
-        index = self.saved + self.pending
-        self._rows.append(_provenance_row(index, episode))
-        self.pending += 1
+        with _sigint_held():  # Ctrl-C mid-episode would leave LeRobot's files out of step and cost the whole batch
+            self._writing = True
+            for t in range(episode.num_frames):
+                ds.add_frame({**{c.key: episode.images[c.name][t] for c in CAMERAS},
+                              STATE_KEY: episode.state[t], ACTION_KEY: episode.action[t], "task": task})
+            with SuppressProgressBars():
+                ds.save_episode()
+            self._writing = False
+            index = self.saved + self.pending
+            self._rows.append(_provenance_row(index, episode))
+            self.pending += 1
         if self.pending >= self.commit_every or time.monotonic() - self._batch_started >= self.commit_seconds:
             self.commit()
         return index
@@ -240,6 +243,8 @@ class DatasetStore:
         """
         if self.pending:
             self.commit()
+        for s in shards:
+            wait_for_writer(Path(s))
         states = {s: read_recording_state(s) for s in map(Path, shards)}
         full = [s for s, st in states.items() if st and st["counters"]["saved"] > 0]
         for s in full:
@@ -319,7 +324,7 @@ class DatasetStore:
 
     def close(self, commit: bool = True) -> None:
         """Commit what is pending (or drop it) and release the dataset. Episodes pending when an exception
-        (e.g. Ctrl-C) interrupted add() are dropped: LeRobot's files may then be out of step."""
+        interrupted add() are dropped: LeRobot's files may then be out of step (Ctrl-C waits for add() to end)."""
         if commit and self._writing:
             log.warning("interrupted while writing an episode: dropping the %d pending episodes", self.pending)
             commit = False
@@ -343,22 +348,37 @@ class SeedBook:
 
     def __init__(self, path: Path, config: Recording, floor: int):
         self.path, self.config, self.floor = Path(path), config, floor
+        # The floor goes into the book at once: writer processes sharing it (`record --writers`) know only the
+        # book and their own shards, not the dataset, whose committed next seed would be lost to them when the
+        # work directory (and the book in it) was deleted since; they replayed its seeds.
+        with self._locked():
+            if self._booked() < floor:
+                files.write_json(self.path, {"config": self.config.to_dict(), "next_seed": floor})
 
-    @property
-    def next_seed(self) -> int:
+    @contextlib.contextmanager
+    def _locked(self) -> Iterator[None]:
+        with open(self.path.with_suffix(".lock"), "a+") as lock:  # one open file each: threads exclude too
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            yield
+
+    def _booked(self) -> int:
+        """The next seed the book holds for this recording; -1 when it holds none (or another recording's)."""
         if self.path.exists():
             booked = json.loads(self.path.read_text())
             if booked.get("config") == self.config.to_dict():
-                return max(self.floor, int(booked["next_seed"]))
-        return self.floor
+                return int(booked["next_seed"])
+        return -1
+
+    @property
+    def next_seed(self) -> int:
+        return max(self.floor, self._booked())
 
     def reserve(self, n: int) -> list[int]:
         """Up to n new seeds: fewer when the seeds below 2**32 run out (failed attempts use seeds too, so the
         last demos of a recording that starts near the limit may find none; then ValueError)."""
         if n < 1:
             raise ValueError(f"reserve at least one seed, got {n}")
-        with open(self.path.with_suffix(".lock"), "a+") as lock:  # one open file each: threads exclude too
-            fcntl.flock(lock, fcntl.LOCK_EX)
+        with self._locked():
             first = self.next_seed
             n = min(n, SEED_LIMIT - first)
             if n < 1:
@@ -367,6 +387,25 @@ class SeedBook:
                                  "--out with a lower --first-seed")
             files.write_json(self.path, {"config": self.config.to_dict(), "next_seed": first + n})
         return list(range(first, first + n))
+
+
+@contextlib.contextmanager
+def _sigint_held() -> Iterator[None]:
+    """Hold back SIGINT (Ctrl-C) for the block and raise KeyboardInterrupt once it ends, so that an episode is
+    written whole or not at all. Only the main thread receives signals; elsewhere the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)
+    if held and callable(previous):
+        previous(signal.SIGINT, None)  # Python's own handler raises KeyboardInterrupt
+    elif held and previous == signal.SIG_DFL:
+        raise KeyboardInterrupt
 
 
 def _own_meta_indices(root: Path) -> None:
@@ -389,6 +428,30 @@ def _own_meta_indices(root: Path) -> None:
                                      pa.array([v] * len(table), type=table.schema.field(k).type))
         with files.atomic_path(path) as tmp:
             pq.write_table(table, tmp)
+
+
+def wait_for_writer(shard: Path, timeout_s: float = 300.0) -> None:
+    """Return once no writer holds `shard`'s lock. A writer commits what it holds when its recorder dies (it gets
+    SIGINT), and a rerun started at once would otherwise merge the shard while it commits, losing what that writer
+    commits later or merging it twice; ValueError when it still holds it after `timeout_s`."""
+    lock = shard.parent / f".{shard.name}.recording" / "lock"
+    if not lock.exists():
+        return
+    deadline, said = time.monotonic() + timeout_s, False
+    with open(lock, "a+") as f:
+        while True:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise ValueError(f"the writer of shard {shard} still holds its lock after {timeout_s:.0f} s; "
+                                     "stop it (or wait for it) and rerun") from None
+                if not said:
+                    log.info("waiting for the writer of shard %s to commit", shard.name)
+                    said = True
+                time.sleep(0.2)
+        fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _remove_shard(shard: Path) -> None:
