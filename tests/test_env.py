@@ -181,6 +181,10 @@ def test_target_not_in_scene_rejected(make_env):
         env.reset(seed=0, options={"target": "pear"})
     with pytest.raises(ValueError, match="seeds for"):
         env.reset(seed=[1, 2])
+    # A seed numpy cannot take is refused by name (it was numpy's "expected non-negative integer", or OverflowError).
+    for seed in (-1, 2**32, [2**63]):
+        with pytest.raises(ValueError, match=r"episode seeds must be integers in \[0, 2\*\*32\)"):
+            env.reset(seed=seed)
 
 
 @pytest.mark.slow

@@ -38,3 +38,16 @@ def test_provenance_names_the_checkouts_version_when_run_uninstalled(monkeypatch
     pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
     assert files.provenance()["vla-ladder"] == pyproject["project"]["version"]
     assert files.provenance()["torch"] is None
+
+
+def test_provenance_says_which_simulator_build_and_cpu_measured_it():
+    """The same seed replays bit for bit on one machine; another CPU or SAPIEN build may flip a marginal grasp (the
+    reference ladder's layout-prior: 18/20 small-jitter successes on 2026-11-24's machine, 17/20 here)."""
+    import importlib.metadata
+
+    prov = files.provenance("standin")
+    assert prov["sapien"] == importlib.metadata.version("sapien")
+    assert prov["numpy"] == importlib.metadata.version("numpy")
+    assert prov["object_set"] == "standin"
+    if Path("/proc/cpuinfo").is_file():
+        assert prov["cpu"] and prov["cpu"].split(", ")[0] in Path("/proc/cpuinfo").read_text()

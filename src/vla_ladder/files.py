@@ -118,15 +118,31 @@ def _checkout_version() -> str | None:
     return tomllib.loads(pyproject.read_text()).get("project", {}).get("version")
 
 
+def cpu_model() -> str | None:
+    """The CPU's model name and widest vector extension (Linux), e.g. "Intel(R) Xeon(R) Processor, avx512f", or
+    None. Physics replays bit for bit on one machine, but another host (or another SAPIEN build) may differ in the
+    last bits of a step, which can flip a marginal grasp: results say where they were measured."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            info = dict(line.split(":", 1) for line in f.read().split("\n\n")[0].splitlines() if ":" in line)
+    except OSError:
+        return None
+    info = {k.strip(): v.strip() for k, v in info.items()}
+    flags = set(info.get("flags", "").split())
+    isa = next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), None)
+    return ", ".join(x for x in (info.get("model name"), isa) if x) or None
+
+
 def provenance(object_set: str | None = None) -> dict:
-    """Versions and asset set to stamp into every result file."""
+    """Versions, CPU and asset set to stamp into every result file."""
     from importlib.metadata import PackageNotFoundError, version
     out = {}
-    for pkg in ("vla-ladder", "mani-skill", "lerobot", "torch"):
+    for pkg in ("vla-ladder", "mani-skill", "sapien", "lerobot", "torch", "numpy"):
         try:
             out[pkg] = version(pkg)
         except PackageNotFoundError:
             out[pkg] = _checkout_version() if pkg == "vla-ladder" else None
+    out["cpu"] = cpu_model()
     if object_set is not None:
         out["object_set"] = object_set
     return out

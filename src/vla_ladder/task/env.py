@@ -25,6 +25,7 @@ from mani_skill.utils.structs.pose import Pose
 from mani_skill.utils.structs.types import GPUMemoryConfig, SimConfig
 
 from vla_ladder import contract
+from vla_ladder.checks import SEED_LIMIT
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import CAMERAS, CONTROL_HZ, EPISODE_STEPS, REACH_THRESHOLD, SIM_HZ
 from vla_ladder.task import appearance, assets, robot
@@ -270,10 +271,14 @@ class GraspObjectEnv(BaseEnv):
             env_idx.cpu() if torch.is_tensor(env_idx) else env_idx).reshape(-1)
         if len(self._layout_seeds) != self.num_envs:
             self._layout_seeds = np.zeros(self.num_envs, dtype=np.int64)
+        if seed is not None:  # checked before numpy sees them (its errors do not say what is allowed)
+            span = [int(s) for s in seed] if np.iterable(seed) else [int(seed), int(seed) + int(idx.max())]
+            if not all(0 <= s < SEED_LIMIT for s in span):
+                raise ValueError(f"episode seeds must be integers in [0, 2**32) (numpy seeds), got {seed!r}"[:200])
         if seed is None:
             seeds = self._seed_rng.integers(0, 2**31, size=len(idx))
         elif np.iterable(seed):
-            seeds = np.asarray(list(seed), dtype=np.int64)
+            seeds = np.asarray([int(s) for s in seed], dtype=np.int64)
             if len(seeds) != len(idx):
                 raise ValueError(f"got {len(seeds)} seeds for {len(idx)} envs being reset")
         else:
