@@ -118,6 +118,25 @@ def test_metrics_wrong_object_grasped(make_env):
     assert last["held"].item() == OBJECT_NAMES.index("rubiks_cube") and last["wrong_grasp"].item()
 
 
+def test_held_names_the_instructed_object_when_it_is_among_those_held(make_env, monkeypatch):
+    """Two objects held at once (the contact flags forced so: rare in play): held must agree with success, which the
+    confusion matrix and held_outcome read together; it named the lower-indexed object, here the apple."""
+    seed = _seed_with({"apple", "mug"}, target="mug")
+    env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=2, target="mug")
+    env.reset(seed=seed)
+    u = env.unwrapped
+    both = torch.zeros(1, NUM_OBJECTS, dtype=torch.bool)
+    both[0, [OBJECT_NAMES.index("apple"), OBJECT_NAMES.index("mug")]] = True
+    monkeypatch.setattr(u, "_grasp_flags", lambda: both)
+    info = env.step(torch.zeros(1, 7))[4]
+    assert info["success"].item() and info["held"].item() == OBJECT_NAMES.index("mug")
+    only_apple = both & (torch.arange(NUM_OBJECTS) == OBJECT_NAMES.index("apple"))
+    monkeypatch.setattr(u, "_grasp_flags", lambda: only_apple)
+    info = env.step(torch.zeros(1, 7))[4]
+    assert not info["success"].item() and info["held"].item() == OBJECT_NAMES.index("apple")
+    assert info["wrong_grasp"].item()
+
+
 @pytest.mark.slow
 def test_metrics_hovering_near_target_and_doing_nothing(make_env):
     env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=5, target="orange")

@@ -75,7 +75,7 @@ INFO_KEYS: dict[str, str] = {
     "grasp_any": "(N,) bool: some object was grasped at some step of the episode",
     "reach": "(N,) bool: the TCP is within REACH_THRESHOLD of the instructed object's bounding box",
     "is_grasped": "(N, 5) bool: each object grasped now (both fingers push on it)",
-    "held": "(N,) int: index (task/objects.py) of the object grasped now, -1 for none",
+    "held": "(N,) int: index (task/objects.py) of the object grasped now (the instructed one if it is), -1 for none",
     "reach_dist": "(N,) m: TCP distance to the instructed object's bounding box",
     "lift": "(N,) m: height of the instructed object above its resting height",
     "lifted": "(N,) bool: success and lift >= 5 cm",

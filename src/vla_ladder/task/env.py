@@ -470,10 +470,12 @@ class GraspObjectEnv(BaseEnv):
         grasped = self._grasp_flags() & self.present & (self.elapsed_steps > 0)[:, None]
         any_now = grasped.any(dim=1)
         self._grasp_any |= any_now
-        held = torch.where(any_now, grasped.float().argmax(dim=1), torch.full_like(self.target_idx, -1))
+        success = self._target_select(grasped)
+        # The instructed object when it is among those held (two at once is rare), so that held agrees with success.
+        held = torch.where(success, self.target_idx, torch.where(any_now, grasped.float().argmax(dim=1),
+                                                                 torch.full_like(self.target_idx, -1)))
         dist = self._target_select(self._dist_to_boxes())
         lift = self._target_select(c["p"][..., 2]) - self._rest_z[self.target_idx]
-        success = self._target_select(grasped)
         return dict(success=success, grasp_any=self._grasp_any.clone(), reach=dist <= REACH_THRESHOLD,
                     is_grasped=grasped, held=held, reach_dist=dist, lift=lift,
                     lifted=success & (lift >= LIFT_HEIGHT), wrong_grasp=any_now & ~success, tcp_xy=c["tcp"][:, :2])
