@@ -112,7 +112,8 @@ def paper_comparison_markdown(cells: list[dict], paper: dict) -> str:
 def _same_cell(c: dict) -> bool:
     """The cell is on the model's training condition, or the OOD pairing counterpart of it."""
     t, e = Condition.parse(c["train_condition"]), Condition.parse(c["eval_condition"])
-    return (t.regime, t.num_objects) == (e.regime, e.num_objects) and (t.split == e.split or t.split == "pairings_id")
+    return (t.regime, t.num_objects) == (e.regime, e.num_objects) and \
+        (t.split == e.split or (t.split, e.split) == ("pairings_id", "pairings_ood"))
 
 
 def matrix_html(cells: list[dict]) -> str:

@@ -116,8 +116,8 @@ def tex_escape(s: str) -> str:
 
 
 def _n_note(groups: dict) -> str:
-    ns = sorted({c.n if isinstance(c, Rate) else c.after.n for rows in groups.values()
-                 for _, cells in rows for c in cells.values()})
+    ns = sorted({n for rows in groups.values() for _, cells in rows for c in cells.values()
+                 for n in ((c.n,) if isinstance(c, Rate) else (c.before.n, c.after.n))})
     return ", ".join(map(str, ns)) or "no complete rows"
 
 
