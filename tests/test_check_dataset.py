@@ -94,6 +94,9 @@ def test_a_leaky_dataset_built_on_purpose_is_caught(recorded, tmp_path, capsys):
     # every other check passes them, only a replay sees that they did not produce the recorded states.
     ep1 = data.index[data["episode_index"] == 1]
     data.loc[ep1, "action"] = pd.Series([data.at[ep1[0], "action"], *data.loc[ep1[:-1], "action"]], index=ep1)
+    # Episode 0's frames point at a task meta/tasks.parquet lacks: training would read no instruction for them,
+    # while meta/episodes' `tasks` still names the right one.
+    data.loc[data["episode_index"] == 0, "task_index"] = 99
     data.to_parquet(data_path, index=False)
     state = read_recording_state(leaky)  # and recorded when the episode was 10 steps longer
     state["contract"]["episode_steps"] = EPISODE_STEPS + 10
@@ -104,6 +107,8 @@ def test_a_leaky_dataset_built_on_purpose_is_caught(recorded, tmp_path, capsys):
     held_out = [f"{n} in region {r}" for n, r in occupancy(ood) if r in HELD_OUT_REGIONS[OBJECT_NAMES.index(n)]]
     assert held_out and f"leakage: episode 1 (seed {seed}) holds held-out pairs: {', '.join(held_out)}" in lines
     assert any(line.startswith("layouts: episode 1 ") and "but the seed gives" in line for line in lines)
+    assert any(line.startswith("layouts: episode 0 ") and "its frames' task_index gives [None]" in line
+               for line in lines)
     assert any(line.startswith(f"seeds: seed {int(prov.loc[0, 'seed'])} recorded 2 times (episodes 0, 2)")
                for line in lines)
     assert any(line.startswith("actions: episode 0: 1 frames with actions outside [-1, 1]") for line in lines)

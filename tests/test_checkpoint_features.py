@@ -91,6 +91,31 @@ def test_renames_are_the_saved_ones_and_blank_camera_slots_are_allowed(tmp_path)
     assert "no model.safetensors" in _refusal(blank)
 
 
+def test_a_vla_fine_tuned_from_its_base_is_judged_by_its_training_data(tmp_path):
+    """LeRobot fine-tunes a VLA under its base's declared inputs (smolvla_base: a 6-d state, cameras camera1-3), and
+    trains it on what the data holds: the 15-d state, padded to max_state_dim, and the two cameras renamed. Its
+    normalizer's statistics say so, and the checkpoint is used (it was refused: state (6,), camera3 not fed); a
+    camera its data did have, or a state of another size there, is still refused."""
+    import torch
+    from safetensors.torch import save_file
+
+    slots = {HAND.replace("hand_camera", f"camera{i}"): CHW for i in (1, 2, 3)}
+    rename = {FIXED: HAND.replace("hand_camera", "camera1"), HAND: HAND.replace("hand_camera", "camera2")}
+
+    def fine_tuned(name: str, data: dict[str, tuple]) -> Path:
+        ckpt = _checkpoint(tmp_path / name, "smolvla", slots, state=(6,), rename=rename)
+        save_file({f"{k}.mean": torch.zeros(shape) for k, shape in {**data, ACTION_KEY: (7,)}.items()},
+                  ckpt / "policy_preprocessor_step_5_normalizer_processor.safetensors")
+        return ckpt
+
+    env_data = {STATE_KEY: (15,), HAND: (3, 1, 1), FIXED: (3, 1, 1)}
+    assert "no model.safetensors" in _refusal(fine_tuned("ours", env_data))
+    third = HAND.replace("hand_camera", "camera3")
+    msg = _refusal(fine_tuned("three", {**env_data, third: (3, 1, 1)}))
+    assert f"camera {third} is not one the env has" in msg and "has shape (6,)" not in msg
+    assert f"state {STATE_KEY} has shape (6,)" in _refusal(fine_tuned("six", {**env_data, STATE_KEY: (6,)}))
+
+
 def test_other_inputs_and_a_missing_state_or_action(tmp_path):
     from lerobot.configs.types import FeatureType
 

@@ -39,7 +39,9 @@ from vla_ladder.policies import Policy, parse_options, positive_int
 ENV_IMAGE_SHAPE = (IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1])  # CHW, as LeRobot declares visual features
 # Policies that resize every camera image to their own resolution (LeRobot's VLAs): a checkpoint trained on another
 # image size still gets images it can use. Every camera they declare must still be fed, except the blank
-# `empty_camera_i` slots their `empty_cameras` option adds on purpose.
+# `empty_camera_i` slots their `empty_cameras` option adds on purpose, and, for a checkpoint fine-tuned from a base
+# (which keeps the base's declared inputs), a camera its training data never had; they pad the state to
+# max_state_dim, so the base's declared state size does not matter where the training data's was the env's.
 RESIZES_IMAGES = {"smolvla", "pi0", "pi05", "pi0_fast"}
 # Policies whose predict_action_chunk takes the flow-matching noise, (batch, chunk_size, max_action_dim), and which
 # see one observation a step: their chunks are drawn here from per-episode noise (module docstring).
@@ -102,10 +104,12 @@ def check_checkpoint(path: str | Path) -> Path:
     return found
 
 
-def check_env_compatible(cfg, rename_map: dict[str, str]) -> None:
+def check_env_compatible(cfg, rename_map: dict[str, str], trained: dict[str, tuple] | None = None) -> None:
     """ValueError naming every input the policy declares that GraspObject-v1 does not provide, and every size that
     differs, for every policy type. `rename_map` (env key -> policy key) is the one saved with the checkpoint:
-    renames are explicit, never guessed."""
+    renames are explicit, never guessed. `trained` (trained_inputs: policy key -> shape) is what the checkpoint's
+    training data held: LeRobot fine-tunes a VLA under its base's declared inputs (smolvla_base: a 6-d state and
+    three cameras), so for those the data, not the declaration, says what it learned from."""
     from lerobot.configs import FeatureType
     from lerobot.utils.constants import OBS_IMAGES
 
@@ -123,11 +127,14 @@ def check_env_compatible(cfg, rename_map: dict[str, str]) -> None:
             if key in blank_slots:
                 continue
             if key not in fed_cameras:
-                problems.append(f"camera {key} is not one the env has")
+                if not (resizes and trained is not None and key not in trained):  # else: never fed in training
+                    problems.append(f"camera {key} is not one the env has")
             elif not resizes and shape != ENV_IMAGE_SHAPE:
                 problems.append(f"camera {key} has shape {shape}, the env renders {ENV_IMAGE_SHAPE}")
         elif ft.type is FeatureType.STATE and key == fed_state:
-            if shape != (STATE_DIM,):
+            padded = resizes and trained is not None and trained.get(key) == (STATE_DIM,) and \
+                STATE_DIM <= getattr(cfg, "max_state_dim", 0)
+            if shape != (STATE_DIM,) and not padded:
                 problems.append(f"state {key} has shape {shape}, the env provides ({STATE_DIM},)")
         else:
             problems.append(f"input {key} ({ft.type.value}, shape {shape}) is not provided")
@@ -167,7 +174,8 @@ def checked_config(path: str | Path, n_action_steps: int | None = None, device: 
             cfg = PreTrainedConfig.from_pretrained(path, cli_overrides=overrides)
     except Exception as e:  # draccus wraps the config's own checks (e.g. n_action_steps > chunk_size)
         raise ValueError(f"cannot use the checkpoint {str(path)!r} with {overrides}: {e}") from e
-    check_env_compatible(cfg, _saved_rename_map(path))
+    rename_map = _saved_rename_map(path)
+    check_env_compatible(cfg, rename_map, trained_inputs(path, rename_map))
     check_trained_contract(path)
     check_checkpoint(path)  # last: a mismatch is named even where the weights are missing
     return cfg
@@ -188,6 +196,19 @@ def trained_contract(path: Path) -> dict | None:
     """The task contract a checkpoint was trained under (its TRAINED_CONTRACT_FILE), None where it does not say."""
     saved = path / TRAINED_CONTRACT_FILE
     return json.loads(saved.read_text()) if saved.is_file() else None
+
+
+def trained_inputs(path: Path, rename_map: dict[str, str]) -> dict[str, tuple] | None:
+    """The observations the checkpoint's training data held, under the policy's names, with their statistics'
+    shapes (the state's is its size), read from the normalizer its preprocessor saved; None without one."""
+    from safetensors import safe_open
+
+    found = sorted(Path(path).glob("policy_preprocessor_step_*_normalizer_processor.safetensors"))
+    if not found:
+        return None
+    with safe_open(str(found[0]), framework="pt") as f:
+        keys = {k.rsplit(".", 1)[0]: tuple(f.get_slice(k).get_shape()) for k in f.keys() if k.endswith(".mean")}
+    return {rename_map.get(k, k): shape for k, shape in keys.items() if k.startswith("observation.")}
 
 
 def _saved_rename_map(path: Path) -> dict[str, str]:

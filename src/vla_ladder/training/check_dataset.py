@@ -159,6 +159,7 @@ class Checker:
     def layouts_regenerate(self) -> None:
         condition = self.recording.condition
         tasks = self._episode_tasks()
+        trained_on = self._frame_tasks()
         bad = 0
         for (_, row), layout in zip(self.prov.iterrows(), self.layouts):
             ep = f"episode {row['episode_index']} (seed {row['seed']})"
@@ -181,6 +182,11 @@ class Checker:
             task = tasks.get(int(row["episode_index"]))
             if task is not None and task != [layout["instruction"]]:
                 problems.append(f"LeRobot task {task} is not the instruction {layout['instruction']!r}")
+            # What training reads: each frame's task_index, looked up in meta/tasks.parquet.
+            frame_tasks = trained_on.get(int(row["episode_index"]))
+            if frame_tasks is not None and frame_tasks != [layout["instruction"]]:
+                problems.append(f"its frames' task_index gives {frame_tasks}, not the instruction "
+                                f"{layout['instruction']!r} (what training reads)")
             if problems:
                 bad += 1
                 self.flag("layouts", f"{ep}: " + "; ".join(problems))
@@ -329,11 +335,22 @@ class Checker:
         meta = self._episodes_meta()
         return {int(e): list(t) for e, t in zip(meta["episode_index"], meta["tasks"])}
 
+    def _frame_tasks(self) -> dict[int, list]:
+        """Per episode, the distinct tasks its frames' task_index names in meta/tasks.parquet (None for an index
+        the table lacks): LeRobotDataset.__getitem__ reads these, not meta/episodes' `tasks`."""
+        path = self.root / "meta" / "tasks.parquet"
+        if not path.is_file() or not len(self._frames):
+            return {}
+        table = pd.read_parquet(path)
+        names = dict(zip(table["task_index"], table.index))
+        return {int(e): [names.get(int(i)) for i in sorted(g.unique())]
+                for e, g in self._frames.groupby("episode_index")["task_index"]}
+
     @cached_property
     def _frames(self) -> pd.DataFrame:
         """Every frame's indices, action and state, read once for the checks that need them."""
         paths = sorted((self.root / "data").glob("*/*.parquet"))
-        cols = ["episode_index", "frame_index", ACTION_KEY, STATE_KEY]
+        cols = ["episode_index", "frame_index", "task_index", ACTION_KEY, STATE_KEY]
         if not paths:
             return pd.DataFrame(columns=cols)
         return pd.concat([pd.read_parquet(p, columns=cols) for p in paths], ignore_index=True)
