@@ -116,6 +116,19 @@ def test_incomplete_scenes_are_left_out():
     assert metrics(df)["scenes"] == 11
 
 
+def test_instruction_swap_plays_of_other_scenes_are_refused():
+    """Its plays pair on the episode index, as every paired probe's do: variants of other seeds (directories of
+    two requests put together) were scored as scenes, 3 of them 'sensitive'; every other probe refused them."""
+    df = plays(lambda lay, r, j: lay.target)
+    shifted = df.assign(seed=df["seed"] + 100 * (df["instruct"] == 1))
+    with pytest.raises(ValueError, match="played different seeds or instructed an object twice"):
+        metrics(shifted)
+    twice = df.assign(target=np.where(df["instruct"] == 1, df["target"].where(df["instruct"] == 0).ffill(),
+                                      df["target"]))
+    with pytest.raises(ValueError, match="played different seeds or instructed an object twice"):
+        metrics(twice.sort_values(["episode", "instruct"]))
+
+
 def test_paired_and_appearance_metrics():
     a = plays(lambda lay, r, j: lay.target)
     a = a[a["instruct"] == 0].drop(columns="instruct")
@@ -241,7 +254,11 @@ def make_probe(root: Path, videos: int = 0) -> Path:
     `videos` scenes of each variant filmed."""
     kinds = {0: ["success", "success", "wrong_object"], 1: ["wrong_object", "success", "grasp_lost"]}
     for r, k in kinds.items():
-        make_run(root / f"instruct-{r}", "nearest", [("small_jitter", "canonical", 2)], k, videos=videos)
+        run = make_run(root / f"instruct-{r}", "nearest", [("small_jitter", "canonical", 2)], k, videos=videos)
+        episodes = pd.read_parquet(run / "episodes.parquet")  # instruct-r names the scene's rank-r object
+        lays = [sample_layout(Condition("small_jitter", "canonical", 2), s).instructed(r) for s in episodes["seed"]]
+        episodes["target"], episodes["instruction"] = [x.target for x in lays], [x.instruction for x in lays]
+        episodes.to_parquet(run / "episodes.parquet", index=False)
     df = pd.concat([load_run(root / f"instruct-{r}").episodes.assign(instruct=r) for r in kinds])
     write_json(root / "probe.json", {"probe": "instruction-swap", "policy": {"spec": "nearest"}, "complete": True,
                                      "conditions": grounding.instruction_swap(df, 300)})

@@ -127,6 +127,8 @@ def test_switch_configs_and_refusals(tmp_path, refused):
     assert variants["switch-25"].jobs()[0].options == (("switch_at", 25),)
     assert "switch_steps" in cfg.request()
     assert "switch_steps" not in ProbeConfig("position-swap", policy="nearest").request()  # old dirs still resume
+    # The same steps in another order are the same variants, so the same request (a rerun was refused).
+    assert ProbeConfig("instruction-switch", policy="nearest", switch_steps=(25, 5)).request() == cfg.request()
     p, e = str(tmp_path / "p"), str(tmp_path / "e")
     cases = [
         (["probe", "instruction-switch", "--policy", "nearest", "--out", p, "--num-objects", "1"],

@@ -7,10 +7,12 @@ pairing splits). Pooled over a ladder's regimes it runs from about 0 (small jitt
 so one run directory of `vla-ladder eval --regimes all` says where along the way a policy stops finding the object.
 
 - bins: each metric's rate per displacement bin (DISPLACEMENT_BINS_CM), with Wilson intervals (stats.rates);
-- far from the place (FAR_CM and more, where the gripper cannot be within REACH_THRESHOLD of both the object and
-  its usual place): the share of episodes that reach the object and the share whose gripper ends at the object's
-  usual place instead (within REACH_THRESHOLD of a usual region's centre, horizontally, as the absent-object probe
-  measures it), with Wilson intervals, and the second minus the first (Newcombe's paired interval: +1 always the
+- far from the place (FAR_CM and more, where the object's centre and its usual place lie two reach thresholds apart;
+  reach is measured to the object's box, so an object over 5 cm in radius could in principle let both hold at
+  once, which no committed episode did): the share of episodes that reach the object and the share whose gripper
+  ends at the object's usual place instead (within REACH_THRESHOLD of a usual region's centre, horizontally, as the
+  absent-object probe measures it, but whether or not a distractor stands there: the probe counts empty places
+  only), with Wilson intervals, and the second minus the first (Newcombe's paired interval: +1 always the
   place, -1 always the object): the location shortcut seen in ordinary episodes, no probe needed;
 - the trend: a logistic regression of the metric on the displacement (statsmodels' Logit, profile-likelihood
   interval, likelihood-ratio p-value), as the odds ratio per 10 cm. A policy that goes to the named object wherever
@@ -43,8 +45,9 @@ reaches ~45 cm (the workspace is 35 x 50 cm). Fixed, so that curves of different
 PER_CM = 10.0
 """The trend's unit of distance: the odds ratio per 10 cm."""
 FAR_CM = 200 * REACH_THRESHOLD
-"""From here on (10 cm) the object and its usual place lie more than two reach thresholds apart: a gripper that ends
-at one has not reached the other."""
+"""From here on (10 cm) the object's centre and its usual place lie two reach thresholds apart: a gripper that ends at
+the place has not reached the object unless the object's box comes within 5 cm of it (possible only for the mug and
+the marker, whose footprints reach 5.9-6.1 cm; none of the committed far episodes)."""
 
 
 def usual_places(layout: dict, trained: Condition) -> np.ndarray:

@@ -159,6 +159,12 @@ def instruction_swap(plays: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
     out = {}
     for key, g in _by_condition(plays):
         ranks = int(g["num_objects"].iloc[0])
+        # A scene is one seed, each of its objects instructed once, as every other paired probe checks (same_scenes).
+        per_scene = g.groupby("episode").agg(seeds=("seed", "nunique"), targets=("target", "nunique"),
+                                             plays=("target", "size"))
+        if ((per_scene["seeds"] > 1) | (per_scene["targets"] != per_scene["plays"])).any():
+            raise ValueError("the variants played different seeds or instructed an object twice; a probe compares "
+                             "the same scenes")
         full = g.groupby("episode").filter(lambda s: s["instruct"].nunique() == ranks)
         scenes = [s.sort_values("instruct") for _, s in full.groupby("episode", sort=True)]
         n = len(scenes)

@@ -250,8 +250,9 @@ QUESTIONS = (
      f"ladder episodes whose named object stood {FAR_CM:g} cm or more from its usual place: gripper ends at the "
      "place minus gripper reaches the object (points)"),
 )
-# The references read their target from the state: wording cannot change what they do, so on "reworded" they all
-# answer 0 and none is nearer than another (resembles then names none).
+# Wording cannot change what the references do (scripted, committed and nearest read their target from the state or
+# not at all; layout-prior parses every shipped wording): on "reworded" they all answer 0 and none is nearer than
+# another (resembles then names none).
 
 
 def answers(root: Path, condition: str) -> tuple[dict[str, dict | None], dict | None]:

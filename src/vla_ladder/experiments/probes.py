@@ -8,7 +8,8 @@ DIR/probe.json (metrics with 95% intervals, evaluation/grounding.py), DIR/<probe
   own target, instruct-k its k-th distractor; layout, colours, robot start and physics identical). Instruction
   sensitivity, scene accuracy, grounded accuracy, the normalised mutual information between instructed and
   held object, and the instructed x held matrix. This tells "follows the instruction through a location"
-  (layout-prior: sensitive under small jitter, not under full random) from "ignores it" (nearest: never).
+  (layout-prior: sensitive everywhere, grounded under small jitter only; under full random its grounded accuracy
+  and NMI fall to chance) from "ignores it" (nearest: never sensitive).
 - paraphrase: canonical, paraphrase-train and paraphrase-heldout wordings of the same scenes, and the
   distractor-free control (the same with one object on the table: a drop there is the wording upsetting the
   motion, not object selection).
@@ -253,6 +254,7 @@ class ProbeConfig:
         self.switch_steps = tuple(self.switch_steps)
         if probe.check is not None:
             probe.check(self)
+        self.switch_steps = tuple(sorted(self.switch_steps))  # the same variants in any order: the same request
         if probe.one_env and self.num_envs != 1:
             raise ValueError(f"{self.name} paints each scene's objects and needs --num-envs 1, got {self.num_envs}")
         self.variants()  # every evaluation is configured, and so checked, before a simulator starts

@@ -45,8 +45,10 @@ EXPLAIN = {
     "held | objects present) / H(instructed | objects present), 0 when the held object does not depend on the "
     "instruction, 1 when it determines it; the plug-in estimate is above 0 even then, so the cell also gives the "
     "mean NMI with the held objects shuffled among each scene's plays and the permutation p (the share of "
-    "shuffles at least as high). A location shortcut is sensitive where objects sit in their usual regions and "
-    "not elsewhere; a policy that ignores the instruction is never sensitive.",
+    "shuffles at least as high). A location shortcut is sensitive everywhere (it goes to a different usual place "
+    "for each instruction), but only where objects sit in their usual regions does it hold the named one: under "
+    "full random its grounded accuracy falls to chance and its NMI to the shuffled null. A policy that ignores "
+    "the instruction is never sensitive.",
     "paraphrase": "The same scenes with the canonical wording, training paraphrases and held-out paraphrases "
     "(task/paraphrases.json); one-object conditions are the distractor-free control: a drop there is the wording "
     "upsetting the motion, not object selection. Δ is the paired difference to the canonical wording (Newcombe's "
