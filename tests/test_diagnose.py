@@ -72,7 +72,9 @@ def test_bad_input_is_refused_in_one_line_before_any_work(tmp_path, capsys):
                         (["--policy", "nearest", "layout-prior", "--labels", "a"], "--labels must give 2 distinct"),
                         (["--policy", "nearest", "layout-prior", "--labels", "a", "a"], "got a a"),
                         (["--policy", "nearest", "layout-prior", "--labels", "a", "b/c"], "letters, digits"),
-                        (["--policy", "nearest", "layout-prior", "--labels", "a", "references"], "distinct names")]:
+                        (["--policy", "nearest", "layout-prior", "--labels", "a", "references"], "distinct names"),
+                        # one policy's directory is policy/: its label was accepted and ignored
+                        (["--policy", "nearest", "--labels", "a"], "--labels names the directories of two or more")]:
         assert main(["diagnose", "--out", str(out), *argv]) == 2
         assert words in _one_line(capsys)
     assert main(["diagnose", "--policy", f"lerobot:{tmp_path}/missing", "--out", str(out)]) == 2

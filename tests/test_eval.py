@@ -105,6 +105,14 @@ def test_regime_lists():
     assert EvalConfig(policy="scripted", grid=ConditionGrid(("all",))).grid.regimes == tuple(REGIMES)
     with pytest.raises(ValueError, match="no regime"):
         EvalConfig(policy="scripted", grid=ConditionGrid(()))
+    assert parse_regimes(["all", "all"]) == tuple(REGIMES)
+    with pytest.raises(ValueError, match="all already names every regime; give it alone or name regimes"):
+        parse_regimes(["all", "small_jitter"])
+    # A repeated split or count played its episodes twice under one key, a run the tool then refused to read.
+    for grid, words in ((dict(num_objects=(1, 1)), "num_objects must be distinct, got 1 1"),
+                        (dict(splits=("canonical", "canonical")), "splits must be distinct, got canonical canonical")):
+        with pytest.raises(ValueError, match=words):
+            ConditionGrid(("small_jitter",), **grid)
 
 
 @pytest.mark.slow

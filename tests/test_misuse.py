@@ -258,7 +258,7 @@ def _read_only_shell(directory: Path) -> list[str] | None:
 
 @pytest.mark.slow
 def test_a_read_only_output_location_ends_in_one_line(tmp_path):
-    """Checked at parse time where the command owns the check (compare --json), caught by main otherwise."""
+    """Checked at parse time (compare --json, placements --json), before any work."""
     a, b = _runs(tmp_path)
     ro = tmp_path / "ro"
     ro.mkdir()
@@ -268,8 +268,7 @@ def test_a_read_only_output_location_ends_in_one_line(tmp_path):
     cli = [sys.executable, "-m", "vla_ladder.cli"]
     for argv, words in [
         (["compare", str(a), str(b), "--json", str(ro / "sub" / "cmp.json")], ["--json", "read-only", str(ro)]),
-        (["placements", "--n", "1", "--json", str(ro / "layouts.json")], ["Read-only file system", str(ro),
-                                                                           "write somewhere else"]),
+        (["placements", "--n", "1", "--json", str(ro / "layouts.json")], ["--json", "read-only", str(ro)]),
     ]:
         done = subprocess.run(prefix + cli + argv, capture_output=True, text=True, timeout=300)
         err = done.stderr.strip()
@@ -290,10 +289,9 @@ def test_a_file_where_a_directory_belongs_and_the_reverse(tmp_path, capsys):
         (["report", str(a), "--out", str(tmp_path)], ["--out", "is a directory"]),
         (["train-expert", "--out", str(afile), "--sim-backend", "physx_cpu", "--num-envs", "1"],
          ["--out", "is a file, not a directory"]),
-        # Not checked by the command's config: caught where the write fails, still one line.
-        (["placements", "--n", "1", "--json", str(afile / "layouts.json")], ["File exists", str(afile),
-                                                                             "a file is where a directory is needed"]),
-        (["placements", "--n", "1", "--json", str(tmp_path)], ["Is a directory", str(tmp_path)]),
+        (["placements", "--n", "1", "--json", str(afile / "layouts.json")], ["--json", str(afile),
+                                                                             "is a file where a directory is needed"]),
+        (["placements", "--n", "1", "--json", str(tmp_path)], ["--json", str(tmp_path), "is a directory"]),
     ]
     for argv, words in cases:
         _one_line_error(capsys, main(argv), *words)
@@ -379,14 +377,33 @@ def test_an_argument_to_a_policy_that_takes_none_is_refused_before_the_run_direc
     assert not out.exists()
 
 
-def test_placements_bounds_its_layout_count(capsys):
+def test_placements_bounds_its_layout_count(capsys, tmp_path):
     for n in ("0", "100000000"):  # a hundred million layouts a regime ran for minutes toward a JSON of gigabytes
         _one_line_error(capsys, main(["placements", "--n", n]), "--n must be from 1 to 100000 (layouts per regime)")
+    # Both outputs are checked before either is written (the JSON was written, then the figure failed).
+    _one_line_error(capsys, main(["placements", "--n", "3", "--json", str(tmp_path / "p.json"), "--plot",
+                                  str(tmp_path / "p.txt")]), "the figure's format is its suffix; allowed: ")
+    _one_line_error(capsys, main(["placements", "--n", "3", "--json", ""]), "--json '.' is a directory")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_ray_address_is_checked_before_anything_is_written():
+    """Ray's own "Invalid address format" came after the grid had saved its settings."""
+    for good in ("auto", "10.0.0.5:6379", "ray://head:10001", None):
+        assert checks.check_ray_address(good) == good
+    for bad in ("foo", "http://head:6379", "head:port", ""):
+        with pytest.raises(ValueError, match="--ray-address must be auto, HOST:PORT or ray://HOST:PORT"):
+            checks.check_ray_address(bad)
 
 
 def test_serve_refuses_a_negative_max_outstanding(capsys):
     _one_line_error(capsys, main(["serve", "--port", "0", "--max-outstanding", "-1"]),
                     "max_outstanding must be >= 0 (0: 4 x num_envs, at least 8), got -1")
+    # Checked before the port is bound: the server listened, then its simulator failed and it served nothing.
+    _one_line_error(capsys, main(["serve", "--port", "0", "--robot-mesh", "foo"]),
+                    "unknown robot_mesh 'foo'; allowed: lite, full")
+    _one_line_error(capsys, main(["serve", "--port", "0", "--instructions", "poetic"]),
+                    "unknown instruction set 'poetic'; allowed: canonical, paraphrase-train, paraphrase-heldout")
 
 
 def test_train_expert_without_a_gpu_names_the_cpu_flags(tmp_path, capsys):
@@ -440,6 +457,12 @@ def test_a_flag_given_twice_is_refused_not_silently_dropped(argv, flag, capsys, 
     (["--num-envs", "0"], "--num-envs must be >= 1, got 0"),
     (["--commit-seconds", "nan"], "--commit-seconds must be > 0, got nan"),
     (["--commit-seconds", "-5"], "--commit-seconds must be > 0, got -5.0"),
+    # Malformed server URLs (a websockets traceback, or its words without the flag's), a missing expert (each local
+    # server refused it after starting, and the recorder said to rerun), an unknown robot mesh.
+    (["--server", "ws://"], "--server is a WebSocket URL, ws://HOST:PORT or wss://HOST:PORT; got 'ws://'"),
+    (["--server", "ws://localhost:notaport"], "--server is a WebSocket URL"),
+    (["--policy", "ppo:/nonexistent"], "no PPO checkpoint at '/nonexistent'"),
+    (["--robot-mesh", "foo"], "unknown robot_mesh 'foo'; allowed: lite, full"),
 ])
 def test_record_writers_each_need_a_server(extra, says, tmp_path, capsys):
     rc = main(["record", "--out", str(tmp_path / "rec"), "--episodes", "1", *extra])
@@ -454,6 +477,10 @@ def test_eval_batches_cpu_envs_one_per_core_and_not_with_workers(tmp_path, capsy
     _one_line_error(capsys, main([*base, "--num-envs", str(cores() + 1)]),
                     f"--num-envs must be at most the {cores()} CPU cores here, got {cores() + 1}")
     _one_line_error(capsys, main([*base, "--num-envs", "2", "--workers", "2"]), "choose one, --workers N")
+    # A worker is a process with a simulator and a policy: a thousand were started when asked for (~600 MB each).
+    _one_line_error(capsys, main([*base, "--workers", "100000"]), "--workers must be at most")
+    _one_line_error(capsys, main(["record", "--out", str(tmp_path / "rec"), "--episodes", "1", "--workers",
+                                  "100000"]), "each worker takes about 2 GiB; 0: one per core), got 100000")
     assert list(tmp_path.iterdir()) == []
 
 

@@ -187,7 +187,9 @@ def test_bad_input_errors(tmp_path, run_dir):
         Args(out="x", num_envs=4, total_timesteps=10)
     for flag, value, words in (("gamma", 1.5, "--gamma must be in [0, 1], got 1.5"),
                                ("max_grad_norm", 0.0, "--max-grad-norm must be positive, got 0.0"),
-                               ("target_kl", -0.1, "--target-kl must be >= 0, got -0.1")):
+                               ("target_kl", -0.1, "--target-kl must be >= 0, got -0.1"),
+                               ("learning_rate", math.inf, "--learning-rate must be a finite number, got inf"),
+                               ("init_logstd", math.nan, "--init-logstd must be a finite number, got nan")):
         with pytest.raises(ValueError, match=re.escape(words)):
             Args(out="x", **{**TINY, flag: value})
     # A network of other sizes cannot go on from the run's weights: refused before any env starts.

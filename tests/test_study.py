@@ -53,6 +53,8 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         "lerobot_args: --output_dir is the study's to set": _micro(**{"policies.0.lerobot_args": [
             "--output_dir=/tmp/elsewhere"]}),
         "num_workers must be >= 0": _micro(num_workers=-4),
+        # 0 fell back to the VLM's size, and a size without a vlm was ignored
+        "image_size must be a positive integer, for a policy with a vlm": _micro(**{"policies.0.image_size": 0}),
         # Validation starts below the dataset but runs into it; probes reach into the dataset's seeds.
         "the validation (grid.select_first_seed) seeds (999990-": _micro(**{"grid.select_first_seed": 999_990,
                                                                           "grid.select_episodes": 20}),

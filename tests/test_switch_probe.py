@@ -139,6 +139,9 @@ def test_switch_configs_and_refusals(tmp_path, refused):
          "--switch-steps must be distinct control steps from 1 to 49"),
         (["probe", "instruction-switch", "--policy", "nearest", "--out", p, "--switch-steps", "5", "5"],
          "--switch-steps must be distinct control steps"),
+        # Another probe's option was accepted and ignored.
+        (["probe", "instruction-swap", "--policy", "nearest", "--out", p, "--switch-steps", "5"],
+         "--switch-steps is instruction-switch's option; instruction-swap has none"),
         (["eval", "--policy", "nearest", "--out", e, "--switch-at", "50"],
          "switch_at must be a control step from 1 to 49 (the episode has 50), got 50"),
         (["eval", "--policy", "nearest", "--out", e, "--switch-at", "0"], "switch_at must be a control step"),

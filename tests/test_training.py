@@ -182,6 +182,22 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     assert (tmp_path / "busy" / "x").is_file()
     assert main(base + ["--policy-type", "act", "--chunk-size", "4", "--n-action-steps", "8"]) == 2
     assert not (tmp_path / "run").exists()
+    # Refused before the model is built: LeRobot refused a negative worker count after it, trained on the CPU when
+    # asked for a missing GPU (a warning said so), and an output it cannot create failed at the first checkpoint.
+    import torch
+
+    capsys.readouterr()
+    unwritable = [*base[:4], "/proc/vla-ladder-run", *base[5:]]
+    cases = [(base, ["--num-workers", "-4"], "--num-workers must be >= 0 (0: load data in the training process)"),
+             (unwritable, [], "--out '/proc/vla-ladder-run'")]
+    if not torch.cuda.is_available():
+        cases.append((base, ["--device", "cuda"], "--device cuda needs a CUDA GPU and none is visible"))
+    for argv, extra, words in cases:  # one step, in-process loading: a check that let one through costs little
+        extra = [*extra, "--steps", "1", *([] if "--num-workers" in extra else ["--num-workers", "0"])]
+        assert main([*argv, "--policy-type", "act", *extra]) == 2, extra
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], err
+    assert not (tmp_path / "run").exists()
 
 
 def test_best_is_success_then_grasp_then_reach():

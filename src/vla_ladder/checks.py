@@ -13,6 +13,7 @@ import ipaddress
 import os
 import re
 import socket
+import tempfile
 import typing
 from pathlib import Path
 
@@ -109,6 +110,12 @@ def _check_writable_under(directory: Path, flag: str, target: Path) -> None:
     if not os.access(existing, os.W_OK | os.X_OK):
         why = "is on a read-only file system" if _read_only(existing) else "is not writable by this user"
         raise ValueError(f"{flag} {str(target)!r}: {str(existing)!r} {why}; choose a location you can write to")
+    try:  # root passes os.access everywhere, /proc included: write a file there to know
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as e:
+        raise ValueError(f"{flag} {str(target)!r}: cannot write in {str(existing)!r} ({e.strerror}); choose a "
+                         "location you can write to") from None
 
 
 def _read_only(path: Path) -> bool:
@@ -177,3 +184,31 @@ def os_error_message(e: OSError, resource: str | None = None) -> str:
     fix = FIXES.get(e.errno)
     text = f"{where}: {what}" if where else what
     return f"{text}; {fix}" if fix else text
+
+
+# ---------------------------------------------------------------------------------------------- URLs
+def check_ws_url(url: str, what: str) -> str:
+    """`url` when it is a WebSocket URL with a host (and a port in 0..65535 if it names one), else ValueError saying
+    that `what` (a flag, or "a remote policy") is one; websockets' own errors name neither."""
+    from urllib.parse import urlsplit
+
+    try:
+        parts = urlsplit(url)
+        parts.port  # noqa: B018  (raises on a port outside 0..65535 or one that is not a number)
+    except ValueError as e:  # an unclosed IPv6 bracket, a port out of range
+        raise ValueError(f"{what} is a WebSocket URL, ws://HOST:PORT or wss://HOST:PORT; got {url!r} ({e})") from None
+    if parts.scheme not in ("ws", "wss") or not parts.hostname:
+        raise ValueError(f"{what} is a WebSocket URL, ws://HOST:PORT or wss://HOST:PORT; got {url!r}")
+    return url
+
+
+RAY_ADDRESS = re.compile(r"auto|(ray://)?[^\s:/]+:\d{1,5}")
+"""What ray.init(address=...) takes: auto (the local cluster), or HOST:PORT, or ray://HOST:PORT (Ray Client)."""
+
+
+def check_ray_address(address: str | None) -> str | None:
+    """`address` when it is one Ray can take (None: no cluster), else ValueError naming the forms: said before the
+    command writes anything (Ray's own "Invalid address format" came after the grid saved its settings)."""
+    if address is not None and not RAY_ADDRESS.fullmatch(address):
+        raise ValueError(f"--ray-address must be auto, HOST:PORT or ray://HOST:PORT, got {address!r}")
+    return address

@@ -107,8 +107,10 @@ def parse_regimes(names) -> tuple[str, ...]:
     if isinstance(names, str):
         names = [names]
     flat = [r.strip() for n in names for r in str(n).split(",") if r.strip()]
-    if flat == [ALL]:
+    if flat and set(flat) == {ALL}:
         return tuple(REGIMES)
+    if ALL in flat:
+        raise ValueError(f"{ALL} already names every regime; give it alone or name regimes, got {' '.join(flat)}")
     if not flat:
         raise ValueError(f"no regime given; allowed: {', '.join(REGIMES)} or {ALL}")
     for r in flat:
@@ -135,6 +137,10 @@ class ConditionGrid:
         object.__setattr__(self, "num_objects", tuple(self.num_objects))
         if not self.splits or not self.num_objects:
             raise ValueError("a condition grid needs at least one split and one object count")
+        for name in ("splits", "num_objects"):  # a repeat would play its episodes twice under one key
+            values = getattr(self, name)
+            if len(set(values)) != len(values):
+                raise ValueError(f"{name} must be distinct, got {' '.join(map(str, values))}")
         for s in self.splits:
             Condition(JITTER_REGIMES[0], s)
         for k in self.num_objects:

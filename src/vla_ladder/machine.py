@@ -26,6 +26,22 @@ def auto_workers(requested: int = 0) -> int:
     return max(1, min(cores(), available // WORKER_MEMORY_BYTES))
 
 
+def check_workers(workers: int, flag: str = "--workers") -> int:
+    """`workers` when it is 0 (one per core) or what this machine's memory holds at WORKER_MEMORY_BYTES each, else
+    ValueError: each worker is a process with a simulator and a copy of the policy, and a thousand of them were
+    started as asked."""
+    if workers < 0:
+        raise ValueError(f"{flag} must be >= 0 (0: one per core), got {workers}")
+    try:
+        most = max(cores(), os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // WORKER_MEMORY_BYTES)
+    except (ValueError, OSError):
+        return workers
+    if workers > most:
+        raise ValueError(f"{flag} must be at most {most} here (each worker takes about "
+                         f"{WORKER_MEMORY_BYTES // 2**30} GiB; 0: one per core), got {workers}")
+    return workers
+
+
 def cache_root() -> Path:
     """Where files built once per machine live (the lite robot, FFmpeg links): $VLA_LADDER_CACHE, else
     ~/.cache/vla-ladder."""

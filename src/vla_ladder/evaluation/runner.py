@@ -25,13 +25,13 @@ from vla_ladder import files
 from vla_ladder.conditions import MAX_OBJECTS, Condition, ConditionGrid
 from vla_ladder.contract import EPISODE_STEPS, contract_changes, fingerprint
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
-from vla_ladder.machine import auto_workers, cores
+from vla_ladder.machine import auto_workers, check_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
 from vla_ladder.policies import POLICY_KINDS, Policy, check_spec, weights_identity
+from vla_ladder.task.robot import check_robot_mesh
 
 SIM_BACKENDS = ("physx_cpu", "physx_cuda")
 OBJECT_SETS = ("auto", "ycb", "standin")
-ROBOT_MESHES = ("lite", "full")
 FLUSH_SECONDS = 10.0
 # Fields of EvalConfig that do not change which episodes are played or what they give: a run directory
 # written with other values of these is the same request and is resumed.
@@ -110,8 +110,7 @@ class EvalConfig:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if isinstance(self.videos, bool) or not isinstance(self.videos, (int, np.integer)) or self.videos < 0:
             raise ValueError(f"videos must be an integer >= 0, got {self.videos!r}")
-        if self.workers < 0:
-            raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
+        check_workers(self.workers)
         if self.first_seed < 0 or self.first_seed + self.episodes > 2**32:
             raise ValueError(f"--first-seed must be >= 0 and --first-seed + --episodes <= 2**32 (episode j plays "
                              f"numpy seed first_seed + j), got {self.first_seed} + {self.episodes}")
@@ -128,8 +127,7 @@ class EvalConfig:
             check_physx_cuda("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")
         if self.object_set not in OBJECT_SETS:
             raise ValueError(f"unknown object_set {self.object_set!r}; allowed: {', '.join(OBJECT_SETS)}")
-        if self.robot_mesh not in ROBOT_MESHES:
-            raise ValueError(f"unknown robot_mesh {self.robot_mesh!r}; allowed: {', '.join(ROBOT_MESHES)}")
+        check_robot_mesh(self.robot_mesh)
         from vla_ladder.task.appearance import check_appearance
         from vla_ladder.task.instructions import check_instruction_set
         check_instruction_set(self.instructions)

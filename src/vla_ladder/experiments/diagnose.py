@@ -125,10 +125,16 @@ class DiagnoseConfig:
         if self.out is None:
             raise ValueError("--out DIR is required: the diagnosis directory to write")
         self.out = Path(self.out)
+        for name in ("episodes", "probe_episodes"):  # named here: the probes' own check said --episodes
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"--{name.replace('_', '-')} must be a positive integer, got {value!r}")
         if len(set(self.policy)) != len(self.policy):
             raise ValueError(f"--policy names a policy twice: {' '.join(self.policy)}")
         for spec in self.policy:
             check_spec(spec)
+        if self.labels and len(self.policy) == 1:  # one policy's directory is policy/ and its name its spec
+            raise ValueError("--labels names the directories of two or more --policy; one policy needs none")
         self.labels = tuple(self.labels) or tuple(default_label(spec) for spec in self.policy)
         if len(self.labels) != len(self.policy) or len(set(self.labels)) != len(self.labels) or any(
                 not _LABEL.fullmatch(label) or label in ("policy", "references") for label in self.labels):

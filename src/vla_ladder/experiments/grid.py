@@ -24,6 +24,7 @@ from pathlib import Path
 import pandas as pd
 
 from vla_ladder import files
+from vla_ladder.checks import check_ray_address
 from vla_ladder.contract import METRICS
 from vla_ladder.evaluation.runner import EvalConfig
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
@@ -62,9 +63,10 @@ class GridConfig:
         self.out = Path(self.out)
         for name in ("batch_sizes", "chunk_sizes", "horizons"):
             values = tuple(getattr(self, name))
-            if not values or min(values) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be positive integers, got {list(values)}")
+            if not values or min(values) < 1 or len(set(values)) != len(values):  # a repeat: two units, one directory
+                raise ValueError(f"--{name.replace('_', '-')} must be distinct positive integers, got {list(values)}")
             setattr(self, name, values)
+        check_ray_address(self.ray_address)
         if not any(h <= c for h in self.horizons for c in self.chunk_sizes):
             raise ValueError(f"no horizon in {list(self.horizons)} fits a chunk size in {list(self.chunk_sizes)}")
         if self.eval.policy or self.eval.out or self.train.out:

@@ -252,6 +252,10 @@ class ProbeConfig:
             raise ValueError(f"{self.name} needs {probe.needs}; got --num-objects {' '.join(map(str, counts))} "
                              f"(allowed: {least}-{most})")
         self.switch_steps = tuple(self.switch_steps)
+        for other, p in PROBES.items():  # another probe's option, given here, would be ignored
+            for option in set(p.options) - set(probe.options):
+                if getattr(self, option) != ProbeConfig.__dataclass_fields__[option].default:
+                    raise ValueError(f"--{option.replace('_', '-')} is {other}'s option; {self.name} has none")
         if probe.check is not None:
             probe.check(self)
         self.switch_steps = tuple(sorted(self.switch_steps))  # the same variants in any order: the same request

@@ -23,10 +23,11 @@ from pathlib import Path
 import tyro
 
 from vla_ladder import files
+from vla_ladder.checks import check_ray_address
 from vla_ladder.conditions import parse_regimes
 from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
-from vla_ladder.machine import cores
+from vla_ladder.machine import check_workers, cores
 
 RANK_BY = ("success", "grasp_any", "reach")
 
@@ -54,8 +55,8 @@ class StudyCommand:
     def __post_init__(self):
         self.out = Path(self.out)
         self.study = StudyConfig.load(self.config)
-        if self.workers < 0:
-            raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
+        check_workers(self.workers)
+        check_ray_address(self.ray_address)
         if self.writers < 0 or (self.workers and self.workers < self.writers):
             raise ValueError(f"--writers must be >= 0 (0: one per two workers) and at most --workers, got "
                              f"{self.writers}")

@@ -98,6 +98,10 @@ class PolicySpec:
         from vla_ladder.training.tiny import SIZES
         if self.vlm is not None and self.vlm not in SIZES:
             raise ValueError(f"vlm: unknown size {self.vlm!r}; allowed: {', '.join(SIZES)}")
+        if self.image_size is not None and (self.vlm is None or isinstance(self.image_size, bool)
+                                            or not isinstance(self.image_size, int) or self.image_size < 1):
+            raise ValueError(f"image_size must be a positive integer, for a policy with a vlm (it sizes that VLM's "
+                             f"images), got {self.image_size!r}" + ("" if self.vlm else " without vlm"))
         if self.vlm is not None and self.type != "smolvla":
             raise ValueError(f"vlm: only smolvla has a VLM backbone, not {self.type!r}")
         if not all(isinstance(a, str) and a.startswith("--") for a in self.lerobot_args):
@@ -174,8 +178,10 @@ class EvaluationSpec:
         for p in self.probes:
             if p not in PROBES:
                 raise ValueError(f"probes: unknown {p!r}; allowed: {', '.join(PROBES)}")
-        if self.videos < 0 or self.curve_episodes < 0 or self.first_seed < 0 or self.probe_episodes < 1:
-            raise ValueError("videos, curve_episodes and first_seed must be >= 0")
+        for name in ("videos", "curve_episodes", "first_seed"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        _positive(self, "probe_episodes")
 
 
 @dataclass

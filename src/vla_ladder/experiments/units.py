@@ -210,9 +210,13 @@ def train_unit(config: dict) -> dict:
     out = Path(config["out"])
     if out.is_dir() and not (out / REQUEST_FILE).is_file():  # killed before runs kept their request: start over
         shutil.rmtree(out)
+    import torch
     if config.get("device") == "auto":  # resolved here, on the machine that trains: the unit's config stays the same
-        import torch
         config = {**config, "device": "cuda" if torch.cuda.is_available() else "cpu"}
+    elif str(config.get("device")).startswith("cuda") and not torch.cuda.is_available():
+        # A study planned for a GPU, finished on a CPU machine (docs/study.md): said, not refused (`train` refuses).
+        print(f"[study] {out.name}: no GPU here, so this training runs (or resumes) on the CPU", flush=True)
+        config = {**config, "device": "cpu"}
     ckpt = train(TrainConfig(**config))  # a run killed after its request was kept resumes from its last checkpoint
     info = json.loads((out / RUN_FILE).read_text())
     return {"checkpoint": str(ckpt), "wall_s": info["wall_s"]}

@@ -161,6 +161,11 @@ def checked_config(path: str | Path, n_action_steps: int | None = None, device: 
     from lerobot.configs.policies import PreTrainedConfig
 
     path = resolve_checkpoint(path)
+    chunk = json.loads((path / "config.json").read_text()).get("chunk_size")
+    if n_action_steps is not None and isinstance(chunk, int) and not 1 <= n_action_steps <= chunk:
+        # draccus would say only "Couldn't instantiate class ...Config using the given arguments"
+        raise ValueError(f"n_action_steps must be from 1 to the checkpoint's chunk size ({chunk}), got "
+                         f"{n_action_steps}")
     overrides = [] if n_action_steps is None else [f"--n_action_steps={int(n_action_steps)}"]
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     if device.startswith("cuda") and not torch.cuda.is_available():

@@ -40,12 +40,12 @@ import math
 import os
 import weakref
 from typing import Any, Sequence
-from urllib.parse import urlsplit
 
 import msgpack
 import numpy as np
 import torch
 
+from vla_ladder.checks import check_ws_url
 from vla_ladder.contract import ACTION_DIM, CAMERAS, POLICY_FIELDS, STATE_KEY, contract_changes
 from vla_ladder.policies import Policy, parse_options, positive_int
 
@@ -132,15 +132,7 @@ def unpack(data: bytes) -> Any:
 
 
 def check_url(url: str) -> str:
-    try:
-        parts = urlsplit(url)
-        parts.port  # noqa: B018  (raises on a port outside 0..65535)
-    except ValueError as e:  # an unclosed IPv6 bracket, a port out of range
-        raise ValueError(f"a remote policy is a WebSocket URL, ws://HOST:PORT or wss://HOST:PORT; got {url!r} "
-                         f"({e})") from None
-    if parts.scheme not in ("ws", "wss") or not parts.hostname:
-        raise ValueError(f"a remote policy is a WebSocket URL, ws://HOST:PORT or wss://HOST:PORT; got {url!r}")
-    return url
+    return check_ws_url(url, "a remote policy")
 
 
 def connect(url: str, timeout_s: float = CONNECT_TIMEOUT_S):

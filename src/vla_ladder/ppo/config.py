@@ -5,7 +5,8 @@ Defaults are the paper's appendix table; the ones it does not list are ManiSkill
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Annotated
 
@@ -106,6 +107,9 @@ class Args:
             self.grid = ConditionGrid(**self.grid)
         if self.sim_backend not in SIM_BACKENDS:
             raise ValueError(f"unknown sim backend {self.sim_backend!r}; allowed: {', '.join(SIM_BACKENDS)}")
+        for f in fields(self):  # inf or nan trained a first rollout, then failed in torch with a tensor dump
+            if f.type == "float" and not math.isfinite(getattr(self, f.name)):
+                raise ValueError(f"--{f.name.replace('_', '-')} must be a finite number, got {getattr(self, f.name)}")
         positive = ("num_envs", "max_episode_steps", "num_steps", "num_minibatches", "update_epochs",
                     "eval_freq", "eval_episodes", "keep_checkpoints", "learning_rate", "torch_threads")
         for name in positive:

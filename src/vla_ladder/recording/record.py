@@ -18,13 +18,14 @@ from typing import Annotated
 
 import tyro
 
-from vla_ladder.checks import SEED_LIMIT
+from vla_ladder.checks import SEED_LIMIT, check_ws_url
 from vla_ladder.conditions import Condition
-from vla_ladder.machine import auto_workers, auto_writers, signal_on_parent_death
+from vla_ladder.machine import auto_workers, auto_writers, check_workers, signal_on_parent_death
 from vla_ladder.recording.card import missing_targets, target_counts
 from vla_ladder.recording.client import Episode, EpisodeClient, EpisodeSource, ServerError
 from vla_ladder.recording.serve import setup_logging
 from vla_ladder.recording.server import TOKEN_ENV
+from vla_ladder.task.robot import check_robot_mesh
 from vla_ladder.recording.store import DatasetStore, Recording
 from vla_ladder.recordings import DEFAULT_VCODEC, VCODECS, read_provenance
 
@@ -103,8 +104,7 @@ class RecordConfig:
         if self.first_seed < 0 or self.first_seed + self.episodes > SEED_LIMIT:
             raise ValueError(f"--first-seed must be >= 0 and --first-seed + --episodes <= 2**32 (each demo takes "
                              f"a seed of its own, a numpy seed), got {self.first_seed} + {self.episodes}")
-        if self.workers < 0:
-            raise ValueError(f"--workers must be >= 0 (0: one per core), got {self.workers}")
+        check_workers(self.workers)
         if self.writers < 0:
             raise ValueError(f"--writers must be >= 0 (0: one per two servers), got {self.writers}")
         if self.vcodec not in VCODECS:
@@ -119,15 +119,15 @@ class RecordConfig:
         if self.workers and self.workers < self.writers:
             raise ValueError(f"--writers {self.writers} needs at least {self.writers} local servers, got --workers "
                              f"{self.workers}")
-        if self.robot_mesh not in ("lite", "full"):
-            raise ValueError(f"unknown robot_mesh {self.robot_mesh!r}; allowed: lite, full")
+        check_robot_mesh(self.robot_mesh)
         from vla_ladder.task.instructions import check_instruction_set
         check_instruction_set(self.instructions)
         for url in self.server:
-            if not url.startswith(("ws://", "wss://")):
-                raise ValueError(f"--server {url!r}: expected ws://HOST:PORT or wss://HOST:PORT")
-        from vla_ladder.policies import parse_spec
-        parse_spec(self.policy)
+            check_ws_url(url, "--server")
+        from vla_ladder.policies import check_spec, parse_spec
+        # The local servers' expert is checked here, before they start (each refused it, and the recorder said to
+        # rerun); with --server the servers' expert is the one recorded.
+        (parse_spec if self.server else check_spec)(self.policy)
 
 
 def recording_of(cfg: RecordConfig) -> Recording:

@@ -29,6 +29,8 @@ from vla_ladder.conditions import Condition
 from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, CONTROL_HZ, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
 from vla_ladder.policies import check_spec
 from vla_ladder.recording import protocol as P
+from vla_ladder.task.instructions import check_instruction_set
+from vla_ladder.task.robot import check_robot_mesh
 from vla_ladder.task.objects import OBJECT_NAMES
 
 log = logging.getLogger(__name__)
@@ -75,6 +77,8 @@ class ServeConfig:
             self.token = os.environ.get(TOKEN_ENV)
         self.condition = Condition.of(self.condition)
         check_seed(self.rng_seed, "--rng-seed")
+        check_robot_mesh(self.robot_mesh)
+        check_instruction_set(self.instructions)
         check_spec(self.policy)
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")

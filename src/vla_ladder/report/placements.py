@@ -8,6 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
+from vla_ladder.checks import check_output_file
 from vla_ladder.files import atomic_path
 from vla_ladder.conditions import REGIMES, Condition, parse_regimes
 from vla_ladder.report.tables import REGIME_NAMES
@@ -96,6 +97,16 @@ class PlacementsConfig:
             raise ValueError(f"--n must be from 1 to {MAX_LAYOUTS} (layouts per regime), got {self.n}")
         if self.first_seed < 0:
             raise ValueError(f"--first-seed must be >= 0, got {self.first_seed}")
+        # Both outputs checked before either is written (a bad --plot failed after the JSON was written).
+        for flag, path in (("--json", self.json), ("--plot", self.plot)):
+            if path is not None:
+                check_output_file(path, flag)
+        if self.plot is not None:
+            from matplotlib.backend_bases import FigureCanvasBase
+            kinds = FigureCanvasBase.get_supported_filetypes()
+            if self.plot.suffix.lstrip(".").lower() not in kinds:
+                raise ValueError(f"--plot {str(self.plot)!r}: the figure's format is its suffix; allowed: "
+                                 f"{', '.join(sorted(kinds))}")
 
 
 def run(cfg: PlacementsConfig) -> int:

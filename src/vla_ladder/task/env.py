@@ -145,8 +145,7 @@ class GraspObjectEnv(BaseEnv):
         self.instruction_set = check_instruction_set(instructions)
         self.appearance = check_appearance(appearance)
         self.object_set = assets.resolve_object_set(object_set)
-        if robot_mesh not in robot.ROBOT_MESHES:
-            raise ValueError(f"unknown robot_mesh {robot_mesh!r}; allowed: {', '.join(robot.ROBOT_MESHES)}")
+        robot.check_robot_mesh(robot_mesh)
         self.robot_mesh = robot_mesh
         if robot_uids is None:
             robot_uids = robot.register_lite_panda() if robot_mesh == "lite" else contract.ROBOT

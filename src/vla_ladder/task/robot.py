@@ -21,6 +21,13 @@ from pathlib import Path
 from vla_ladder.machine import cache_root
 
 ROBOT_MESHES = ("lite", "full")
+
+
+def check_robot_mesh(robot_mesh: str) -> str:
+    """`robot_mesh` if it is one of ROBOT_MESHES, else ValueError naming them (every command checks before work)."""
+    if robot_mesh not in ROBOT_MESHES:
+        raise ValueError(f"unknown robot_mesh {robot_mesh!r}; allowed: {', '.join(ROBOT_MESHES)}")
+    return robot_mesh
 LITE_UID = "panda_wristcam_lite"
 KEEP_FACES = 0.10
 """Fraction of each visual mesh's faces the lite robot keeps."""

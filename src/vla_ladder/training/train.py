@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from vla_ladder import files
-from vla_ladder.checks import TORCH_DEVICE
+from vla_ladder.checks import TORCH_DEVICE, check_output_dir
 from vla_ladder.contract import CAMERA_KEYS, TRAINED_CONTRACT_FILE
 from vla_ladder.training.dataset import check_features, dataset_condition, dataset_contract, read_info
 
@@ -133,6 +133,14 @@ class TrainConfig:
             raise ValueError(f"--train-seed must be >= 0, got {self.train_seed}")
         if self.device is not None and not TORCH_DEVICE.fullmatch(self.device):
             raise ValueError(f"--device {self.device!r}: allowed: cpu, cuda, cuda:N, mps")
+        if (self.device or "").startswith("cuda"):
+            import torch
+            if not torch.cuda.is_available():  # LeRobot would train on the CPU, saying so in a warning only
+                raise ValueError(f"--device {self.device} needs a CUDA GPU and none is visible; use --device cpu, or "
+                                 "leave it out (LeRobot picks)")
+        if self.num_workers < 0:
+            raise ValueError(f"--num-workers must be >= 0 (0: load data in the training process), got "
+                             f"{self.num_workers}")
         # `out` is checked by train(), not here: a grid or study builds configs for runs that already exist.
 
     # ------------------------------------------------------------------ lerobot-train flags
@@ -326,6 +334,7 @@ def train(req: TrainConfig) -> Path:
 
     if req.out is None:
         raise ValueError("a training run needs an output directory (out)")
+    check_output_dir(req.out, "--out")  # now, not when the first checkpoint is saved
     resume = resume_point(req)
     if resume is not None and (req.out / RUN_FILE).is_file():
         log.info("%s is a finished run of this request: nothing to do", req.out)
