@@ -500,3 +500,23 @@ def test_help_never_prints_a_secret_from_the_environment(monkeypatch, capsys):
         assert "--" in out and secret not in out, command
     assert ServeConfig().token == secret  # still the default
     assert ServeConfig(token="given").token == "given"
+
+
+@pytest.mark.parametrize("text, says", [
+    ("[1, 2]", "expected an object with name, table, conditions and optionally episodes"),
+    ('{"name": "x", "conditions": ["small_jitter/canonical/5"]}', "got ['conditions', 'name']"),
+    ('{"name": "x", "table": "ladder", "conditions": ["small_jitter/canonical/5"], "episodes": "3"}',
+     "episodes: expected an integer >= 1, got '3'"),
+    ('{"name": "x", "table": "ladder", "conditions": "small_jitter/canonical/5"}',
+     "conditions: expected a list of conditions"),
+    ("{not json", "not a JSON experiment config"),
+])
+def test_an_experiment_config_of_the_wrong_shape_is_named_in_one_line(text, says, tmp_path, capsys):
+    """A custom experiment's JSON: a list, a missing table or a string count ended in TypeError tracebacks (raised
+    while building the unknown-keys message, the dataclass constructor, a comparison), and a parse error did not
+    name the file."""
+    path = tmp_path / "mine.json"
+    path.write_text(text)
+    _one_line_error(capsys, main(["experiment", str(path), "--policy", "scripted", "--out", str(tmp_path / "x")]),
+                    says)
+    assert not (tmp_path / "x").exists()

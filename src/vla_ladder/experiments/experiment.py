@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field
 from importlib import resources
 from pathlib import Path
 
@@ -51,11 +51,16 @@ class ExperimentConfig:
     def __post_init__(self):
         if self.table not in TABLES:
             raise ValueError(f"unknown table {self.table!r}; allowed: {', '.join(TABLES)}")
+        if not isinstance(self.conditions, list):
+            raise ValueError(f"conditions: expected a list of conditions (regime/split/num_objects), got "
+                             f"{type(self.conditions).__name__}")
         self.conditions = [Condition.of(c) for c in self.conditions]
         if not self.conditions:
             raise ValueError(f"experiment {self.name!r} has no conditions")
-        if self.episodes < 1:
-            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        for name in ("episodes", "first_seed"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < (1 if name == "episodes" else 0):
+                raise ValueError(f"{name}: expected an integer >= {1 if name == 'episodes' else 0}, got {value!r}")
         if self.table == "data_scaling":
             regimes = {c.regime for c in self.conditions}
             bad = [r for r, s in self.sizes.items() if r not in regimes or len(s) != 2]
@@ -67,16 +72,23 @@ class ExperimentConfig:
     def load(cls, name: str) -> "ExperimentConfig":
         path = Path(name)
         if path.suffix == ".json" and path.is_file():
-            text = path.read_text()
+            text = path.read_bytes()
         else:
             known = available()
             if name not in known:
                 raise ValueError(f"unknown experiment {name!r}; allowed: {', '.join(known)} or a path to a JSON config")
             text = resources.files("vla_ladder.configs").joinpath(f"{name}.json").read_text()
-        data = json.loads(text)
-        unknown = set(data) - {f for f in cls.__dataclass_fields__}
-        if unknown:
-            raise ValueError(f"unknown keys in experiment config: {', '.join(sorted(unknown))}")
+        try:
+            data = json.loads(text)
+        except ValueError as e:  # JSONDecodeError, or bytes that are not UTF-8
+            raise ValueError(f"{name}: not a JSON experiment config ({e})") from None
+        fields = list(cls.__dataclass_fields__)
+        required = [f for f in fields if cls.__dataclass_fields__[f].default is MISSING
+                    and cls.__dataclass_fields__[f].default_factory is MISSING]
+        if not isinstance(data, dict) or set(data) - set(fields) or set(required) - set(data):
+            raise ValueError(f"{name}: expected an object with {', '.join(required)} and optionally "
+                             f"{', '.join(f for f in fields if f not in required)}; got "
+                             f"{sorted(data) if isinstance(data, dict) else type(data).__name__}")
         return cls(**data)
 
 
