@@ -520,3 +520,24 @@ def test_an_experiment_config_of_the_wrong_shape_is_named_in_one_line(text, says
     _one_line_error(capsys, main(["experiment", str(path), "--policy", "scripted", "--out", str(tmp_path / "x")]),
                     says)
     assert not (tmp_path / "x").exists()
+
+
+def test_the_reviews_last_bad_inputs_are_refused_before_work(tmp_path, capsys):
+    """A run given twice to report (shown twice), check-dataset's --min-expected nan (accepted) and its --out, and
+    render's --out (checked after the checks, the replay, the simulator), an appearance swap with --instruct k (it
+    swapped the seed's own target's colours, not the instructed object's)."""
+    a, _ = _runs(tmp_path)
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    cases = [
+        (["report", str(a), str(a), "--out", str(tmp_path / "r.html")], "a run directory is given twice"),
+        (["check-dataset", str(tmp_path / "nowhere"), "--min-expected", "nan"],
+         "--min-expected must be a positive number, got nan"),
+        (["check-dataset", str(a), "--out", str(afile / "summary.json")], "is a file where a directory is needed"),
+        (["render", "--seed", "0", "--out", str(afile)], "--out"),
+        (["eval", "--policy", "nearest", "--out", str(tmp_path / "e"), "--num-objects", "2", "--appearance", "swap",
+          "--instruct", "1"], "appearance=swap swaps the colours of the seed's own instructed object"),
+    ]
+    for argv, words in cases:
+        _one_line_error(capsys, main(argv), words)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "afile", "b"] and afile.read_text() == "x"

@@ -137,6 +137,10 @@ class EvalConfig:
         if isinstance(self.instruct, bool) or not 0 <= self.instruct < fewest:
             raise ValueError(f"instruct must be a present-object rank from 0 to {fewest - 1} (the grid's fewest "
                              f"objects: {fewest}), got {self.instruct!r}")
+        if check_appearance(self.appearance) != "original" and self.instruct != 0:
+            # The colour swap pairs the seed's own target with a distractor, not the object instructed instead.
+            raise ValueError(f"appearance={self.appearance} swaps the colours of the seed's own instructed object "
+                             f"(instruct 0) and a distractor; instruct {self.instruct} names another: give one")
         if self.instruct_absent is not None:
             missing = MAX_OBJECTS - max(self.grid.num_objects)  # the fewest absent objects of any condition
             if isinstance(self.instruct_absent, bool) or not 0 <= self.instruct_absent < missing:

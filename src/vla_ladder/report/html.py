@@ -439,6 +439,8 @@ class ReportConfig:
             self.trained_in = cond.key
         if not self.runs:
             raise ValueError("give at least one run directory")
+        if len({p.resolve() for p in map(Path, self.runs)}) != len(self.runs):  # it was shown twice
+            raise ValueError(f"a run directory is given twice: {' '.join(map(str, self.runs))}")
         check_output_file(self.out, "--out")
 
 

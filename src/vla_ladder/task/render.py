@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from vla_ladder.checks import check_output_dir
 from vla_ladder.conditions import Condition, parse_regimes
 from vla_ladder.contract import CAMERA_NAMES, ENV_ID
 
@@ -64,6 +65,7 @@ class RenderConfig:
         self.conditions = [Condition(r, self.split, self.num_objects) for r in parse_regimes(self.regimes)]
         if self.seed < 0:
             raise ValueError(f"--seed must be >= 0, got {self.seed}")
+        check_output_dir(self.out, "--out")  # now, not after the simulator is built
 
 
 def run(cfg: RenderConfig) -> int:

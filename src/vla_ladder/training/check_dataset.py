@@ -41,6 +41,7 @@ import pandas as pd
 import tyro
 
 from vla_ladder import files
+from vla_ladder.checks import check_output_file
 from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.contract import ACTION_KEY, EPISODE_STEPS, STATE_KEY, contract_changes
 from vla_ladder.recordings import read_provenance, read_recording, read_recording_state
@@ -77,8 +78,10 @@ class CheckDatasetConfig:
         self.dataset = Path(self.dataset)
         if not 0 < self.balance_alpha < 1:
             raise ValueError(f"--balance-alpha must be in (0, 1), got {self.balance_alpha}")
-        if self.min_expected <= 0:
-            raise ValueError(f"--min-expected must be > 0, got {self.min_expected}")
+        if not self.min_expected > 0 or self.min_expected == float("inf"):  # nan passed `<= 0`
+            raise ValueError(f"--min-expected must be a positive number, got {self.min_expected}")
+        if self.out is not None:
+            check_output_file(self.out, "--out")  # now, not after the checks and the replay
         if self.replay < 0:
             raise ValueError(f"--replay must be >= 0 (episodes to replay; 0: none), got {self.replay}")
 
