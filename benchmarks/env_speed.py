@@ -139,7 +139,9 @@ def main(args: Args) -> None:
     render = {"benchmark": "render_speed", "cameras": list(CAMERA_NAMES), "image": "256x256 RGB", **common,
               "results": rgb, "lite_speedup_per_step": speedup,
               "pictures": picture_difference(args) if {"lite", "full"} <= set(args.robot_meshes) else None}
-    render_out = args.render_out or RESULTS / ("render_speed_cuda.json" if renderer == "gpu" else "render_speed.json")
+    # physx_cpu keeps the names the docs quote; another backend's rows go to their own file, not over those.
+    backend = "" if args.sim_backend == "physx_cpu" else f"_{args.sim_backend}"
+    render_out = args.render_out or RESULTS / f"render_speed{backend}{'_cuda' if renderer == 'gpu' else ''}.json"
     files.write_json(render_out, render)
     print(f"two-camera step, full / lite robot mesh: {speedup}x; pictures differ by "
           f"{render['pictures'] and render['pictures']['mean_abs_difference_grey_levels']} grey levels; "

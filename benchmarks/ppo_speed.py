@@ -94,7 +94,9 @@ def main(args: Args) -> None:
     if args.from_run:
         result["time_to_success"] = time_to_success(args.from_run, args.target)
         print(json.dumps(result["time_to_success"]))
-    out = args.out or RESULTS / f"ppo_speed_{network}.json"
+    # A physx_cpu run and a physx_cuda run on one GPU machine each keep their file.
+    backend = "" if args.sim_backend == "physx_cpu" else f"_{args.sim_backend}"
+    out = args.out or RESULTS / f"ppo_speed{backend}_{network}.json"
     files.write_json(out, result)
     print(f"wrote {out}")
 

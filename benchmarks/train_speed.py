@@ -33,7 +33,9 @@ from vla_ladder import files
 from vla_ladder.machine import cores
 
 MODELS = ("smolvla-500m", "smolvla-scratch", "act")
-STEP_LINE = re.compile(r"step:(\d+)\S* .*updt_s:([\d.]+) data_s:([\d.]+)")
+# LeRobot logs every --log-freq steps, the step rounded (format_big_number: 1500 prints as "2K"), so the step is the
+# line's count times --log-freq, not the number printed.
+STEP_LINE = re.compile(r"step:\S+ .*updt_s:([\d.]+) data_s:([\d.]+)")
 
 
 def model_args(model: str, vlm_root: Path) -> tuple[str, list[str]]:
@@ -67,7 +69,8 @@ def measure(model: str, args: Args, root: Path) -> dict:
             tail = (tail + [line])[-30:]
             m = STEP_LINE.search(line)
             if m:
-                logged.append((time.monotonic() - start, int(m[1]), float(m[2]), float(m[3])))
+                step = (len(logged) + 1) * args.log_freq
+                logged.append((time.monotonic() - start, step, float(m[1]), float(m[2])))
                 print(f"   {logged[-1][0]:7.1f} s  {line.strip()}", flush=True)
     wall = time.monotonic() - start
     if proc.returncode != 0 or len(logged) < 2:
@@ -133,7 +136,9 @@ def main(args: Args) -> None:
     for row in rows:
         row.update(gpu=gpu, dataset_episodes=info.get("total_episodes"), load_average_1min=load_before)
     out = args.out or Path(__file__).parent / "results" / f"train_speed_{args.device.split(':')[0]}.json"
-    key = lambda r: (r["model"], r["device"], r["batch_size"])  # noqa: E731
+    # A row per model, device, batch and loader workers: a re-run with other workers sits beside the baseline it is
+    # compared with (docs/gpu.md) instead of replacing it.
+    key = lambda r: (r["model"], r["device"], r["batch_size"], r.get("num_workers"))  # noqa: E731
     old = json.loads(out.read_text())["results"] if out.is_file() else []
     fresh = {key(r) for r in rows}
     files.write_json(out, {"benchmark": "train_speed", "cpu_count": os.cpu_count(), "cores": cores(),

@@ -5,8 +5,10 @@
 The same scripted episodes (both 256x256 cameras, rendered as `record`'s servers render them) are written with
 each codec through DatasetStore (LeRobot's streaming encoder with its default settings for that codec: the
 real writer), then read back through LeRobotDataset as `vla-ladder train` reads them:
-  writer  - CPU seconds per episode of DatasetStore.add and its commit (LeRobot's per-frame image statistics
-            included: they cost the same for every codec), and the codec alone on the same frames;
+  writer  - CPU seconds per episode of DatasetStore.add and its commit (the cameras' per-frame statistics included,
+            counted as the recorder counts them, recording/image_stats.py: they cost the same for every codec; the
+            committed video_codec.json predates that and measured LeRobot's own statistics class), and the codec
+            alone on the same frames;
   size    - bytes of video per episode;
   fidelity- PSNR (dB) of every decoded frame against the rendered one;
   decode  - ms per training sample (both cameras of one random frame, one thread, as one DataLoader worker)
@@ -178,10 +180,10 @@ def main(args: Args) -> None:
     files.write_json(args.out, {
         "benchmark": "video_codec", "condition": condition.key, "episodes": len(episodes),
         "samples": args.samples, "rows": rows,
-        "note": "writer: CPU s per episode of DatasetStore (LeRobot's streaming encoder, its image statistics and "
-                "the commit); codec_alone: the codec on the same frames by itself; decode: ms per training sample "
-                "(both cameras of one random frame) through LeRobotDataset in one thread; long_file: ms per random "
-                "frame of one long MP4 through LeRobot's decode_video_frames",
+        "note": "writer: CPU s per episode of DatasetStore (LeRobot's streaming encoder, the recorder's counted "
+                "image statistics and the commit); codec_alone: the codec on the same frames by itself; decode: ms "
+                "per training sample (both cameras of one random frame) through LeRobotDataset in one thread; "
+                "long_file: ms per random frame of one long MP4 through LeRobot's decode_video_frames",
         "machine": {"cores": cores(), "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
                     "load_average_1min": os.getloadavg()[0]},
         "provenance": files.provenance()})
