@@ -506,7 +506,7 @@ def test_help_never_prints_a_secret_from_the_environment(monkeypatch, capsys):
     ("[1, 2]", "expected an object with name, table, conditions and optionally episodes"),
     ('{"name": "x", "conditions": ["small_jitter/canonical/5"]}', "got ['conditions', 'name']"),
     ('{"name": "x", "table": "ladder", "conditions": ["small_jitter/canonical/5"], "episodes": "3"}',
-     "episodes: expected an integer >= 1, got '3'"),
+     "episodes must be a positive integer, got '3'"),
     ('{"name": "x", "table": "ladder", "conditions": "small_jitter/canonical/5"}',
      "conditions: expected a list of conditions"),
     ("{not json", "not a JSON experiment config"),

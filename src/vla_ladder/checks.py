@@ -28,6 +28,16 @@ TORCH_DEVICE = re.compile(r"cpu|mps|cuda(:\d+)?")
 """The torch devices a policy or a training run may be put on (`--device`, `lerobot:...?device=`)."""
 
 
+# ---------------------------------------------------------------------------------------------- counts
+def check_count(value, name: str, least: int = 1):
+    """`value` when it is an integer (numpy's too; a bool is not one) of at least `least`, else ValueError naming
+    `name` (a flag or a config field)."""
+    if isinstance(value, bool) or not hasattr(value, "__index__") or value < least:
+        what = "a positive integer" if least == 1 else f"an integer >= {least}"
+        raise ValueError(f"{name} must be {what}, got {value!r}")
+    return value
+
+
 # ---------------------------------------------------------------------------------------------- seeds
 def check_seed(value, flag: str) -> int:
     """`value` as a seed, or ValueError naming `flag` and the allowed range."""

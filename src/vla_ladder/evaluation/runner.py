@@ -22,6 +22,7 @@ import numpy as np
 import tyro
 
 from vla_ladder import files
+from vla_ladder.checks import check_count
 from vla_ladder.conditions import MAX_OBJECTS, Condition, ConditionGrid
 from vla_ladder.contract import EPISODE_STEPS, contract_changes, fingerprint
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
@@ -105,11 +106,8 @@ class EvalConfig:
         if not isinstance(self.grid, ConditionGrid):
             self.grid = ConditionGrid(**self.grid)
         for name in ("episodes", "num_envs"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if isinstance(self.videos, bool) or not isinstance(self.videos, (int, np.integer)) or self.videos < 0:
-            raise ValueError(f"videos must be an integer >= 0, got {self.videos!r}")
+            check_count(getattr(self, name), name)
+        check_count(self.videos, "videos", least=0)
         check_workers(self.workers)
         if self.first_seed < 0 or self.first_seed + self.episodes > 2**32:
             raise ValueError(f"--first-seed must be >= 0 and --first-seed + --episodes <= 2**32 (episode j plays "

@@ -54,6 +54,7 @@ from typing import Annotated
 import tyro
 
 from vla_ladder import files
+from vla_ladder.checks import check_count
 from vla_ladder.conditions import REGIMES, Condition, ConditionGrid
 from vla_ladder.evaluation.displacement import FAR_CM, by_displacement
 from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
@@ -126,9 +127,7 @@ class DiagnoseConfig:
             raise ValueError("--out DIR is required: the diagnosis directory to write")
         self.out = Path(self.out)
         for name in ("episodes", "probe_episodes"):  # named here: the probes' own check said --episodes
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be a positive integer, got {value!r}")
+            check_count(getattr(self, name), f"--{name.replace('_', '-')}")
         if len(set(self.policy)) != len(self.policy):
             raise ValueError(f"--policy names a policy twice: {' '.join(self.policy)}")
         for spec in self.policy:

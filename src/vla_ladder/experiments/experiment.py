@@ -21,6 +21,7 @@ from pathlib import Path
 
 import tyro
 
+from vla_ladder.checks import check_count
 from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
@@ -57,10 +58,8 @@ class ExperimentConfig:
         self.conditions = [Condition.of(c) for c in self.conditions]
         if not self.conditions:
             raise ValueError(f"experiment {self.name!r} has no conditions")
-        for name in ("episodes", "first_seed"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < (1 if name == "episodes" else 0):
-                raise ValueError(f"{name}: expected an integer >= {1 if name == 'episodes' else 0}, got {value!r}")
+        check_count(self.episodes, "episodes")
+        check_count(self.first_seed, "first_seed", least=0)
         if self.table == "data_scaling":
             regimes = {c.regime for c in self.conditions}
             bad = [r for r, s in self.sizes.items() if r not in regimes or len(s) != 2]

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
 
-from vla_ladder.checks import SEED_LIMIT
+from vla_ladder.checks import SEED_LIMIT, check_count
 from vla_ladder.conditions import Condition, ConditionGrid
 
 PRESETS_PACKAGE = "vla_ladder.configs.study"
@@ -233,10 +233,11 @@ class StudyConfig:
         uses.update({f"datasets[{d.name}]": range(d.first_seed, d.first_seed + 4 * d.episodes) for d in self.datasets})
         # Every range a unit will play must be numpy seeds, said here rather than after recording and training
         # (a recording needs first_seed + episodes of them at least, as `vla-ladder record` checks).
-        for name, r in uses.items():
-            last = r.start + (r.stop - r.start) // 4 if name.startswith("datasets[") else r.stop
-            if r.start < 0 or last > SEED_LIMIT:
-                raise ValueError(f"the {name} seeds ({r.start}-{last - 1}) must lie in 0..2**32-1 (numpy seeds); "
+        needed = {name: r for name, r in uses.items() if not name.startswith("datasets[")}
+        needed.update({f"datasets[{d.name}]": range(d.first_seed, d.first_seed + d.episodes) for d in self.datasets})
+        for name, r in needed.items():
+            if r.start < 0 or r.stop > SEED_LIMIT:
+                raise ValueError(f"the {name} seeds ({r.start}-{r.stop - 1}) must lie in 0..2**32-1 (numpy seeds); "
                                  "move its first_seed")
         names = list(uses)
         for i, a in enumerate(names):
@@ -296,6 +297,4 @@ def from_dict(cls, data: dict, where: str):
 
 
 def _positive(obj, name: str) -> None:
-    value = getattr(obj, name)
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    check_count(getattr(obj, name), name)

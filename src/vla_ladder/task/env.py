@@ -294,7 +294,7 @@ class GraspObjectEnv(BaseEnv):
             check_instruction_set(options["instructions"])
         if options.get("appearance") is not None and check_appearance(options["appearance"]) != "original":
             self._check_paintable()
-        for name in PER_ENV_OPTIONS[1:]:
+        for name in PER_ENV_OPTIONS:  # (conditions' count was checked above, in its own words)
             value = options.get(name)
             if isinstance(value, (list, tuple)) and len(value) != len(idx):
                 raise ValueError(f"got {len(value)} {name} values for {len(idx)} envs being reset")

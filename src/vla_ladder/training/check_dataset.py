@@ -78,7 +78,7 @@ class CheckDatasetConfig:
         self.dataset = Path(self.dataset)
         if not 0 < self.balance_alpha < 1:
             raise ValueError(f"--balance-alpha must be in (0, 1), got {self.balance_alpha}")
-        if not self.min_expected > 0 or self.min_expected == float("inf"):  # nan passed `<= 0`
+        if not 0 < self.min_expected < float("inf"):  # nan passed `<= 0`
             raise ValueError(f"--min-expected must be a positive number, got {self.min_expected}")
         if self.out is not None:
             check_output_file(self.out, "--out")  # now, not after the checks and the replay
