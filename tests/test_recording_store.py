@@ -161,9 +161,11 @@ def test_images_mode_and_commit_batches(tmp_path):
     assert item["observation.state"][0].item() == 2 and item["task"] == read_provenance(root)["instruction"][2]
 
 
-def test_h264_recording_loads_and_keeps_its_codec(tmp_path):
+def test_h264_recording_loads_and_keeps_its_codec(tmp_path, capfd):
     """`record --vcodec h264`: LeRobot writes H.264 MP4s that it reads back frame for frame; the codec is part of
-    what the dataset is a recording of (one codec per dataset), and the card says which."""
+    what the dataset is a recording of (one codec per dataset), and the card says which. FFmpeg's chatter stays out
+    of the log (its default printer, which LeRobot restores after each video, wrote ten lines of x264 statistics and
+    a "moov atom" line for every video)."""
     import av
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -174,6 +176,8 @@ def test_h264_recording_loads_and_keeps_its_codec(tmp_path):
         store.count(True)
         store.add(e)
     store.close()
+    printed = capfd.readouterr().err
+    assert "libx264 @" not in printed and "moov atom" not in printed, printed[-500:]
     for video in (root / "videos").rglob("*.mp4"):
         with av.open(str(video)) as f:
             assert f.streams.video[0].codec_context.name == "h264", video

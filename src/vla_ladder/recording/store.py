@@ -192,6 +192,7 @@ class DatasetStore:
 
         from vla_ladder.recording import image_stats
         image_stats.install()  # the cameras' per-frame statistics, ten times cheaper (image_stats.py)
+        _quiet_ffmpeg()
         self._batch_started = time.monotonic()
         shutil.rmtree(self.staging, ignore_errors=True)
         # Episodes are whole when they reach the writer, so the encoder queue may take a full episode at
@@ -260,6 +261,8 @@ class DatasetStore:
             return
         from lerobot.datasets.aggregate import aggregate_datasets
         from lerobot.utils.utils import SuppressProgressBars
+
+        _quiet_ffmpeg()
 
         t0 = time.perf_counter()
         shutil.rmtree(self.staging, ignore_errors=True)
@@ -493,6 +496,15 @@ def _link_copy(src: Path, dst: Path) -> None:
         immutable = any(rel == Path(d) or Path(d) in rel.parents for d in IMMUTABLE_DIRS)
         for f in names:
             (os.link if immutable else shutil.copy2)(Path(dirpath) / f, dst / rel / f)
+
+
+def _quiet_ffmpeg() -> None:
+    """FFmpeg's warnings and errors only. LeRobot hands FFmpeg's logging back to its default printer after every
+    video it encodes or concatenates, which then printed each MP4's "moving the moov atom" line, and with --vcodec
+    h264 x264's statistics (ten lines a video)."""
+    import av
+
+    av.logging.set_libav_level(av.logging.WARNING)
 
 
 def _fsync_tree(root: Path) -> None:
