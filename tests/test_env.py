@@ -109,6 +109,31 @@ def test_metrics_target_grasped_and_lifted(make_env):
 
 
 @pytest.mark.slow
+def test_finger_forces_are_maniskills_pairwise_forces_to_the_bit(make_env):
+    """The grasp flags read every object's force on each finger from one walk over the scene's contacts instead of
+    ManiSkill's ten (one per pair): the forces must be exactly what scene.get_pairwise_contact_forces gives, through
+    a whole expert episode of five objects (the fingers touching the target, and the table and neighbours around)."""
+    from vla_ladder.policies import load_policy
+
+    env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=5)
+    u = env.unwrapped
+    expert = load_policy("scripted")
+    touching = 0
+    for seed in (0, 1):
+        obs, _ = env.reset(seed=seed)
+        expert.reset([seed])
+        fingers = (u.agent.finger1_link, u.agent.finger2_link)  # the reset rebuilt the scene, its robot too
+        for _ in range(EPISODE_STEPS):
+            obs = env.step(expert.act(obs, u.instructions).to(torch.float32))[0]
+            theirs = torch.stack([torch.stack([u.scene.get_pairwise_contact_forces(f, o) for f in fingers], dim=1)
+                                  for o in u.objs], dim=1)
+            ours = u._finger_forces()
+            assert ours.dtype == theirs.dtype and torch.equal(ours, theirs)
+            touching += bool(theirs.any())
+    assert touching >= 20, "the episodes should grasp: most steps after the fingers close have finger contacts"
+
+
+@pytest.mark.slow
 def test_metrics_wrong_object_grasped(make_env):
     seed = _seed_with({"apple", "rubiks_cube"}, target="apple")
     env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=2, target="apple")
