@@ -347,7 +347,7 @@ def run(cfg: EvalConfig) -> int:
     t = summary.get("timing", {})
     if t.get("lockstep_steps"):
         print(f"time: {t['per_step_ms']['policy']} ms a step in the policy, {t['per_step_ms']['env']} ms in the env "
-              f"({cfg.num_envs} at once); resets {t['reset_s']:.1f} s, filming {t['film_s']:.1f} s and encoding the videos "
-              f"{t['encode_s']:.1f} s in all")
+              f"({cfg.num_envs} at once); resets {t['reset_s']:.1f} s, filming {t['film_s']:.1f} s and encoding the "
+              f"videos {t['encode_s']:.1f} s in all")
     print(f"wrote {cfg.out}/episodes.parquet, summary.json, config.json")
     return 0
