@@ -464,8 +464,8 @@ class GraspObjectEnv(BaseEnv):
         if self.gpu_sim_enabled:  # one batched query per pair already
             return torch.stack([torch.stack([self.scene.get_pairwise_contact_forces(f, o) for f in fingers], dim=1)
                                 for o in self.objs], dim=1)
-        # Keyed by the entities' ids: an entity's Python wrapper is made anew at each access, and its hash is the
-        # wrapper's (a hand's and a finger's came out equal), while == and global_id compare the entities themselves.
+        # Keyed by global_id, which names the entity itself: SAPIEN's Entity wrappers compare and hash by Python
+        # identity, which stands for the entity only while one wrapper of it is alive.
         finger_of = {f._bodies[0].entity.global_id: i for i, f in enumerate(fingers)}
         object_of = {o._bodies[0].entity.global_id: k for k, o in enumerate(self.objs)}
         impulses = np.zeros((len(self.objs), len(fingers), 3))  # float64, as sapien_utils.compute_total_impulse
