@@ -108,6 +108,11 @@ def test_pooled_rate_counts_correlated_plays_by_their_design_effect():
     lo, hi = wilson(int(num.sum()), 1000)
     assert spread["ci95"] == pytest.approx([lo, hi], abs=0.01)
     assert grounding.pooled_rate(np.zeros(3), np.zeros(3))["n"] == 0
+    # Plays in one scene only (a policy that grasps in one scene): one trial, never narrower than all of them alike.
+    alone = grounding.pooled_rate(np.array([2.0, 0, 0]), np.array([5.0, 0, 0]))
+    assert alone["ci95"] == pytest.approx(list(wilson(0.4, 1))) and alone["value"] == pytest.approx(0.4)
+    every = grounding.pooled_rate(np.array([5.0]), np.array([5.0]))
+    assert alone["ci95"][1] - alone["ci95"][0] > every["ci95"][1] - every["ci95"][0]
 
 
 def test_incomplete_scenes_are_left_out():

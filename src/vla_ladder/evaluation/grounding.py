@@ -89,8 +89,8 @@ def pooled_rate(num: np.ndarray, den: np.ndarray) -> dict:
     its effective number of plays: sum(den) divided by the design effect, the ratio of the rate's variance between
     scenes (linearised, with n / (n - 1)) to its variance were every play independent, kept between the number of
     scenes (a scene decides all its plays) and the number of plays (they are independent). Where every play
-    counts (or none does) there is no variance to measure, and each contributing scene counts as one trial (49 of
-    49 grasps in 19 scenes: [83, 100]). With one play a scene this is the Wilson interval of the plays. Measured
+    counts (or none does), or only one scene has plays, there is no variance to measure, and each contributing scene
+    counts as one trial (49 of 49 grasps in 19 scenes: [83, 100]). With one play a scene this is the Wilson interval of the plays. Measured
     coverage of the nominal 95% on beta-binomial scenes (10 to 50 scenes of 2 to 5 plays, rates 0.1 to 0.95):
     92-98%, where a percentile bootstrap over scenes gave 89-93% at 10-20 scenes (docs/probes.md)."""
     num, den = np.asarray(num, dtype=float), np.asarray(den, dtype=float)
@@ -101,8 +101,12 @@ def pooled_rate(num: np.ndarray, den: np.ndarray) -> dict:
     if k in (0.0, total):
         lo, hi = wilson(scenes if k else 0, scenes)
         return _interval(rate, lo, hi, "wilson over scenes (every play alike)", int(total))
+    if scenes < 2:
+        # One scene's residual is 0 by construction: no variance between scenes can be measured, and its plays count
+        # as one trial, as where every play counts (2 of 5 must not come out narrower than 5 of 5).
+        return _interval(rate, *wilson(rate, 1), "wilson over scenes (one scene)", int(total))
     n = len(num)
-    between = n / (n - 1) * float(((num - rate * den) ** 2).sum()) / total ** 2 if n > 1 else 0.0
+    between = n / (n - 1) * float(((num - rate * den) ** 2).sum()) / total ** 2
     independent = rate * (1 - rate) / total
     effective = total if between <= 0 else total * min(1.0, independent / between)
     effective = min(max(effective, float(scenes)), total)
@@ -131,7 +135,7 @@ def nmi_null(instructed: np.ndarray, held: np.ndarray, stratum: np.ndarray, outc
              resamples: int = RESAMPLES, seed: int = BOOTSTRAP_SEED) -> np.ndarray:
     """The NMI of `resamples` tables where, within each scene, what was held is shuffled among the scene's plays:
     what the estimate gives when the held object does not depend on the instruction. The plug-in estimate is
-    biased upwards, so that is not 0 (about 0.07 for 20 scenes of five plays held uniformly at random); the
+    biased upwards, so that is not 0 (about 0.07 for 20 scenes of five plays holding one of the five objects or none, uniformly at random); the
     permutation p-value is the share of shuffles at least as high as the observed NMI. instructed, held: (scenes,
     plays) row and column indices of the count tables; stratum: each scene's set of objects."""
     n, plays = instructed.shape
