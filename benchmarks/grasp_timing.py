@@ -3,10 +3,10 @@ starts its descent and the one at which it starts closing its gripper, per episo
 objects, five objects). The instruction-switch probe's default steps (experiments/probes.py SWITCH_STEPS) are
 chosen around these: one before every close, one after nearly every close and lift.
 
-    .venv/bin/python benchmarks/grasp_timing.py [--episodes 20] [--first-seed 0]
+    .venv/bin/python benchmarks/grasp_timing.py [--episodes 20] [--first-seed 0] [--out FILE]
 
-Writes benchmarks/results/grasp_timing.json. Action t is the policy's (t+1)-th action, applied in control step
-t+1; an instruction switch at step K (env option switch_at) comes after actions 0..K-1, so the expert has closed on
+Writes benchmarks/results/grasp_timing.json, or --out. Action t is the policy's (t+1)-th action, applied in control
+step t+1; an instruction switch at step K (env option switch_at) comes after actions 0..K-1, so the expert has closed on
 the first target before a switch at K exactly when its close action is < K.
 """
 
@@ -37,6 +37,8 @@ class Args:
     first_seed: int = 0
     policies: tuple[str, ...] = ("scripted", "layout-prior")
     """policies driven by the scripted controller (its phase machine is read after every action)"""
+    out: Path = RESULT
+    """result JSON"""
 
 
 def phase_steps(policy, env, seed: int, condition: Condition) -> tuple[int | None, int | None, bool]:
@@ -79,10 +81,10 @@ def main(args: Args) -> None:
                 print(spec, regime, "descend", list(descend), "close", list(close), "success", sum(success))
     finally:
         env.close()
-    files.write_json(RESULT, {"benchmark": "grasp_timing", "device": "cpu", "object_set": "standin",
+    files.write_json(args.out, {"benchmark": "grasp_timing", "device": "cpu", "object_set": "standin",
                               "num_objects": 5, "episodes": args.episodes, "first_seed": args.first_seed,
                               "wall_s": round(time.perf_counter() - t0, 1), "results": results})
-    print(RESULT)
+    print(args.out)
 
 
 if __name__ == "__main__":

@@ -2,8 +2,9 @@
 env steps, with the training-loop seconds each evaluation came at, read from each run's evals.json.
 
     .venv/bin/python benchmarks/ppo_curve.py RUN [RUN ...] --name physx_cpu2 [--labels few-envs paper]
+                                             [--out FILE]
 
-Writes benchmarks/results/ppo_curve_<name>.json and .png (one panel per run). The JSON keeps, per run, the
+Writes benchmarks/results/ppo_curve_<name>.json (or --out) and the .png beside it (one panel per run). The JSON keeps, per run, the
 settings that differ from `vla-ladder train-expert`'s defaults (the paper's), so the command can be rebuilt.
 """
 
@@ -37,6 +38,8 @@ class Args:
     """a label per run (default: the run directory's name)"""
     device: str = ""
     """the machine, in words, to stamp into the result (default: this machine's CPU count and GPU, if any)"""
+    out: Path | None = None
+    """result JSON, the PNG beside it (default: benchmarks/results/ppo_curve_<name>.json)"""
 
     def __post_init__(self):
         missing = [str(r) for r in self.runs if not (Path(r) / "evals.json").is_file()]
@@ -89,7 +92,7 @@ def main(args: Args) -> None:
     for label, r in runs.items():
         print(f"{label}: {r['env_steps']} env steps in {r['train_loop_s']:.0f} s ({r['env_steps_per_s']}/s); "
               f"first success {r['first_success']}; best {r['best']}; last by target {r['last_by_target']}")
-    out = RESULTS / f"ppo_curve_{args.name}.json"
+    out = args.out or RESULTS / f"ppo_curve_{args.name}.json"
     files.write_json(out, {"benchmark": "ppo_curve", "device": args.device or machine(), "runs": runs})
     panels = {f"{label} ({r['settings'].get('num_envs', 1024)} envs)": r["curve"] for label, r in runs.items()}
     png = plot_curves(panels, out.with_suffix(".png"), xlabel="env steps", ylabel="% of evaluation episodes")

@@ -118,8 +118,7 @@ if [ "$PART" = ppo ]; then
     --num-minibatches 8 --update-epochs 8 --regimes small_jitter --num-objects 1 --total-timesteps 600000 \
     --eval-freq "$(n 40 2)" --eval-episodes "$(n 32 2)" --keep-checkpoints 1 --no-progress
   name=$(n physx_cpu16_few_cuda dry_run)
-  step ppo_curve 60 python3 benchmarks/ppo_curve.py runs/ppo16 --name "$name"
-  mv benchmarks/results/ppo_curve_"$name".* "$R/" && pack  # the script writes into the tree; the pack is what returns
+  step ppo_curve 60 python3 benchmarks/ppo_curve.py runs/ppo16 --name "$name" --out "$R/ppo_curve_$name.json"
   # What the next session carries to resume (about 3.8 MB: the kit leaves the tree and the carry about 4 MiB), and
   # apart, what it does not need: the TensorBoard logs (SPS against rollout SPS: the updates' share) and the best model.
   ck=$(python3 -c "import json; print(json.load(open('runs/ppo16/state.json'))['checkpoint'])")
