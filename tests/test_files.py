@@ -51,3 +51,33 @@ def test_provenance_says_which_simulator_build_and_cpu_measured_it():
     assert prov["object_set"] == "standin"
     if Path("/proc/cpuinfo").is_file():
         assert prov["cpu"] and prov["cpu"].split(", ")[0] in Path("/proc/cpuinfo").read_text()
+
+
+def test_a_directory_is_built_whole_or_not_at_all_and_removed_the_same_way(tmp_path):
+    """atomic_dir: a build that fails leaves nothing under the name (the tiny VLM's directory was trusted once two of
+    its four files were written); one that finishes appears with all its files. remove_dir: the name goes first."""
+    target = tmp_path / "vlm"
+    with pytest.raises(RuntimeError):
+        with files.atomic_dir(target) as tmp:
+            (tmp / "config.json").write_text("{}")
+            raise RuntimeError("killed before processor_config.json")
+    assert not target.exists() and list(tmp_path.iterdir()) == []
+    with files.atomic_dir(target) as tmp:
+        for name in ("config.json", "processor_config.json"):
+            (tmp / name).write_text("{}")
+    assert sorted(p.name for p in target.iterdir()) == ["config.json", "processor_config.json"]
+    with files.atomic_dir(target) as tmp:  # built meanwhile by another process: its copy stays
+        (tmp / "other.json").write_text("{}")
+    assert sorted(p.name for p in target.iterdir()) == ["config.json", "processor_config.json"]
+    assert [p.name for p in tmp_path.iterdir()] == ["vlm"]
+
+    def killed(path, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    with pytest.MonkeyPatch.context() as mp, pytest.raises(KeyboardInterrupt):
+        mp.setattr(files.shutil, "rmtree", killed)  # killed while deleting: the name is already gone
+        files.remove_dir(target)
+    assert not target.exists()
+    (tmp_path / "run").mkdir()
+    files.remove_dir(tmp_path / "run")
+    assert not (tmp_path / "run").exists()

@@ -131,6 +131,17 @@ def test_delete_episodes_drops_provenance_and_rebuild_restores_it(recorded, tmp_
     exact = np.quantile(_frames(root)["action"], 0.9, axis=0)
     assert np.abs(np.asarray(_stats(root)["action"]["q90"]) - exact).max() > 0.3
 
+    # Killed while it computes the exact quantiles (it reads every frame): the recording file, which says the dataset
+    # is whole, is not written yet, so the dataset is still refused rather than trained on the averaged quantiles.
+    from vla_ladder.recording import stats
+
+    def killed(*args):
+        raise KeyboardInterrupt
+
+    with pytest.MonkeyPatch.context() as mp, pytest.raises(KeyboardInterrupt):
+        mp.setattr(stats, "write_exact_quantiles", killed)
+        provenance.rebuild(root, [old])
+    assert provenance.missing(root) == [f"{RECORDING_FILE} is missing"] and read_recording(root) is None
     rebuilt = provenance.rebuild(root, [old])
     kept = before[before["episode_index"] != 1].reset_index(drop=True)
     assert rebuilt["episode_index"].tolist() == [0, 1, 2]

@@ -120,6 +120,30 @@ def test_tiny_cpu_run_writes_checkpoint_that_acts(run_dir, make_env):
     assert again.act(obs, env.unwrapped.instructions).shape == (1, 7)
 
 
+def test_a_killed_save_neither_costs_the_checkpoint_nor_the_best_score(tmp_path):
+    """A save killed midway leaves a step directory past the one state.json points to, and a best model newer than
+    state.json's best_success: the next save keeps its own checkpoint whatever --keep-checkpoints, and a resumed run
+    knows the best score its best model had."""
+    from vla_ladder.ppo.checkpoint import load_run_state, save_checkpoint
+
+    agent = Agent(4, 2, (8,))
+    optimizer = torch.optim.AdamW(agent.parameters())
+    state = {"global_step": 100, "iteration": 2, "best_success": 0.25}
+    save_checkpoint(tmp_path, agent, optimizer, state, keep=1, best=True)
+    orphan = tmp_path / "checkpoints/step_000000000150"  # a killed save, of a run then resumed in smaller batches
+    orphan.mkdir()
+    save_checkpoint(tmp_path, agent, optimizer, {**state, "global_step": 125}, keep=1, best=False)
+    kept = sorted(d.name for d in (tmp_path / "checkpoints").iterdir())
+    assert kept == ["best", "step_000000000125"]
+    assert json.loads((tmp_path / "state.json").read_text())["checkpoint"] == "checkpoints/step_000000000125"
+    assert load_policy(f"ppo:{tmp_path}", device="cpu").describe()["global_step"] == 125
+    # Killed after checkpoints/best took a better model (0.5), before state.json said so.
+    best = tmp_path / "checkpoints/best/state.json"
+    best.write_text(json.dumps({**json.loads(best.read_text()), "best_success": 0.5}))
+    assert load_run_state(tmp_path)["best_success"] == 0.5
+    assert json.loads((tmp_path / "state.json").read_text())["best_success"] == 0.25
+
+
 @pytest.mark.slow
 def test_resume_continues_step_count_and_optimizer(run_dir):
     assert _optimizer_steps(run_dir) == 16  # 2 iterations x 4 epochs x 2 minibatches

@@ -74,6 +74,34 @@ def test_a_dataset_recorded_under_another_task_contract_is_refused(data, tmp_pat
 
 
 @pytest.mark.slow
+def test_checkpoints_last_moves_in_one_step(tmp_path):
+    """While `vla-ladder train` runs LeRobot's loop, a kill while `checkpoints/last` moves to a new checkpoint leaves
+    it at the previous one, never absent (LeRobot's own unlinks it, then links the new one: a run killed between the
+    two was taken for one with nothing to keep, and its checkpoints deleted)."""
+    import lerobot.scripts.lerobot_train as loop
+    from vla_ladder.training.train import stamp_checkpoints
+
+    checkpoints = tmp_path / "checkpoints"
+    for name in ("000001", "000002", "000003"):
+        (checkpoints / name).mkdir(parents=True)
+    own = loop.update_last_checkpoint
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with stamp_checkpoints(None, tmp_path, {}):
+        loop.update_last_checkpoint(checkpoints / "000001")
+        with pytest.MonkeyPatch.context() as mp, pytest.raises(KeyboardInterrupt):
+            mp.setattr(os, "symlink", killed)  # the kill, as the new link is made (Path.symlink_to calls it too)
+            loop.update_last_checkpoint(checkpoints / "000002")
+        assert os.path.realpath(checkpoints / "last") == str(checkpoints / "000001")
+        loop.update_last_checkpoint(checkpoints / "000003")
+    assert os.path.realpath(checkpoints / "last") == str(checkpoints / "000003")
+    assert os.readlink(checkpoints / "last") == "000003"  # relative, as LeRobot links it: the run can move
+    assert sorted(p.name for p in checkpoints.iterdir()) == ["000001", "000002", "000003", "last"]
+    assert loop.update_last_checkpoint is own
+
+
 def test_a_killed_training_resumes_from_its_last_checkpoint(data, tmp_path, capsys):
     """Each checkpoint gets the data's task contract as LeRobot saves it, not when training ends, so a run killed
     after a save leaves a `checkpoints/last` that `lerobot:` can check. The same command then resumes it there

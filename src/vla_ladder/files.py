@@ -34,6 +34,33 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
 
 @contextmanager
+def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary directory next to `path`, renamed to `path` only if the block finishes: a directory built
+    there is whole or absent. Where another process built `path` first (from the same inputs), theirs is kept."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        yield tmp
+        try:
+            tmp.rename(path)
+        except OSError:
+            if not path.is_dir():
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def remove_dir(path: str | os.PathLike) -> None:
+    """Delete directory `path` in a way a kill cannot leave half done under its name: renamed aside to a hidden
+    sibling first (one step), then deleted. A half-deleted run directory would be refused as not a run of ours."""
+    path = Path(path)
+    aside = Path(tempfile.mkdtemp(prefix=f".{path.name}.removing.", dir=path.parent))
+    path.rename(aside / path.name)
+    shutil.rmtree(aside)
+
+
+@contextmanager
 def own_tempdir() -> Iterator[Path]:
     """Point `tempfile`'s default directory at a fresh one for the block, and remove it with whatever was left.
 
@@ -69,7 +96,7 @@ def claim_dir(out: Path, previous: dict | None, request: dict, overwrite: bool, 
             raise ValueError(f"{out} holds another {kind} request (it differs in {', '.join(differ)}: "
                              f"{'; '.join(f'{k} was {previous.get(k)!r}' for k in differ)[:300]}); rerun the "
                              "command that made it to resume it, pick a new --out, or pass --overwrite")
-        shutil.rmtree(out)
+        remove_dir(out)
 
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:

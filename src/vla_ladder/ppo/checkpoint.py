@@ -52,5 +52,18 @@ def save_checkpoint(out: Path, agent: Agent, optimizer: torch.optim.Optimizer, s
         save_agent(best_dir / "model.safetensors", agent)
         files.write_json(best_dir / "state.json", state)
     files.write_json(out / "state.json", {**state, "checkpoint": name})
-    for old in sorted((out / "checkpoints").glob("step_*"))[:-keep]:
+    # Directory names sort by step. Those past this one are a killed run's unfinished saves (a resumed run may count
+    # in other batches); they go first, so that the newest `keep` never leave out the one state.json points to.
+    steps = sorted((out / "checkpoints").glob("step_*"))
+    for old in [d for d in steps if d.name > ck.name] + [d for d in steps if d.name <= ck.name][:-keep]:
         shutil.rmtree(old)
+
+
+def load_run_state(out: Path) -> dict:
+    """A run's state.json, to resume it. checkpoints/best is written before state.json: a run killed between the two
+    has a best model that state.json's best_success does not know, which a lesser evaluation would then replace."""
+    state = json.loads((out / "state.json").read_text())
+    best = out / "checkpoints" / "best" / "state.json"
+    if best.is_file():
+        state["best_success"] = max(state["best_success"], json.loads(best.read_text())["best_success"])
+    return state

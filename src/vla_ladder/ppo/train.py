@@ -25,7 +25,7 @@ import torch.nn as nn
 from vla_ladder import files
 from vla_ladder.conditions import ConditionGrid
 from vla_ladder.policies.ppo import Agent, checkpoint_dir, load_agent
-from vla_ladder.ppo.checkpoint import load_optimizer, save_checkpoint
+from vla_ladder.ppo.checkpoint import load_optimizer, load_run_state, save_checkpoint
 from vla_ladder.ppo.config import Args
 from vla_ladder.ppo.envs import TrainEnvs, slot_conditions, train_seeds
 from vla_ladder.ppo.loss import compute_gae, ppo_loss
@@ -76,7 +76,7 @@ def train(args: Args) -> dict:
     if args.resume:
         if not (out / "state.json").exists():
             raise ValueError(f"--resume: no run to continue in {out} (state.json missing)")
-        state.update(json.loads((out / "state.json").read_text()))
+        state.update(load_run_state(out))
         saved = load_agent(checkpoint_dir(out))  # before any env starts: a network of other sizes cannot go on
         if saved.hidden_sizes != args.hidden_sizes:
             raise ValueError(f"--resume: the run's network has hidden sizes {list(saved.hidden_sizes)}, not "

@@ -92,14 +92,15 @@ def rebuild(root: str | Path, sources: list[str | Path]) -> pd.DataFrame:
     files.write_parquet(root / PROVENANCE_DIR / REBUILT_SHARD, prov)
     # one recording only if the sources agree on what they record, and under which task contract
     configs = {json.dumps([s["config"], s.get("contract")], sort_keys=True) for s in states}
-    if len(configs) == 1:
-        files.write_json(root / RECORDING_FILE, _derived_state(states, len(prov), sources))
-    else:
-        (root / RECORDING_FILE).unlink(missing_ok=True)
+    # The recording file says the dataset is whole: it comes after the exact quantiles it vouches for (reading every
+    # frame takes a while), so that a kill in between leaves a dataset that is refused, not one trained on
+    # LeRobot's averaged quantiles.
+    (root / RECORDING_FILE).unlink(missing_ok=True)
     from vla_ladder.recording import card, stats
 
     stats.write_exact_quantiles(root)
     if len(configs) == 1:
+        files.write_json(root / RECORDING_FILE, _derived_state(states, len(prov), sources))
         card.write_card(root)
     return prov
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from vla_ladder import files
 from vla_ladder.task.objects import OBJECT_NAMES, instruction_for
 
 # The tokens SmolVLM's processor and SmolVLA look up by name.
@@ -92,7 +93,6 @@ def build_vlm_dir(out: str | Path, size: str | VLMSize = "tiny") -> Path:
     out = Path(out)
     if (out / "config.json").is_file() and (out / "tokenizer.json").is_file():
         return out
-    out.mkdir(parents=True, exist_ok=True)
 
     specials = list(dict.fromkeys([*SPECIAL_TOKENS.values(), *EXTRA_SPECIAL_TOKENS.values()]))
     tok = Tokenizer(models.WordLevel(unk_token=SPECIAL_TOKENS["unk_token"]))
@@ -123,8 +123,9 @@ def build_vlm_dir(out: str | Path, size: str | VLMSize = "tiny") -> Path:
         video_processor=SmolVLMVideoProcessor(size=edge, max_image_size=edge),
         image_seq_len=image_seq_len,
     )
-    config.save_pretrained(out)
-    processor.save_pretrained(out)
+    with files.atomic_dir(out) as tmp:  # the check above trusts two of its files: the rest must be there with them
+        config.save_pretrained(tmp)
+        processor.save_pretrained(tmp)
     return out
 
 

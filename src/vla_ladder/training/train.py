@@ -345,7 +345,7 @@ def train(req: TrainConfig) -> Path:
     if resume is None and req.out.exists():
         # Empty, or this request's run killed before a whole checkpoint (resume_point): nothing to keep, and LeRobot
         # refuses to start a run in an existing directory.
-        shutil.rmtree(req.out)
+        files.remove_dir(req.out)
     if resume is not None:
         cfg.resume = True
         # LeRobot sets the optimizer and scheduler presets only for new runs; a resumed one loads their state into
@@ -382,12 +382,14 @@ def stamp_checkpoints(contract: dict | None, out: Path, request: dict):
     """While LeRobot trains, every checkpoint it saves gets TRAINED_CONTRACT_FILE (the data's task contract) before
     `checkpoints/last` points to it, so that each checkpoint says what it was trained on wherever it is copied to,
     and a run killed after any save leaves checkpoints that `lerobot:` checks, not ones it takes on trust; the run
-    directory gets REQUEST_FILE, so that a re-run resumes it only with the same request. LeRobot's loop offers no
-    hook, so its module's save_checkpoint is wrapped for the call (the main process saves)."""
+    directory gets REQUEST_FILE, so that a re-run resumes it only with the same request. And `checkpoints/last`
+    moves in one step: LeRobot unlinks it and then links the new checkpoint, and a run killed in between had whole
+    checkpoints but no `last`, which a re-run took for a run with nothing to keep. LeRobot's loop offers no hook, so
+    its module's save_checkpoint and update_last_checkpoint are replaced for the call (the main process saves)."""
     import lerobot.scripts.lerobot_train as loop
     from lerobot.utils.constants import PRETRAINED_MODEL_DIR
 
-    save = loop.save_checkpoint
+    save, update_last = loop.save_checkpoint, loop.update_last_checkpoint
 
     def save_with_contract(checkpoint_dir, *args, **kwargs):
         if not (out / REQUEST_FILE).is_file():  # first, so that a kill during the first save leaves a run of ours
@@ -398,11 +400,22 @@ def stamp_checkpoints(contract: dict | None, out: Path, request: dict):
             files.write_json(Path(checkpoint_dir) / PRETRAINED_MODEL_DIR / TRAINED_CONTRACT_FILE, contract)
         return result
 
-    loop.save_checkpoint = save_with_contract
+    loop.save_checkpoint, loop.update_last_checkpoint = save_with_contract, move_last
     try:
         yield
     finally:
-        loop.save_checkpoint = save
+        loop.save_checkpoint, loop.update_last_checkpoint = save, update_last
+
+
+def move_last(checkpoint_dir: Path) -> None:
+    """Point `checkpoints/last` at `checkpoint_dir`, as LeRobot's update_last_checkpoint does, in one step: a new
+    link beside it renamed over it."""
+    checkpoint_dir = Path(checkpoint_dir)
+    last = checkpoint_dir.parent / "last"
+    new = last.with_name(f".last.{os.getpid()}")
+    new.unlink(missing_ok=True)
+    os.symlink(checkpoint_dir.name, new)
+    os.replace(new, last)
 
 
 def cpu_threads(req: TrainConfig) -> None:
