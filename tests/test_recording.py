@@ -257,6 +257,11 @@ BAD_CLIENTS = {
                      "not allowed"),
     "shape whose product overflows int64": ([_raw({"type": "hello", "arrays": [["x", "uint8", [65536] * 4]]})],
                                             P.CLOSE_MALFORMED, "runs past the end"),
+    # numpy's errors on these ended the connection without a reason, as if the client had gone.
+    "bool in a shape": ([_raw({"type": "hello", "arrays": [["x", "uint8", [True]]]}, b"\x00")], P.CLOSE_MALFORMED,
+                        "bad shape"),
+    "empty array of huge sides": ([_raw({"type": "hello", "arrays": [["x", "uint8", [0] + [2**31 - 1] * 7]]})],
+                                  P.CLOSE_MALFORMED, "not allowed"),
     "oversized message": ([b"\x00" * (P.MAX_CLIENT_MESSAGE + 1)], P.CLOSE_TOO_BIG, ""),
     "run before hello": ([P.run([1])], P.CLOSE_UNEXPECTED, "expected 'hello'"),
     "client max_size too small": ([P.hello(TOKEN, 1000)], P.CLOSE_LIMIT, "accepts 1000"),

@@ -62,6 +62,11 @@ def test_messages_read_openpi_layout_and_refuse_anything_but_plain_arrays():
         unpack(pack({"a": 1})[:-1])
     with pytest.raises(ValueError, match="not a msgpack message"):
         unpack(msgpack.packb([[]] * 5000))  # more entries than any message has
+    # Many small containers, each within the entries' bound: 4 MiB of empty lists would be 280 MiB of Python objects.
+    with pytest.raises(ValueError, match="more than 1024 lists and maps in one message"):
+        unpack(msgpack.packb([[[]] * 4000] * 1000))
+    with pytest.raises(ValueError, match="more than 1024 lists and maps in one message"):
+        unpack(msgpack.packb({"junk": [{}] * 2000, "state": [0.0] * 15}))
     with pytest.raises(ValueError, match="expected a binary message"):
         unpack("text")
     with pytest.raises(ValueError, match="cannot send an array of dtype object"):

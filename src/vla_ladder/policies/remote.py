@@ -58,8 +58,11 @@ ACTIONS_KEY = "actions"
 API_KEY_ENV = "VLA_LADDER_API_KEY"  # sent as openpi's client sends its api_key: `Authorization: Api-Key KEY`
 # An observation is ~0.4 MB (two 256x256 RGB images); a chunk a few KB; metadata small. Both directions are
 # bounded well above that and far below what a hostile peer could make us allocate.
-MAX_MESSAGE = 16 * 1024 * 1024
+MAX_MESSAGE = 4 * 1024 * 1024
 MAX_CONTAINER = 4096  # entries of one msgpack list or map
+# Lists and maps in one message. A request has a handful (the observation's map, an array's map and shape list); a
+# 1-byte empty list becomes a ~60-byte Python object, so 16 MiB of them became 1.1 GiB before this bound.
+MAX_CONTAINERS = 1024
 CONNECT_TIMEOUT_S = 10.0
 REPLY_TIMEOUT_S = 600.0  # the first chunk of a large model on a CPU can take minutes
 _KINDS = frozenset("biufSU")  # bool, integers, floats, fixed-width strings: never objects, void or pointers
@@ -120,11 +123,22 @@ def unpack(data: bytes) -> Any:
     """The inverse of `pack`, for untrusted bytes: ValueError on anything but plain msgpack and numeric arrays."""
     if not isinstance(data, bytes):
         raise BadMessage(f"expected a binary message, got {type(data).__name__}")
+    containers = 0
+
+    def counted(hook):
+        def count(obj):
+            nonlocal containers
+            containers += 1
+            if containers > MAX_CONTAINERS:
+                raise BadMessage(f"more than {MAX_CONTAINERS} lists and maps in one message")
+            return hook(obj)
+        return count
+
     try:
         # Container limits far above any observation, chunk or metadata (a handful of keys, shapes of 3 numbers),
-        # so that a hostile 16 MiB of tiny containers cannot become gigabytes of Python objects.
-        return msgpack.unpackb(data, object_hook=_decode, ext_hook=_no_ext, strict_map_key=False,
-                               max_array_len=MAX_CONTAINER, max_map_len=MAX_CONTAINER)
+        # so that a hostile message of tiny containers cannot become gigabytes of Python objects.
+        return msgpack.unpackb(data, object_hook=counted(_decode), list_hook=counted(lambda x: x), ext_hook=_no_ext,
+                               strict_map_key=False, max_array_len=MAX_CONTAINER, max_map_len=MAX_CONTAINER)
     except BadMessage:
         raise
     except Exception as e:  # msgpack's own errors (truncated data, extra bytes) and numpy's (a bad dtype string)

@@ -286,6 +286,7 @@ class PolicyServer:
                     log.info("client %s sent a bad request: %s", ws.remote_address, e)
                     await replies.put(("bad", f"bad request: {e}"))
                     return
+                del message, request  # what was parsed is kept, not the raw message while the next one is awaited
                 answer = asyncio.get_running_loop().create_future()
                 if not group:
                     expected = window
@@ -304,8 +305,9 @@ class PolicyServer:
         self._pending = asyncio.Queue()
         answering = asyncio.create_task(self._answer_pending())
         try:
-            async with serve(self.handle, self.cfg.host, self.cfg.port, max_size=MAX_MESSAGE, compression=None,
-                             process_request=self._authorised) as server:
+            # max_queue: frames a connection may have received and not yet read (websockets' default is 16).
+            async with serve(self.handle, self.cfg.host, self.cfg.port, max_size=MAX_MESSAGE, max_queue=2,
+                             compression=None, process_request=self._authorised) as server:
                 port = server.sockets[0].getsockname()[1]
                 host = f"[{self.cfg.host}]" if ":" in self.cfg.host else self.cfg.host
                 if ready is not None:

@@ -114,7 +114,10 @@ def decode(data: bytes | str) -> Message:
         count = math.prod(shape)  # Python integers: an int64 product of [65536] * 4 wraps to 0
         if offset + count * dt.itemsize > len(view):
             raise ProtocolError(f"array {name!r} runs past the end of the message")
-        arrays[name] = np.frombuffer(view, dtype=dt, count=count, offset=offset).reshape(shape)
+        try:  # numpy refuses some shapes the spec check lets through (an empty array of huge other sides)
+            arrays[name] = np.frombuffer(view, dtype=dt, count=count, offset=offset).reshape(shape)
+        except (ValueError, TypeError) as e:
+            raise ProtocolError(f"array {name!r}: shape {list(shape)} not allowed ({e})") from None
         offset += count * dt.itemsize
     if offset != len(view):
         raise ProtocolError(f"{len(view) - offset} trailing bytes after the declared arrays")
@@ -132,7 +135,7 @@ def _check_spec(spec) -> tuple[str, str, tuple[int, ...]]:
     name, dtype, shape = spec
     if dtype not in ALLOWED_DTYPES:
         raise ProtocolError(f"array {name!r}: dtype {dtype!r} not allowed; allowed: {sorted(ALLOWED_DTYPES)}")
-    if len(shape) > 8 or not all(isinstance(d, int) and 0 <= d < 2**31 for d in shape):
+    if len(shape) > 8 or not all(type(d) is int and 0 <= d < 2**31 for d in shape):  # not bool, an int subclass
         raise ProtocolError(f"array {name!r}: bad shape {shape}")
     return name, dtype, tuple(shape)
 
