@@ -55,13 +55,15 @@ class LoopThread:
         self.loop.call_soon_threadsafe(time.sleep, seconds)
 
 
-async def _greeting_server(ready) -> None:
-    """The handshake of protocol.py and nothing more: enough for a client to be connected and waiting."""
+async def _greeting_server(ready, serves: dict | None = None, limits: dict | None = None) -> None:
+    """The handshake of protocol.py and nothing more: enough for a client to be connected and waiting. It answers
+    pings and never sends an episode, as a server whose simulation thread is stuck."""
     from websockets.asyncio.server import serve
 
     async def handle(ws):
         P.decode(await ws.recv())  # the hello
-        await ws.send(P.encode({"type": "welcome", "protocol": P.PROTOCOL_VERSION, "server": {}, "limits": {}}))
+        await ws.send(P.encode({"type": "welcome", "protocol": P.PROTOCOL_VERSION, "server": serves or {},
+                                "limits": limits or {}}))
         await ws.wait_closed()
 
     async with serve(handle, "127.0.0.1", 0) as server:
@@ -86,6 +88,41 @@ def test_a_server_that_stops_answering_is_a_lost_connection_not_a_refusal():
     assert "stopped answering (keepalive ping timeout)" in str(error) and error.code == P.CLOSE_INTERNAL
     assert not error.permanent  # so EpisodeSource reconnects, as after a dropped connection
     assert ServerError("ws://x", "simulation failed", P.CLOSE_INTERNAL).permanent  # a server's own 1011 stays final
+
+
+def test_a_server_that_answers_pings_but_sends_no_episode_is_not_waited_for_forever():
+    """Pings find a frozen server, not one whose simulation is stuck: receive() gives up after `episode_timeout`
+    (a lost connection, reconnected like one); and a welcome whose limits allow no episode in flight is refused at
+    once, instead of a source that asks for nothing and waits for it."""
+    import functools
+
+    async def receive_from_stuck(server: LoopThread) -> tuple[ServerError, float]:
+        client = EpisodeClient(server.url, episode_timeout=1.0, **PING)
+        await client.connect()
+        await client.request([1])
+        start = time.monotonic()
+        try:
+            with pytest.raises(ServerError) as e:
+                await client.receive()
+        finally:
+            await client.close()
+        return e.value, time.monotonic() - start
+
+    with LoopThread(_greeting_server) as server:
+        error, waited = asyncio.run(receive_from_stuck(server))
+    assert "no episode in 1 s from a server that answers pings" in str(error) and not error.permanent
+    assert 0.9 < waited < 10
+
+    nothing = functools.partial(_greeting_server, serves={"num_envs": 1},
+                                limits={"max_outstanding": 0, "max_seeds_per_request": 16})
+    with LoopThread(nothing) as server:
+        source = EpisodeSource([server.url], lambda n: list(range(n)), successes_needed=1, **PING).start()
+        try:
+            with pytest.raises(ServerError, match="allows no episode in flight") as e:
+                source.get(timeout=60)
+        finally:
+            source.stop()
+    assert e.value.permanent
 
 
 @pytest.mark.slow

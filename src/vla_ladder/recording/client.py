@@ -26,6 +26,9 @@ PERMANENT = {P.CLOSE_TOO_BIG, P.CLOSE_INTERNAL} | set(range(4000, 5000))
 # (its defaults): a server that stops answering is then found out instead of waited for forever.
 PING_INTERVAL_S = 20.0
 PING_TIMEOUT_S = 20.0
+# A server that answers pings but sends no episode for this long has a stuck simulation (an episode takes seconds,
+# building the simulator well under a minute on 2 busy cores): a lost connection, not a wait forever.
+EPISODE_TIMEOUT_S = 600.0
 
 
 class ServerError(RuntimeError):
@@ -113,9 +116,10 @@ class EpisodeClient:
     """One protocol connection: hello/welcome, then `request(seeds)` and `receive()`."""
 
     def __init__(self, url: str, token: str | None = None, max_message: int = P.MAX_EPISODE_MESSAGE,
-                 ping_interval: float = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S):
+                 ping_interval: float = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S,
+                 episode_timeout: float = EPISODE_TIMEOUT_S):
         self.url, self.token, self.max_message = url, token, max_message
-        self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
+        self.ping_interval, self.ping_timeout, self.episode_timeout = ping_interval, ping_timeout, episode_timeout
         self.ws = None
         self.welcome: dict | None = None
         self.requested: set[int] = set()  # seeds asked for on this connection and not yet delivered
@@ -143,8 +147,13 @@ class EpisodeClient:
 
     async def receive(self) -> Episode:
         """The next episode; ServerError (permanent) for a malformed one or one of a seed not asked for on this
-        connection, or delivered already: each seed is played once for a dataset, which the server must not undo."""
-        msg = await self._recv()
+        connection, or delivered already: each seed is played once for a dataset, which the server must not undo.
+        ServerError (not permanent, as for a lost connection) when none comes within `episode_timeout`."""
+        try:
+            msg = await asyncio.wait_for(self._recv(), self.episode_timeout)
+        except TimeoutError:
+            raise ServerError(self.url, f"no episode in {self.episode_timeout:g} s from a server that answers pings "
+                                        "(its simulation is stuck)", permanent=False) from None
         if msg.type != "episode":
             raise ServerError(self.url, f"unexpected message {msg.type!r}")
         try:
@@ -308,9 +317,14 @@ class EpisodeSource:
                 await client.close()
 
     async def _pump(self, url: str, client: EpisodeClient, welcome: dict) -> None:
-        limits, server = welcome["limits"], welcome["server"]
-        window = min(int(limits["max_outstanding"]), max(2, 2 * int(server["num_envs"])),
-                     int(limits["max_seeds_per_request"]))
+        try:
+            limits, server = welcome["limits"], welcome["server"]
+            window = min(int(limits["max_outstanding"]), max(2, 2 * int(server["num_envs"])),
+                         int(limits["max_seeds_per_request"]))
+        except (KeyError, TypeError, ValueError):
+            window = 0
+        if window < 1:  # asked for nothing, it would wait for nothing, forever
+            raise ServerError(url, f"its welcome allows no episode in flight ({str(welcome)[:200]})", permanent=True)
         while True:
             k = self._demand(window - self.outstanding[url])
             if k:
