@@ -4,8 +4,9 @@ env steps, with the training-loop seconds each evaluation came at, read from eac
     .venv/bin/python benchmarks/ppo_curve.py RUN [RUN ...] --name physx_cpu2 [--labels few-envs paper]
                                              [--out FILE]
 
-Writes benchmarks/results/ppo_curve_<name>.json (or --out) and the .png beside it (one panel per run). The JSON keeps, per run, the
-settings that differ from `vla-ladder train-expert`'s defaults (the paper's), so the command can be rebuilt.
+Writes benchmarks/results/ppo_curve_<name>.json (or --out) and the .png beside it (one panel per run). The JSON
+keeps, per run, the settings that differ from `vla-ladder train-expert`'s defaults (the paper's), so the command can
+be rebuilt.
 """
 
 from __future__ import annotations

@@ -28,11 +28,11 @@ def wilson(k: float, n: float, confidence: float = CONFIDENCE) -> tuple[float, f
 
 
 def paired_difference(x: np.ndarray, y: np.ndarray, confidence: float = CONFIDENCE) -> tuple[float, float]:
-    """Interval of mean(y) - mean(x) for paired binary outcomes (x[i], y[i] the same scene twice): Newcombe's
-    hybrid score interval for paired data (Statistics in Medicine 1998, method 10), which combines the two rates'
-    Wilson intervals through their correlation. Unlike a bootstrap over scenes it keeps its width when no scene
-    changes (0 of 50 changed, all failing both times: [-7, 7] points, not [0, 0]). Like McNemar's asymptotic test it can exclude 0 where
-    the exact test, conservative on few changes, does not (4 of 10 scenes lose a success, none gains one:
+    """Interval of mean(y) - mean(x) for paired binary outcomes (x[i], y[i] the same scene twice): Newcombe's hybrid
+    score interval for paired data (Statistics in Medicine 1998, method 10), which combines the two rates' Wilson
+    intervals through their correlation. Unlike a bootstrap over scenes it keeps its width when no scene changes (0 of
+    50 changed, all failing both times: [-7, 7] points, not [0, 0]). Like McNemar's asymptotic test it can exclude 0
+    where the exact test, conservative on few changes, does not (4 of 10 scenes lose a success, none gains one:
     [-69, -4] points, exact p = 0.125). nan, nan for no scenes."""
     x, y = np.asarray(x, bool), np.asarray(y, bool)
     n = len(x)

@@ -85,14 +85,14 @@ def bootstrap(stat: Callable[[np.ndarray], np.ndarray], clusters: int, resamples
 
 
 def pooled_rate(num: np.ndarray, den: np.ndarray) -> dict:
-    """sum(num) / sum(den) over scenes (num[i] of den[i] correlated plays of scene i), with the Wilson interval of
-    its effective number of plays: sum(den) divided by the design effect, the ratio of the rate's variance between
-    scenes (linearised, with n / (n - 1)) to its variance were every play independent, kept between the number of
-    scenes (a scene decides all its plays) and the number of plays (they are independent). Where every play
-    counts (or none does), or only one scene has plays, there is no variance to measure, and each contributing scene
-    counts as one trial (49 of 49 grasps in 19 scenes: [83, 100]). With one play a scene this is the Wilson interval of the plays. Measured
-    coverage of the nominal 95% on beta-binomial scenes (10 to 50 scenes of 2 to 5 plays, rates 0.1 to 0.95):
-    92-98%, where a percentile bootstrap over scenes gave 89-93% at 10-20 scenes (docs/probes.md)."""
+    """sum(num) / sum(den) over scenes (num[i] of den[i] correlated plays of scene i), with the Wilson interval of its
+    effective number of plays: sum(den) divided by the design effect, the ratio of the rate's variance between scenes
+    (linearised, with n / (n - 1)) to its variance were every play independent, kept between the number of scenes (a
+    scene decides all its plays) and the number of plays (they are independent). Where every play counts (or none does),
+    or only one scene has plays, there is no variance to measure, and each contributing scene counts as one trial (49 of
+    49 grasps in 19 scenes: [83, 100]). With one play a scene this is the Wilson interval of the plays. Measured
+    coverage of the nominal 95% on beta-binomial scenes (10 to 50 scenes of 2 to 5 plays, rates 0.1 to 0.95): 92-98%,
+    where a percentile bootstrap over scenes gave 89-93% at 10-20 scenes (docs/probes.md)."""
     num, den = np.asarray(num, dtype=float), np.asarray(den, dtype=float)
     k, total = float(num.sum()), float(den.sum())
     if not total:
@@ -133,11 +133,11 @@ def normalised_mutual_information(joint: np.ndarray) -> np.ndarray:
 
 def nmi_null(instructed: np.ndarray, held: np.ndarray, stratum: np.ndarray, outcomes: int,
              resamples: int = RESAMPLES, seed: int = BOOTSTRAP_SEED) -> np.ndarray:
-    """The NMI of `resamples` tables where, within each scene, what was held is shuffled among the scene's plays:
-    what the estimate gives when the held object does not depend on the instruction. The plug-in estimate is
-    biased upwards, so that is not 0 (about 0.07 for 20 scenes of five plays holding one of the five objects or none, uniformly at random); the
-    permutation p-value is the share of shuffles at least as high as the observed NMI. instructed, held: (scenes,
-    plays) row and column indices of the count tables; stratum: each scene's set of objects."""
+    """The NMI of `resamples` tables where, within each scene, what was held is shuffled among the scene's plays: what
+    the estimate gives when the held object does not depend on the instruction. The plug-in estimate is biased upwards,
+    so that is not 0 (about 0.07 for 20 scenes of five plays holding one of the five objects or none, uniformly at
+    random); the permutation p-value is the share of shuffles at least as high as the observed NMI. instructed, held:
+    (scenes, plays) row and column indices of the count tables; stratum: each scene's set of objects."""
     n, plays = instructed.shape
     if n == 0:
         return np.zeros(0)

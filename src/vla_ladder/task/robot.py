@@ -14,7 +14,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import shutil
-import tempfile
 from importlib.metadata import version
 from pathlib import Path
 
@@ -55,15 +54,15 @@ def lite_urdf() -> Path:
 
 
 def _build(root: Path) -> None:
-    """Build into a temporary directory and rename it into place: parallel workers that build at once all end
-    with one whole copy, and a killed build leaves nothing half-written behind the final name."""
+    """Build into a temporary directory and rename it into place (files.atomic_dir): parallel workers that build at
+    once all end with one whole copy, and a killed build leaves nothing half-written behind the final name."""
     import trimesh
     from mani_skill import PACKAGE_ASSET_DIR
 
+    from vla_ladder.files import atomic_dir
+
     src = Path(PACKAGE_ASSET_DIR) / "robots" / "panda"
-    root.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{root.name}.", dir=root.parent))
-    try:
+    with atomic_dir(root) as tmp:
         for name in _COPIED:
             (shutil.copytree if (src / name).is_dir() else shutil.copy2)(src / name, tmp / name)
         for path in sorted((tmp / "franka_description" / "meshes" / "visual").glob("*.glb")):
@@ -73,13 +72,6 @@ def _build(root: Path) -> None:
             scene.export(path)
         mount = tmp / "realsense2_description" / "meshes" / "d415.stl"
         _decimate(trimesh.load(mount), CAMERA_MOUNT_FACES).export(mount)
-        try:
-            tmp.rename(root)
-        except OSError:  # another process finished first: its copy is as good as ours
-            if not (root / URDF).is_file():
-                raise
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _decimate(mesh, faces: int):

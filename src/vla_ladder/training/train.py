@@ -15,7 +15,6 @@ import json
 import logging
 import os
 import shlex
-import shutil
 import time
 from urllib.error import URLError
 from dataclasses import asdict, dataclass
