@@ -268,6 +268,9 @@ class EpisodeServer:
         return [w for w in batch if not w.conn.closed]
 
     def _build(self) -> None:
+        # SAPIEN's first camera picture holds the GIL while lavapipe compiles its pipelines (7.5 s on 2 CPU cores),
+        # so this server's event loop answers no ping meanwhile: well inside a client's 20 s ping timeout, and a
+        # client that times out anyway reconnects.
         t0 = time.perf_counter()
         try:
             self._sim = Simulator(self.cfg)
