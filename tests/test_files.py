@@ -27,6 +27,28 @@ def test_atomic_write_replaces_whole_and_respects_umask(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
 
 
+def test_atomic_write_syncs_the_data_before_the_rename_and_the_rename_after(tmp_path, monkeypatch):
+    """What a host crash needs (a kill does not): the temp file's bytes on disk before it takes the name, then the
+    directory entry. Watched through the calls the kernel gets, since a crash cannot be staged in a test."""
+    events, fsync, replace = [], os.fsync, os.replace
+
+    def watched_fsync(fd):
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}"), os.fstat(fd).st_size))
+        fsync(fd)
+
+    def watched_replace(src, dst):
+        events.append(("replace", str(src), str(dst)))
+        replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", watched_fsync)
+    monkeypatch.setattr(os, "replace", watched_replace)
+    target = tmp_path / "summary.json"
+    write_json(target, {"a": 1})
+    (_, synced, size), (_, src, dst), (_, directory, _) = events
+    assert synced == src != dst == str(target) and size == target.stat().st_size > 0
+    assert directory == str(tmp_path)
+
+
 def test_provenance_names_the_checkouts_version_when_run_uninstalled(monkeypatch):
     import importlib.metadata
     import tomllib

@@ -210,9 +210,9 @@ def test_lerobot_policy_trains_on_the_recording(recorded):
 # ---------------------------------------------------------------------- protocol against a real server
 @pytest.fixture(scope="module")
 def server():
-    """A token-protected server that builds its simulator only when an episode is first requested, and reuses
-    its scene between episodes."""
-    proc = subprocess.Popen(_cli("serve", *CONDITION, "--port", "0", "--token", TOKEN, "--lazy",
+    """A token-protected server for two clients at most that builds its simulator only when an episode is first
+    requested, and reuses its scene between episodes."""
+    proc = subprocess.Popen(_cli("serve", *CONDITION, "--port", "0", "--token", TOKEN, "--lazy", "--max-clients", "2",
                                  "--exit-on-stdin-close", "--no-rebuild-scenes"),
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=ENV)
     line = proc.stdout.readline()
@@ -279,6 +279,38 @@ def test_bad_clients_are_closed_with_a_reason(server, case):
     messages, code, reason = BAD_CLIENTS[case]
     got_code, got_reason = _closed_by_server(server[1], *messages)
     assert got_code == code and reason in got_reason, (got_code, got_reason)
+
+
+def test_a_server_at_its_max_clients_refuses_more_until_one_leaves(server):
+    """Two clients connected (handshake done), a third is refused before its handshake with HTTP 503, which the
+    client takes for a busy server to retry, not a refusal for good; once one leaves, it gets in."""
+    import asyncio
+
+    from vla_ladder.recording.client import EpisodeClient, ServerError
+
+    async def third_client(url: str) -> ServerError:
+        first, second, third = (EpisodeClient(url, TOKEN) for _ in range(3))
+        await first.connect()
+        await second.connect()
+        with pytest.raises(ServerError) as refused:
+            await third.connect()
+        await first.close()
+        deadline = time.monotonic() + 30
+        while True:  # the server counts a connection out once its close is done
+            try:
+                welcome = await third.connect()
+                break
+            except ServerError:
+                assert time.monotonic() < deadline, "still refused after a client left"
+                await asyncio.sleep(0.2)
+        assert welcome["limits"]["max_outstanding"] >= 1
+        await second.close()
+        await third.close()
+        return refused.value
+
+    error = asyncio.run(third_client(server[1]))
+    assert "refused the connection (HTTP 503: serving 2 clients already (its --max-clients)" in str(error), error
+    assert not error.permanent
 
 
 def test_malformed_episode_frames_are_rejected_by_the_client():

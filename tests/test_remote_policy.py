@@ -118,7 +118,8 @@ def test_bad_remote_specs_fail_in_one_line_before_work(tmp_path, capsys):
                           (["--policy", "lerobot:/nonexistent"], "no LeRobot checkpoint at '/nonexistent'"),
                           ([], "--policy lerobot:CHECKPOINT is required"),
                           (["--policy", "lerobot:/nonexistent", "--host", "0.0.0.0"], "needs --api-key"),
-                          (["--policy", "lerobot:/nonexistent", "--port", "70000"], "port must be in 0..65535")]:
+                          (["--policy", "lerobot:/nonexistent", "--port", "70000"], "port must be in 0..65535"),
+                          (["--policy", "lerobot:/nonexistent", "--max-clients", "0"], "max_clients must be >= 1, got 0")]:
         assert main(["serve-policy", *argv]) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and message in err, err
@@ -252,11 +253,12 @@ def test_a_batch_of_envs_pipelines_its_requests_only_to_servers_that_say_so(dept
 # ---------------------------------------------------------------------- a served checkpoint
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
-    """A tiny SmolVLA trained here, served by `vla-ladder serve-policy` (horizon 2, an api key) on a free port."""
+    """A tiny SmolVLA trained here, served by `vla-ladder serve-policy` (horizon 2, an api key, 5 clients at most) on
+    a free port."""
     run = H.trained(tmp_path_factory, "smolvla")
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "VLA_LADDER_API_KEY": KEY}
     proc = subprocess.Popen([sys.executable, "-m", "vla_ladder.cli", "serve-policy", "--policy",
-                             f"lerobot:{run}?n_action_steps=2", "--port", "0"],
+                             f"lerobot:{run}?n_action_steps=2", "--port", "0", "--max-clients", "5"],
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
     try:  # the server goes away even when it never says where it listens
         lines = [proc.stdout.readline()]  # after what LeRobot prints while it loads the model
@@ -345,6 +347,41 @@ def test_the_server_answers_bad_requests_in_one_message_and_keeps_serving(served
         np.testing.assert_array_equal(unpack(ws.recv(timeout=120))["actions"], chunk)  # same episode, same noise
     with pytest.raises(urllib.error.HTTPError):
         urllib.request.urlopen(url.replace("ws://", "http://") + "/other", timeout=10)
+
+
+@pytest.mark.slow
+def test_a_server_at_its_max_clients_refuses_more_until_one_leaves(served, monkeypatch):
+    """Five clients connected, a sixth is refused before its handshake (HTTP 503), which `remote:` reports in one
+    line naming the limit; a wrong key is still told so first; once a client leaves, the next one gets in."""
+    import time
+
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    from vla_ladder.policies.remote import connect as remote_connect
+
+    _, url = served
+    monkeypatch.setenv("VLA_LADDER_API_KEY", KEY)
+    clients = [remote_connect(url)[0] for _ in range(5)]  # each has read the metadata its handler sends
+    try:
+        with pytest.raises(ValueError) as busy:
+            remote_connect(url)
+        assert str(busy.value) == (f"the policy server at {url} is busy: serving 5 clients already (its "
+                                   "--max-clients); try again once one has left")
+        with pytest.raises(InvalidStatus, match="401"):
+            connect(url, additional_headers={"Authorization": "Api-Key wrong"}, open_timeout=10)
+        clients.pop().close()
+        deadline = time.monotonic() + 30
+        while True:  # the server counts a connection out once its close is done
+            try:
+                clients.append(remote_connect(url)[0])
+                break
+            except ValueError:
+                assert time.monotonic() < deadline, "still refused after a client left"
+                time.sleep(0.2)
+    finally:
+        for ws in clients:
+            ws.close()
 
 
 # ---------------------------------------------------------------------- openpi's own client

@@ -1,10 +1,11 @@
-"""Result files that are whole or absent: every writer goes through a temp file and os.replace.
+"""Result files that are whole or absent: every writer goes through a temp file, flushed to disk, and os.replace.
 
 Named `files` rather than `io` so that it never shadows the standard library module.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -16,7 +17,9 @@ from typing import Any, Iterator
 
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to `path`; it replaces `path` only if the block finishes."""
+    """Yield a temporary path next to `path`; it replaces `path` only if the block finishes, once its bytes are on
+    disk: a file system may commit the rename before the data, so a host crash could otherwise leave an empty file
+    under the name (a killed process cannot: what it wrote is in the page cache either way)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -27,10 +30,21 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
+        _fsync(tmp)
         os.replace(tmp, path)
+        with contextlib.suppress(OSError):  # the rename itself; some file systems cannot sync a directory
+            _fsync(path.parent, os.O_DIRECTORY)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _fsync(path: str | os.PathLike, flags: int = 0) -> None:
+    fd = os.open(path, os.O_RDONLY | flags)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 @contextmanager

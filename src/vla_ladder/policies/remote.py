@@ -165,6 +165,9 @@ def connect(url: str, timeout_s: float = CONNECT_TIMEOUT_S):
         if e.response.status_code == 401:
             raise ValueError(f"the policy server at {url} refused the connection: it needs its --api-key in "
                              f"${API_KEY_ENV}") from None
+        if e.response.status_code == 503:  # vla-ladder's serve-policy at its --max-clients
+            said = e.response.body.decode(errors="replace").strip()[:200]
+            raise ValueError(f"the policy server at {url} is busy: {said or 'HTTP 503'}") from None
         raise ValueError(f"{url} refused the WebSocket connection (HTTP {e.response.status_code}); is it a policy "
                          "server?") from None
     except (OSError, TimeoutError, WebSocketException) as e:

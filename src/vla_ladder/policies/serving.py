@@ -70,6 +70,9 @@ class ServePolicyConfig:
     max_batch: int = 16
     """most requests one forward pass answers (those that arrived while the model ran: eval --workers N sends N,
     eval --num-envs N up to N on one connection), and most one connection may have in flight"""
+    max_clients: int = 128
+    """connections served at once (eval --workers N opens N); more are refused (HTTP 503) until one leaves: each may
+    hold --max-batch parsed observations and two unread messages of up to 4 MiB"""
 
     def __post_init__(self):
         if self.api_key is None:
@@ -84,6 +87,8 @@ class ServePolicyConfig:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
         if self.max_batch < 1:
             raise ValueError(f"max_batch must be >= 1, got {self.max_batch}")
+        if self.max_clients < 1:
+            raise ValueError(f"max_clients must be >= 1, got {self.max_clients}")
         if not self.api_key and not is_loopback(self.host):
             raise ValueError(f"listening on {self.host!r} (not loopback) needs --api-key (or ${API_KEY_ENV}); "
                              "allowed without one: 127.0.0.1, ::1, localhost")
@@ -223,13 +228,19 @@ class PolicyServer:
                 if not answer.done():  # its client may have gone
                     answer.set_result((chunk, timing))
 
-    def _authorised(self, connection, request):
+    def _admit(self, connection, request):
+        """Before the handshake: openpi's health check, the client's key, and room under --max-clients."""
         if request.path == "/healthz":  # openpi's health check
             return connection.respond(http.HTTPStatus.OK, "OK\n")
         if self.cfg.api_key:
             sent = request.headers.get("Authorization", "")
             if not hmac.compare_digest(sent.encode(), f"Api-Key {self.cfg.api_key}".encode()):
                 return connection.respond(http.HTTPStatus.UNAUTHORIZED, "missing or wrong Api-Key\n")
+        if len(connection.server.connections) >= self.cfg.max_clients:
+            log.warning("refused %s: serving %d clients already", connection.remote_address, self.cfg.max_clients)
+            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE,
+                                      f"serving {self.cfg.max_clients} clients already (its --max-clients); "
+                                      "try again once one has left\n")
         return None
 
     async def handle(self, ws) -> None:
@@ -307,7 +318,7 @@ class PolicyServer:
         try:
             # max_queue: frames a connection may have received and not yet read (websockets' default is 16).
             async with serve(self.handle, self.cfg.host, self.cfg.port, max_size=MAX_MESSAGE, max_queue=2,
-                             compression=None, process_request=self._authorised) as server:
+                             compression=None, process_request=self._admit) as server:
                 port = server.sockets[0].getsockname()[1]
                 host = f"[{self.cfg.host}]" if ":" in self.cfg.host else self.cfg.host
                 if ready is not None:

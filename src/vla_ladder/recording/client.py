@@ -126,12 +126,18 @@ class EpisodeClient:
 
     async def connect(self, open_timeout: float = 30.0) -> dict:
         from websockets.asyncio.client import connect
+        from websockets.exceptions import InvalidStatus, WebSocketException
 
         try:
             self.ws = await connect(self.url, max_size=self.max_message, compression=None, max_queue=2,
                                     open_timeout=open_timeout, ping_interval=self.ping_interval,
                                     ping_timeout=self.ping_timeout)
-        except (OSError, TimeoutError) as e:
+        except InvalidStatus as e:  # a busy server (503, at its --max-clients) may take us later; anything else won't
+            status = e.response.status_code
+            body = e.response.body.decode(errors="replace").strip()[:200]
+            raise ServerError(self.url, f"refused the connection (HTTP {status}{': ' + body if body else ''})",
+                              permanent=status != 503) from None
+        except (OSError, TimeoutError, WebSocketException) as e:
             raise ServerError(self.url, f"cannot connect: {e}") from None
         await self._send(P.hello(self.token, self.max_message))
         msg = await self._recv()

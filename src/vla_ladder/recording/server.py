@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
+import http
 import logging
 import os
 import queue
@@ -57,6 +58,9 @@ class ServeConfig:
     """shared secret every client must send in its hello; required off loopback (default: $VLA_LADDER_TOKEN)"""
     max_outstanding: int = 0
     """episodes one client may have requested but not yet received (0: 4 x num_envs, at least 8)"""
+    max_clients: int = 8
+    """connections served at once (a recorder opens one per server); more are refused (HTTP 503) until one leaves:
+    each may hold max_outstanding episodes of frames, 20 MB apiece"""
     lazy: bool = False
     """build the simulator on the first request instead of at start (cheap start for protocol checks)"""
     rebuild_scenes: bool = True
@@ -95,6 +99,8 @@ class ServeConfig:
             raise ValueError(f"max_outstanding must be >= 0 (0: 4 x num_envs, at least 8), got {self.max_outstanding}")
         if self.max_outstanding == 0:
             self.max_outstanding = max(8, 4 * self.num_envs)
+        if self.max_clients < 1:
+            raise ValueError(f"max_clients must be >= 1, got {self.max_clients}")
         check_port_free(self.host, self.port)  # before the simulator starts, not after
 
 
@@ -331,6 +337,16 @@ class EpisodeServer:
             conn.outstanding -= 1
             self.episodes_served += 1
 
+    def _admit(self, connection, request):
+        """HTTP 503 for a connection past --max-clients, before its handshake: the queued seeds and frames of every
+        connection are in this process's memory."""
+        if len(connection.server.connections) >= self.cfg.max_clients:
+            log.warning("refused %s: serving %d clients already", connection.remote_address, self.cfg.max_clients)
+            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE,
+                                      f"serving {self.cfg.max_clients} clients already (its --max-clients); "
+                                      "try again once one has left\n")
+        return None
+
     async def _handle(self, ws) -> None:
         peer = ws.remote_address
         conn = _Connection(ws, asyncio.get_running_loop())
@@ -374,7 +390,7 @@ class EpisodeServer:
 
         try:
             async with serve(self._handle, self.cfg.host, self.cfg.port, max_size=P.MAX_CLIENT_MESSAGE,
-                             compression=None, max_queue=4) as server:
+                             compression=None, max_queue=4, process_request=self._admit) as server:
                 self._thread = threading.Thread(target=self._simulate, name="simulator", daemon=True)
                 self._thread.start()
                 sock = next(iter(server.sockets))
