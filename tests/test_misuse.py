@@ -399,7 +399,7 @@ def test_a_ray_address_is_checked_before_anything_is_written():
 def test_serve_refuses_bad_limits_and_names_before_binding(capsys):
     _one_line_error(capsys, main(["serve", "--port", "0", "--max-outstanding", "-1"]),
                     "max_outstanding must be >= 0 (0: 4 x num_envs, at least 8), got -1")
-    _one_line_error(capsys, main(["serve", "--port", "0", "--max-clients", "0"]), "max_clients must be >= 1, got 0")
+    _one_line_error(capsys, main(["serve", "--port", "0", "--max-clients", "0"]), "--max-clients must be a positive integer, got 0")
     # Checked before the port is bound: the server listened, then its simulator failed and it served nothing.
     _one_line_error(capsys, main(["serve", "--port", "0", "--robot-mesh", "foo"]),
                     "unknown robot_mesh 'foo'; allowed: lite, full")

@@ -119,7 +119,7 @@ def test_bad_remote_specs_fail_in_one_line_before_work(tmp_path, capsys):
                           ([], "--policy lerobot:CHECKPOINT is required"),
                           (["--policy", "lerobot:/nonexistent", "--host", "0.0.0.0"], "needs --api-key"),
                           (["--policy", "lerobot:/nonexistent", "--port", "70000"], "port must be in 0..65535"),
-                          (["--policy", "lerobot:/nonexistent", "--max-clients", "0"], "max_clients must be >= 1, got 0")]:
+                          (["--policy", "lerobot:/nonexistent", "--max-clients", "0"], "--max-clients must be a positive integer, got 0")]:
         assert main(["serve-policy", *argv]) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and message in err, err

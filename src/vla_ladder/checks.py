@@ -146,6 +146,18 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def refuse_past_max_clients(connection, max_clients: int, log):
+    """For a websockets server's `process_request`: HTTP 503 naming the limit when `max_clients` connections are
+    open already (each one's queued work and messages are in the server's memory), else None (go on)."""
+    import http
+
+    if len(connection.server.connections) < max_clients:
+        return None
+    log.warning("refused %s: serving %d clients already", connection.remote_address, max_clients)
+    return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE, f"serving {max_clients} clients already (its "
+                              "--max-clients); try again once one has left\n")
+
+
 def check_port_free(host: str, port: int, flag: str = "--port") -> None:
     """ValueError when `host`:`port` cannot be listened on (in use, or not an address of this machine). Binds the
     way asyncio's server does (SO_REUSEADDR), so a port in TIME_WAIT is free. Port 0 (any free port) always is."""

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from vla_ladder.checks import check_port_free, is_loopback
+from vla_ladder.checks import check_count, check_port_free, is_loopback, refuse_past_max_clients
 from vla_ladder.contract import ACTION_DIM, CAMERAS, STATE_DIM, STATE_KEY
 from vla_ladder.policies import check_spec, parse_spec
 from vla_ladder.policies.remote import (API_KEY_ENV, CHUNK_KEY, CONTRACT_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY,
@@ -87,8 +87,7 @@ class ServePolicyConfig:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
         if self.max_batch < 1:
             raise ValueError(f"max_batch must be >= 1, got {self.max_batch}")
-        if self.max_clients < 1:
-            raise ValueError(f"max_clients must be >= 1, got {self.max_clients}")
+        check_count(self.max_clients, "--max-clients")
         if not self.api_key and not is_loopback(self.host):
             raise ValueError(f"listening on {self.host!r} (not loopback) needs --api-key (or ${API_KEY_ENV}); "
                              "allowed without one: 127.0.0.1, ::1, localhost")
@@ -236,12 +235,7 @@ class PolicyServer:
             sent = request.headers.get("Authorization", "")
             if not hmac.compare_digest(sent.encode(), f"Api-Key {self.cfg.api_key}".encode()):
                 return connection.respond(http.HTTPStatus.UNAUTHORIZED, "missing or wrong Api-Key\n")
-        if len(connection.server.connections) >= self.cfg.max_clients:
-            log.warning("refused %s: serving %d clients already", connection.remote_address, self.cfg.max_clients)
-            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE,
-                                      f"serving {self.cfg.max_clients} clients already (its --max-clients); "
-                                      "try again once one has left\n")
-        return None
+        return refuse_past_max_clients(connection, self.cfg.max_clients, log)
 
     async def handle(self, ws) -> None:
         """One connection: its requests are read as they come (up to --max-batch in flight, so that a client's

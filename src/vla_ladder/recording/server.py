@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
-import http
 import logging
 import os
 import queue
@@ -25,7 +24,7 @@ import numpy as np
 import tyro
 
 from vla_ladder import contract
-from vla_ladder.checks import check_port_free, check_seed, is_loopback
+from vla_ladder.checks import check_count, check_port_free, check_seed, is_loopback, refuse_past_max_clients
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, CONTROL_HZ, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
 from vla_ladder.policies import check_spec
@@ -99,8 +98,7 @@ class ServeConfig:
             raise ValueError(f"max_outstanding must be >= 0 (0: 4 x num_envs, at least 8), got {self.max_outstanding}")
         if self.max_outstanding == 0:
             self.max_outstanding = max(8, 4 * self.num_envs)
-        if self.max_clients < 1:
-            raise ValueError(f"max_clients must be >= 1, got {self.max_clients}")
+        check_count(self.max_clients, "--max-clients")
         check_port_free(self.host, self.port)  # before the simulator starts, not after
 
 
@@ -340,12 +338,7 @@ class EpisodeServer:
     def _admit(self, connection, request):
         """HTTP 503 for a connection past --max-clients, before its handshake: the queued seeds and frames of every
         connection are in this process's memory."""
-        if len(connection.server.connections) >= self.cfg.max_clients:
-            log.warning("refused %s: serving %d clients already", connection.remote_address, self.cfg.max_clients)
-            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE,
-                                      f"serving {self.cfg.max_clients} clients already (its --max-clients); "
-                                      "try again once one has left\n")
-        return None
+        return refuse_past_max_clients(connection, self.cfg.max_clients, log)
 
     async def _handle(self, ws) -> None:
         peer = ws.remote_address
