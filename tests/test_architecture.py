@@ -44,7 +44,7 @@ def test_lerobot_feature_keys_are_never_typed_out():
 def test_stages_import_only_downwards():
     """The layers contract in pyproject.toml (import-linter): cli > experiments > report > the stages
     (evaluation, training, recording, ppo, lerobot_env; siblings never import each other) > policies > task >
-    the ground floor (contract, conditions, files, stats, recordings, commandline)."""
+    the ground floor (contract, conditions, files, stats, recordings, commandline, machine, checks)."""
     lint = Path(sys.executable).with_name("lint-imports")
     r = subprocess.run([str(lint), "--no-cache"], capture_output=True, text=True, cwd=SRC.parents[1])
     assert r.returncode == 0, r.stdout[-3000:]
@@ -58,3 +58,24 @@ def test_the_ground_floor_is_simulator_free(module):
     code = f"import sys, {module}; print(any(m.startswith(('mani_skill', 'sapien')) for m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_the_architecture_page_names_every_module_under_its_package():
+    """docs/architecture.md's tree is the map a newcomer reads first: a module missing from it is one they cannot
+    find (the review of 2026-11-27 found eleven missing). Each module's name must appear in its package's lines."""
+    doc = (SRC.parents[1] / "docs" / "architecture.md").read_text()
+    tree = doc[doc.index("```\nsrc/vla_ladder/"):]
+    tree = tree[:tree.index("```\n", 4)]
+    blocks: dict[str, str] = {}  # package -> its lines in the tree (a package line and its continuations)
+    current = "ground floor"
+    for line in tree.splitlines()[1:]:
+        head = line.split()[0] if line.strip() and not line.startswith(" " * 6) else None
+        if head:
+            current = "ground floor" if head == "ground" else head.rstrip("/")
+        blocks[current] = blocks.get(current, "") + line + "\n"
+    missing = []
+    for path in sorted(SRC.rglob("*.py")):
+        package = path.parent.name if path.parent != SRC else ("cli" if path.stem == "cli" else "ground floor")
+        if path.name != "__init__.py" and path.name not in blocks.get(package if package != "cli" else "cli.py", ""):
+            missing.append(str(path.relative_to(SRC)))
+    assert missing == [], f"docs/architecture.md's tree does not name {missing}"

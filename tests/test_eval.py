@@ -274,6 +274,22 @@ def test_a_run_directory_played_under_another_task_contract_is_not_resumed(tmp_p
     assert json.loads((tmp_path / "run" / "config.json").read_text())["contract"] == fingerprint()
 
 
+def test_a_resumed_run_reads_old_episodes_with_the_columns_added_since(tmp_path, monkeypatch):
+    """A run directory from before a column existed resumes with the value rundir.ADDED_COLUMNS gives it, as
+    load_run reads it (it resumed with empty cells before). Here a made-up value, so that the fill is visible."""
+    from vla_ladder.evaluation import rundir
+    from vla_ladder.evaluation.runner import open_run_dir
+
+    cfg = EvalConfig("scripted", out=tmp_path / "run", grid=ConditionGrid(("small_jitter",)), episodes=2)
+    assert open_run_dir(cfg) == []
+    old = pd.DataFrame([{"regime": "small_jitter", "split": "canonical", "num_objects": 5, "episode": 0,
+                         "success": True}])  # written before tcp_x and tcp_y were kept
+    old.to_parquet(tmp_path / "run" / "episodes.parquet")
+    monkeypatch.setitem(rundir.ADDED_COLUMNS, "tcp_x", 0.25)
+    (row,) = open_run_dir(cfg)
+    assert row["tcp_x"] == 0.25 and row["success"] and pd.isna(row["tcp_y"])
+
+
 def test_a_run_directory_refuses_a_checkpoint_retrained_at_the_same_path(tmp_path):
     """The request names the checkpoint by its path: a run resumed after the model there was retrained would mix two
     models' episodes. config.json keeps the weights' sha256 and the resume compares it."""

@@ -59,6 +59,13 @@ class Run:
         return p if p.is_file() else None
 
 
+def read_episodes(path: str | Path) -> pd.DataFrame:
+    """A run directory's episodes.parquet, with the columns added since it was written (ADDED_COLUMNS) filled in:
+    what `load_run` reads and a resumed `eval` goes on from."""
+    episodes = pd.read_parquet(path)
+    return episodes.assign(**{c: v for c, v in ADDED_COLUMNS.items() if c not in episodes.columns})
+
+
 def load_run(path: str | Path) -> Run:
     """Load a run directory; ValueError listing what is missing if it is not one."""
     path = Path(path)
@@ -69,8 +76,7 @@ def load_run(path: str | Path) -> Run:
         raise ValueError(f"{path} is not a run directory: missing {', '.join(missing)} "
                          f"(a run directory holds {', '.join(REQUIRED_FILES)} and config.json, "
                          f"written by `vla-ladder eval --out DIR`)")
-    episodes = pd.read_parquet(path / "episodes.parquet")
-    episodes = episodes.assign(**{c: v for c, v in ADDED_COLUMNS.items() if c not in episodes.columns})
+    episodes = read_episodes(path / "episodes.parquet")
     absent = [c for c in EPISODE_COLUMNS if c not in episodes.columns]
     if absent:
         raise ValueError(f"{path}/episodes.parquet lacks columns: {', '.join(absent)}")

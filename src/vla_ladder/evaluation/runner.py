@@ -27,7 +27,7 @@ from vla_ladder.conditions import MAX_OBJECTS, Condition, ConditionGrid
 from vla_ladder.contract import EPISODE_STEPS, contract_changes, fingerprint
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, check_workers, cores
-from vla_ladder.evaluation.rundir import EPISODE_COLUMNS
+from vla_ladder.evaluation.rundir import EPISODE_COLUMNS, read_episodes
 from vla_ladder.policies import POLICY_KINDS, Policy, check_spec, weights_identity
 from vla_ladder.task.robot import check_robot_mesh
 
@@ -219,8 +219,7 @@ def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     path = out / "episodes.parquet"
     if not path.is_file():
         return []
-    import pandas as pd
-    rows = pd.read_parquet(path).to_dict("records")
+    rows = read_episodes(path).to_dict("records")
     # What this request plays, each once: anything else (an edited or mixed file) would be counted in its summary.
     played = Counter((r["regime"], r["split"], r["num_objects"], r["episode"]) for r in rows)
     planned = {(j.condition.regime, j.condition.split, j.condition.num_objects, j.episode) for j in cfg.jobs()}
