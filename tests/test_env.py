@@ -309,6 +309,16 @@ def test_lite_robot_renders_like_the_full_one_with_identical_physics(make_env):
         make_env(robot_mesh="cartoon")
 
 
+def test_a_partial_reset_names_distinct_envs_in_increasing_order(make_env):
+    """Rows are built in env_idx order and ManiSkill writes poses in ascending env order: an env named twice, out of
+    order or out of range would get another env's robot start, so it is refused."""
+    env = make_env(obs_mode="state_dict")
+    env.reset(seed=3, options={"env_idx": torch.tensor([0])})
+    for bad in ([0, 0], [1], [], [-1]):
+        with pytest.raises(ValueError, match=r"env_idx must list distinct envs of 0\.\.0 in increasing order"):
+            env.reset(seed=3, options={"env_idx": torch.tensor(bad, dtype=torch.long)})
+
+
 def test_each_cpu_worker_takes_its_own_row_of_per_env_reset_options(make_env):
     """AsyncVectorEnv sends every worker the batch's options whole: each (SlotEnv) must play its own row of every
     option given per env, as one batched env would, not refuse a list of N for its one env."""

@@ -85,7 +85,9 @@ def test_requests_are_checked_before_inference():
                             ({STATE_KEY: np.zeros(8, np.float32)}, r"must be a float array of shape \(15,\)"),
                             ({PROMPT_KEY: ""}, "must be the instruction"),
                             ({PROMPT_KEY: "x" * 1001}, "1-1000 characters"),
-                            ({SEED_KEY: -1}, "come together, as integers >= 0"),
+                            ({SEED_KEY: -1}, "come together, as integers in 0..4294967295"),
+                            ({SEED_KEY: 2**32}, "come together, as integers in 0..4294967295"),
+                            ({CHUNK_KEY: 2**32}, "come together, as integers in 0..4294967295"),
                             ({CHUNK_KEY: None}, "come together")]:
         with pytest.raises(ValueError, match=message):
             read_request({**good, **change})

@@ -65,7 +65,8 @@ class EvalConfig:
     num_envs: int = 1
     """episodes played at once by one copy of the policy, acting on them as a batch (a GPU policy's batched
     inference): physx_cuda simulates them in one process, physx_cpu in num_envs processes in lockstep; any
-    number gives the same episodes"""
+    number gives the same layouts, targets and instructions, and the same outcomes where the policy rounds alike
+    in any batch (docs/evaluation.md says which do)"""
     sim_backend: str = "physx_cpu"
     """physx_cpu or physx_cuda"""
     videos: int = 0

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from vla_ladder.checks import check_count, check_port_free, is_loopback, refuse_past_max_clients
+from vla_ladder.checks import SEED_LIMIT, check_count, check_port_free, is_loopback, refuse_past_max_clients
 from vla_ladder.contract import ACTION_DIM, CAMERAS, STATE_DIM, STATE_KEY
 from vla_ladder.policies import check_spec, parse_spec
 from vla_ladder.policies.remote import (API_KEY_ENV, CHUNK_KEY, CONTRACT_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY,
@@ -133,10 +133,13 @@ def read_request(request: Any) -> tuple[dict, str, int | None, int | None]:
     if not isinstance(prompt, str) or not 0 < len(prompt) <= MAX_PROMPT:
         raise ValueError(f"{PROMPT_KEY!r} must be the instruction, 1-{MAX_PROMPT} characters")
     seed, chunk = request.get(SEED_KEY), request.get(CHUNK_KEY)
+    # Bounded as episode seeds are: numpy splits a larger integer into 32-bit words, so (seed + 2**32 * c, k) would
+    # draw the noise of (seed, c, k), another episode's.
     if (seed is None) != (chunk is None) or any(
-            v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0)
+            v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v < SEED_LIMIT)
             for v in (seed, chunk)):
-        raise ValueError(f"{SEED_KEY!r} and {CHUNK_KEY!r} come together, as integers >= 0, or not at all")
+        raise ValueError(f"{SEED_KEY!r} and {CHUNK_KEY!r} come together, as integers in 0..{SEED_LIMIT - 1}, or not "
+                         "at all")
     obs = {"sensor_data": sensors, "extra": {"proprio": torch.from_numpy(state.astype(np.float32))[None]}}
     return obs, prompt, None if seed is None else int(seed), None if chunk is None else int(chunk)
 

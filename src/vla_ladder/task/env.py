@@ -268,6 +268,11 @@ class GraspObjectEnv(BaseEnv):
         env_idx = options.get("env_idx")
         idx = np.arange(self.num_envs) if env_idx is None else np.asarray(
             env_idx.cpu() if torch.is_tensor(env_idx) else env_idx).reshape(-1)
+        # Each reset env's row (seed, layout, options) is built in idx order, and ManiSkill writes a partial reset's
+        # poses in ascending env order: another order, or an env twice, would give one env another's robot start.
+        if len(idx) == 0 or np.any(np.diff(idx) <= 0) or idx[0] < 0 or idx[-1] >= self.num_envs:
+            raise ValueError(f"env_idx must list distinct envs of 0..{self.num_envs - 1} in increasing order, got "
+                             f"{idx.tolist()}"[:200])
         if len(self._layout_seeds) != self.num_envs:
             self._layout_seeds = np.zeros(self.num_envs, dtype=np.int64)
         if seed is not None:  # checked before numpy sees them (its errors do not say what is allowed)
