@@ -542,3 +542,22 @@ def test_the_reviews_last_bad_inputs_are_refused_before_work(tmp_path, capsys):
     for argv, words in cases:
         _one_line_error(capsys, main(argv), words)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "afile", "b"] and afile.read_text() == "x"
+
+
+def test_inputs_a_cli_review_found_accepted_are_refused_before_work(tmp_path, refused):
+    """Found by a review that tried researchers' mistakes on every command (2026-11-27): each was accepted, or
+    refused only after another policy's whole evaluation had run."""
+    out = tmp_path / "out"
+    refused([
+        (["record", "--out", str(out), "--episodes", "2", "--policy", "random"],
+         "--policy random is not an expert; allowed: scripted, ppo:PATH"),  # looped at 0% success, forever
+        (["compare", str(out), str(out)], "is given twice; compare two different run directories"),
+        (["placements", "--n", "3", "--first-seed", "4294967295", "--json", str(out / "p.json")],
+         "--first-seed must be from 0 to 2**32 - --n = 4294967293"),  # seeds past numpy's were written
+        (["probe", "instruction-swap", "--policy", "scripted", "--resamples", "1000000000", "--out", str(out)],
+         "--resamples must be from 100 to 100000, got 1000000000"),
+        (["experiment", "ladder", "--policy", "scripted", "lerobot:/nonexistent", "--episodes", "1", "--out",
+          str(out)], "no LeRobot checkpoint at '/nonexistent'"),  # after scripted's evaluation
+        (["experiment", "ladder", "--policy", "label=a,spec=scripted,label=b", "--out", str(out)],
+         "label given twice"),  # kept b
+    ], out)

@@ -140,6 +140,8 @@ class CompareConfig:
     def __post_init__(self):
         if not 0 < self.alpha < 1:
             raise ValueError(f"--alpha must be in (0, 1), got {self.alpha}")
+        if Path(self.run_a).resolve() == Path(self.run_b).resolve():
+            raise ValueError(f"{self.run_a} is given twice; compare two different run directories")
         if self.json is not None:
             check_output_file(self.json, "--json")
 

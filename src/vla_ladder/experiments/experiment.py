@@ -26,7 +26,7 @@ from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.files import provenance, write_json, write_text
-from vla_ladder.policies import parse_spec
+from vla_ladder.policies import check_spec, parse_spec
 from vla_ladder.report import plots, tables
 
 TABLES = ("ladder", "pairings", "data_scaling", "object_count")
@@ -115,6 +115,8 @@ class PolicyEntry:
             if not eq or key not in ENTRY_KEYS or not value:
                 raise ValueError(f"bad --policy {text!r}: expected SPEC or comma-separated key=value pairs with "
                                  f"keys {', '.join(ENTRY_KEYS)}")
+            if key in fields:
+                raise ValueError(f"bad --policy {text!r}: {key} given twice")
             fields[key] = value
         if "spec" not in fields:
             raise ValueError(f"bad --policy {text!r}: needs spec=SPEC")
@@ -239,6 +241,8 @@ class ExperimentCommand:
             self.config.first_seed = self.first_seed
         self.config.__post_init__()
         self.entries = [PolicyEntry.parse(t) for t in self.policy]
+        for spec in dict.fromkeys(e.spec for e in self.entries):  # every policy, before the first one plays
+            check_spec(spec)
         todo = plan(self.config, self.entries)
         # Every evaluation is configured (and so checked) before a simulator starts.
         self.evals = [(e, ec) for e, conds in todo

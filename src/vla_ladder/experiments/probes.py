@@ -58,6 +58,7 @@ PROBE_FILE = "probe.json"
 CONFIG_FILE = "probe_config.json"
 FORMAT_VERSION = 1
 NOT_THE_REQUEST = ("out", "workers", "num_envs", "overwrite", "report", "resamples")
+MAX_RESAMPLES = 100_000  # 50x the default: a few minutes of numpy at most, after every episode has been played
 SWITCH_STEPS = (5, 25)
 """The instruction switch's default control steps (of 50 at 20 Hz): 5 (0.25 s) comes before the scripted expert
 closes its gripper in every scene measured (it closes at step 8-14, rarely later, docs/probes.md), so a policy that
@@ -245,8 +246,8 @@ class ProbeConfig:
         self.grid = ConditionGrid(g.regimes, g.splits, g.num_objects or (probe.default_objects,))
         if self.policy is not None:
             parse_spec(self.policy)
-        if self.resamples < 100:
-            raise ValueError(f"--resamples must be >= 100, got {self.resamples}")
+        if not 100 <= self.resamples <= MAX_RESAMPLES:  # bounded, since they come after every episode
+            raise ValueError(f"--resamples must be from 100 to {MAX_RESAMPLES}, got {self.resamples}")
         counts, (least, most) = self.grid.num_objects, probe.objects
         if min(counts) < least or max(counts) > most:
             raise ValueError(f"{self.name} needs {probe.needs}; got --num-objects {' '.join(map(str, counts))} "

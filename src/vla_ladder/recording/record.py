@@ -128,6 +128,8 @@ class RecordConfig:
         # The local servers' expert is checked here, before they start (each refused it, and the recorder said to
         # rerun); with --server the servers' expert is the one recorded.
         (parse_spec if self.server else check_spec)(self.policy)
+        if not self.server and parse_spec(self.policy)[0] not in ("scripted", "ppo"):  # a demo is an expert's
+            raise ValueError(f"--policy {self.policy} is not an expert; allowed: scripted, ppo:PATH")
 
 
 def recording_of(cfg: RecordConfig) -> Recording:

@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vla_ladder.checks import check_output_file
+from vla_ladder.checks import SEED_LIMIT, check_output_file
 from vla_ladder.files import atomic_path
 from vla_ladder.conditions import REGIMES, Condition, parse_regimes
 from vla_ladder.report.tables import REGIME_NAMES
@@ -95,8 +95,9 @@ class PlacementsConfig:
             object_index(self.target)
         if not 1 <= self.n <= MAX_LAYOUTS:  # ~0.1 ms and ~1 KB of JSON a layout: 10^5 a regime is a minute
             raise ValueError(f"--n must be from 1 to {MAX_LAYOUTS} (layouts per regime), got {self.n}")
-        if self.first_seed < 0:
-            raise ValueError(f"--first-seed must be >= 0, got {self.first_seed}")
+        if not 0 <= self.first_seed <= SEED_LIMIT - self.n:
+            raise ValueError(f"--first-seed must be from 0 to 2**32 - --n = {SEED_LIMIT - self.n} (layout j uses seed "
+                             f"--first-seed + j, a numpy seed), got {self.first_seed}")
         # Both outputs checked before either is written (a bad --plot failed after the JSON was written).
         for flag, path in (("--json", self.json), ("--plot", self.plot)):
             if path is not None:
