@@ -547,8 +547,19 @@ def test_the_reviews_last_bad_inputs_are_refused_before_work(tmp_path, capsys):
 def test_inputs_a_cli_review_found_accepted_are_refused_before_work(tmp_path, refused):
     """Found by a review that tried researchers' mistakes on every command (2026-11-27): each was accepted, or
     refused only after another policy's whole evaluation had run."""
-    out = tmp_path / "out"
+    out, broken = tmp_path / "out", tmp_path / "broken"
+    broken.mkdir()
+    (broken / "config.json").write_text("{")
+    (broken / "model.safetensors").write_bytes(b"")
     refused([
+        (["eval", "--policy", f"lerobot:{broken}", "--out", str(out)],
+         f"{broken}/config.json: not a JSON config (Expecting property name"),  # named no file
+        (["eval", "--policy", f"lerobot:{broken}?n_action_steps=", "--out", str(out)],
+         "option n_action_steps='' in lerobot:"),  # dropped silently, the checkpoint's horizon played
+        (["eval", "--policy", f"lerobot:{broken}?n_action_steps", "--out", str(out)],
+         "options are key=value pairs joined by '&'; allowed: n_action_steps, device"),
+        (["eval", "--policy", "lerobot:?n_action_steps=4", "--out", str(out)],
+         "gives options but no PATH before the '?'"),  # looked for a checkpoint in the current directory
         (["record", "--out", str(out), "--episodes", "2", "--policy", "random"],
          "--policy random is not an expert; allowed: scripted, ppo:PATH"),  # looped at 0% success, forever
         (["compare", str(out), str(out)], "is given twice; compare two different run directories"),

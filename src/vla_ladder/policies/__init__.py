@@ -76,13 +76,27 @@ def positive_int(value: str) -> int:
     return int(value)
 
 
+def instruction_text(value: str) -> str:
+    """An option's parser: the words of an instruction (not blank)."""
+    if not value.strip():
+        raise ValueError(f"expected the instruction's words, got {value!r}")
+    return value
+
+
 def parse_options(kind: str, arg: str, allowed: dict[str, Callable[[str], Any]]) -> tuple[str, dict]:
     """"HEAD?key=value&..." -> (HEAD, {key: allowed[key](value)}): a spec's options, each parsed by its own function
     (whose ValueError names what it expects); an option not in `allowed` names those that are, and one given twice
     is refused rather than one of its values silently kept."""
     head, _, query = arg.partition("?")
+    if query and not head:
+        raise ValueError(f"{kind}:{arg} gives options but no {NEEDS_ARG.get(kind, 'argument')} before the '?'")
     options = {}
-    for key, value in parse_qsl(query, strict_parsing=bool(query)):
+    try:  # blank values kept, so that each option's own parser refuses them (urllib drops them otherwise)
+        pairs = parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query))
+    except ValueError:
+        raise ValueError(f"{kind}:{arg}: options are key=value pairs joined by '&'; allowed: "
+                         f"{', '.join(allowed)}") from None
+    for key, value in pairs:
         if key not in allowed:
             raise ValueError(f"unknown option {key!r} in {kind}:{arg}; allowed: {', '.join(allowed)}")
         if key in options:

@@ -34,7 +34,7 @@ from vla_ladder.checks import TORCH_DEVICE
 from vla_ladder.contract import (ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IMAGE_SHAPE, POLICY_FIELDS, STATE_DIM,
                                  STATE_KEY, TRAINED_CONTRACT_FILE, contract_changes)
 from vla_ladder.files import own_tempdir
-from vla_ladder.policies import Policy, parse_options, positive_int
+from vla_ladder.policies import Policy, instruction_text, parse_options, positive_int
 
 ENV_IMAGE_SHAPE = (IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1])  # CHW, as LeRobot declares visual features
 # Policies that resize every camera image to their own resolution (LeRobot's VLAs): a checkpoint trained on another
@@ -78,7 +78,7 @@ def _device(value: str) -> str:
     return value
 
 
-QUERY_KEYS = {"n_action_steps": positive_int, "device": _device, "instruction": str, "use_amp": _bool,
+QUERY_KEYS = {"n_action_steps": positive_int, "device": _device, "instruction": instruction_text, "use_amp": _bool,
               "noise_seed": _noise_seed}
 CONFIG_OPTIONS = ("n_action_steps", "device", "use_amp")
 """The options that override the checkpoint's own config (checked_config); the others are the policy's."""
@@ -92,6 +92,17 @@ def resolve_checkpoint(path: str | Path) -> Path:
             return cand
     raise ValueError(f"no LeRobot checkpoint at {str(path)!r}: expected config.json in it, in "
                      "pretrained_model/ or in checkpoints/last/pretrained_model/ (a `vla-ladder train` run dir)")
+
+
+def read_saved_config(path: Path) -> dict:
+    """The config.json of checkpoint directory `path` (from resolve_checkpoint), or ValueError naming the file."""
+    try:
+        saved = json.loads((path / "config.json").read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path / 'config.json'}: not a JSON config ({e})") from None
+    if not isinstance(saved, dict):
+        raise ValueError(f"{path / 'config.json'}: not a JSON config (a {type(saved).__name__}, not an object)")
+    return saved
 
 
 def check_checkpoint(path: str | Path) -> Path:
@@ -161,7 +172,7 @@ def checked_config(path: str | Path, n_action_steps: int | None = None, device: 
     from lerobot.configs.policies import PreTrainedConfig
 
     path = resolve_checkpoint(path)
-    chunk = json.loads((path / "config.json").read_text()).get("chunk_size")
+    chunk = read_saved_config(path).get("chunk_size")
     if n_action_steps is not None and isinstance(chunk, int) and not 1 <= n_action_steps <= chunk:
         # draccus would say only "Couldn't instantiate class ...Config using the given arguments"
         raise ValueError(f"n_action_steps must be from 1 to the checkpoint's chunk size ({chunk}), got "

@@ -47,7 +47,7 @@ import torch
 
 from vla_ladder.checks import check_ws_url
 from vla_ladder.contract import ACTION_DIM, CAMERAS, POLICY_FIELDS, STATE_KEY, contract_changes
-from vla_ladder.policies import Policy, parse_options, positive_int
+from vla_ladder.policies import Policy, instruction_text, parse_options, positive_int
 
 PROMPT_KEY = "prompt"
 SEED_KEY = "vla_ladder/episode_seed"
@@ -184,7 +184,7 @@ def connect(url: str, timeout_s: float = CONNECT_TIMEOUT_S):
     return ws, metadata
 
 
-QUERY_KEYS = {"n_action_steps": positive_int, "instruction": str}
+QUERY_KEYS = {"n_action_steps": positive_int, "instruction": instruction_text}
 
 
 def parse_arg(arg: str) -> tuple[str, dict]:

@@ -31,7 +31,6 @@ import collections
 import concurrent.futures
 import hmac
 import http
-import json
 import logging
 import os
 import queue
@@ -92,8 +91,8 @@ class ServePolicyConfig:
             raise ValueError(f"listening on {self.host!r} (not loopback) needs --api-key (or ${API_KEY_ENV}); "
                              "allowed without one: 127.0.0.1, ::1, localhost")
         check_spec(self.policy)
-        from vla_ladder.policies.lerobot import parse_arg, resolve_checkpoint
-        saved = json.loads((resolve_checkpoint(parse_arg(arg)[0]) / "config.json").read_text())
+        from vla_ladder.policies.lerobot import parse_arg, read_saved_config, resolve_checkpoint
+        saved = read_saved_config(resolve_checkpoint(parse_arg(arg)[0]))
         check_servable(saved.get("type"), saved.get("temporal_ensemble_coeff"))
         check_port_free(self.host, self.port)  # before the model loads, not after
 
