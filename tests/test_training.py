@@ -191,6 +191,13 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     assert "is a file, not a dataset directory" in capsys.readouterr().err
     assert main(base + ["--policy-type", "act", "--device", "tpu"]) == 2
     assert "--device 'tpu': allowed: cpu, cuda, cuda:N, mps" in capsys.readouterr().err
+    # Raw flags that would move the run away from --out (it trained there, and --out was left empty) or its data.
+    assert main(base + ["--policy-type", "act", "--", f"--output_dir={tmp_path / 'elsewhere'}"]) == 2
+    assert "--output_dir after -- is vla-ladder's to set; use --out" in capsys.readouterr().err
+    assert main(["grid", "--train.policy-type", "act", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
+                 "--", "--dataset.root=/tmp"]) == 2
+    assert "--dataset.root after -- is vla-ladder's to set; use --dataset" in capsys.readouterr().err
+    assert not (tmp_path / "elsewhere").exists() and not (tmp_path / "g").exists()
 
     wrong = tmp_path / "wrong"
     (wrong / "meta").mkdir(parents=True)

@@ -27,6 +27,11 @@ from vla_ladder.training.dataset import check_features, dataset_condition, datas
 
 log = logging.getLogger(__name__)
 
+# lerobot-train flags that `train` sets itself from its own (raw flags after -- may not): where the run writes
+# (and so what a rerun resumes and what eval finds) and what it trains on.
+OWN_FLAGS = {"--output_dir": "--out", "--dataset.root": "--dataset",
+             "--dataset.repo_id": "--dataset", "--resume": "the same command again (it resumes)",
+             "--config_path": "train's own flags"}
 # Paper, appendix "VLA implementation details": checkpoints and per-policy settings.
 DEFAULT_PRETRAINED = {"smolvla": "lerobot/smolvla_base", "pi05": "lerobot/pi05_base"}
 POLICY_PRESETS: dict[str, dict[str, str]] = {
@@ -107,6 +112,10 @@ class TrainConfig:
         self.dataset = Path(self.dataset)
         self.out = None if self.out is None else Path(self.out)
         self.lerobot_args = tuple(self.lerobot_args)
+        for a in self.lerobot_args:  # flags that would move the run away from what vla-ladder keeps and resumes
+            flag = a.split("=", 1)[0]
+            if flag in OWN_FLAGS:
+                raise ValueError(f"{flag} after -- is vla-ladder's to set; use {OWN_FLAGS[flag]}")
         self.info = read_info(self.dataset)
         check_features(self.info, self.dataset)
         if self.pretrained == "default":
