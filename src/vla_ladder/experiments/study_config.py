@@ -41,10 +41,8 @@ class DatasetSpec:
         _positive(self, "episodes")
         if self.first_seed < 0:
             raise ValueError(f"first_seed must be >= 0, got {self.first_seed}")
-        from vla_ladder.policies import parse_spec
-        kind, _ = parse_spec(self.expert)
-        if kind not in ("scripted", "ppo"):
-            raise ValueError(f"expert {self.expert!r} is not an expert; allowed: scripted, ppo:PATH")
+        from vla_ladder.policies import check_expert
+        check_expert(self.expert, f"expert {self.expert!r}")
 
     @property
     def cond(self) -> Condition:

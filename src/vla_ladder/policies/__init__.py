@@ -54,6 +54,15 @@ POLICY_KINDS: dict[str, str] = {
 }
 # Kinds that need an argument, and what it is; every other kind takes none.
 NEEDS_ARG = {"ppo": "PATH", "lerobot": "PATH", "remote": "URL"}
+EXPERT_KINDS = ("scripted", "ppo")
+"""The kinds whose episodes are demonstrations to record (the others are references or learned policies)."""
+
+
+def check_expert(spec: str, given: str) -> None:
+    """ValueError in one line unless `spec` names an expert (EXPERT_KINDS); `given` says where it came from."""
+    if parse_spec(spec)[0] not in EXPERT_KINDS:
+        allowed = ", ".join(f"{k}:{NEEDS_ARG[k]}" if k in NEEDS_ARG else k for k in EXPERT_KINDS)
+        raise ValueError(f"{given} is not an expert; allowed: {allowed}")
 
 
 def parse_spec(spec: str) -> tuple[str, str | None]:

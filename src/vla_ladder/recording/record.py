@@ -124,12 +124,12 @@ class RecordConfig:
         check_instruction_set(self.instructions)
         for url in self.server:
             check_ws_url(url, "--server")
-        from vla_ladder.policies import check_spec, parse_spec
+        from vla_ladder.policies import check_expert, check_spec, parse_spec
         # The local servers' expert is checked here, before they start (each refused it, and the recorder said to
         # rerun); with --server the servers' expert is the one recorded.
         (parse_spec if self.server else check_spec)(self.policy)
-        if not self.server and parse_spec(self.policy)[0] not in ("scripted", "ppo"):  # a demo is an expert's
-            raise ValueError(f"--policy {self.policy} is not an expert; allowed: scripted, ppo:PATH")
+        if not self.server:  # a demonstration is an expert's
+            check_expert(self.policy, f"--policy {self.policy}")
 
 
 def recording_of(cfg: RecordConfig) -> Recording:
