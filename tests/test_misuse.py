@@ -383,7 +383,7 @@ def test_placements_bounds_its_layout_count(capsys, tmp_path):
     # Both outputs are checked before either is written (the JSON was written, then the figure failed).
     _one_line_error(capsys, main(["placements", "--n", "3", "--json", str(tmp_path / "p.json"), "--plot",
                                   str(tmp_path / "p.txt")]), "the figure's format is its suffix; allowed: ")
-    _one_line_error(capsys, main(["placements", "--n", "3", "--json", ""]), "--json '.' is a directory")
+    _one_line_error(capsys, main(["placements", "--n", "3", "--json", ""]), "--json is empty; give a path")
     assert list(tmp_path.iterdir()) == []
 
 
@@ -394,6 +394,14 @@ def test_a_ray_address_is_checked_before_anything_is_written():
     for bad in ("foo", "http://head:6379", "head:port", ""):
         with pytest.raises(ValueError, match="--ray-address must be auto, HOST:PORT or ray://HOST:PORT"):
             checks.check_ray_address(bad)
+
+
+@pytest.mark.timeout(120)
+def test_a_host_that_is_not_this_machines_is_refused_with_any_port(capsys):
+    """With --port 0 the host went unchecked: serve-policy loaded its checkpoint, then failed to bind."""
+    for port in ("0", "8765"):
+        _one_line_error(capsys, main(["serve", "--port", port, "--host", "nosuch.invalid", "--token", "t"]),
+                        "--host 'nosuch.invalid' is not an address of this machine")
 
 
 def test_serve_refuses_bad_limits_and_names_before_binding(capsys):
@@ -464,6 +472,7 @@ def test_a_flag_given_twice_is_refused_not_silently_dropped(argv, flag, capsys, 
     (["--server", "ws://localhost:notaport"], "--server is a WebSocket URL"),
     (["--policy", "ppo:/nonexistent"], "no PPO checkpoint at '/nonexistent'"),
     (["--robot-mesh", "foo"], "unknown robot_mesh 'foo'; allowed: lite, full"),
+    (["--server", "ws://127.0.0.1:1", "ws://127.0.0.1:1"], "--server ws://127.0.0.1:1 is given twice"),
 ])
 def test_record_writers_each_need_a_server(extra, says, tmp_path, capsys):
     rc = main(["record", "--out", str(tmp_path / "rec"), "--episodes", "1", *extra])
@@ -572,3 +581,14 @@ def test_inputs_a_cli_review_found_accepted_are_refused_before_work(tmp_path, re
         (["experiment", "ladder", "--policy", "label=a,spec=scripted,label=b", "--out", str(out)],
          "label given twice"),  # kept b
     ], out)
+
+
+def test_an_empty_path_is_refused_not_read_as_the_current_directory(tmp_path, monkeypatch, refused):
+    """`--out ""` (an unset shell variable) was Path(""), that is ".": results went into the current directory."""
+    monkeypatch.chdir(tmp_path)
+    says = "--out is empty; give a path (an empty one would mean the current directory)"
+    refused([(["eval", "--policy", "scripted", "--out", ""], says),
+             (["record", "--episodes", "1", "--out="], says),
+             (["study", "micro", "--out", " "], says),
+             (["train-expert", "--out", ""], says)])
+    assert list(tmp_path.iterdir()) == []

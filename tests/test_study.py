@@ -65,6 +65,15 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
                                           "evaluation.probe_episodes": 5000, "datasets.0.first_seed": 1000}),
         "policies[x].datasets: unknown dataset 'fr'": {**_micro(), "policies": [
             {"name": "x", "type": "act", "steps": 1, "datasets": ["fr"]}]},
+        # JSON of another type: a string seed ended in a TypeError naming no field, a string for a list was read
+        # letter by letter ("unknown regime 'a'"), a boolean counted as a step count.
+        'datasets[0].first_seed: expected an integer, got "5"': _micro(**{"datasets.0.first_seed": "5"}),
+        'evaluation.regimes: expected a list of strings, got "all"': _micro(**{"evaluation.regimes": "all"}),
+        'evaluation.num_objects[1]: expected an integer, got "2"': _micro(**{"evaluation.num_objects": [1, "2"]}),
+        "policies[0].steps: expected an integer, got true": _micro(**{"policies.0.steps": True}),
+        # A value twice trained the same model twice under one unit id, or showed a reference twice.
+        "batch_sizes: 4 given twice": _micro(**{"grid.batch_sizes": [4, 4]}),
+        "reference_policies: nearest given twice": _micro(**{"evaluation.reference_policies": ["nearest"] * 2}),
     }
     for message, data in bad.items():
         path = tmp_path / "study.json"
@@ -82,6 +91,43 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
     assert main(["study", "micro", "--out", str(tmp_path / "out"), "--num-envs", str(cores() + 1)]) == 2
     assert "--num-envs must be from 1 to the" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_experts_and_pretrained_checkpoints_are_read_before_the_first_unit(tmp_path, capsys):
+    """A missing PPO expert was found by the record unit, a missing or wrong pretrained checkpoint by the first
+    train unit, after the recording: each a traceback in a unit's log. Now one line before anything is written;
+    a source that a done unit no longer needs is not read (a resumed study whose expert has moved goes on)."""
+    from lerobot.policies.act.configuration_act import ACTConfig
+
+    from vla_ladder.experiments.study import Study, StudyCommand
+
+    ACTConfig().save_pretrained(tmp_path / "act")
+    out = tmp_path / "out"
+    cases = {
+        f"datasets[sj].expert: ": _micro(**{"datasets.0.expert": f"ppo:{tmp_path / 'moved.pt'}"}),
+        f"policies[SmolVLA-tiny].pretrained: cannot load the pretrained config '{tmp_path / 'nowhere'}'": _micro(
+            **{"policies.0.pretrained": str(tmp_path / "nowhere")}),
+        f"policies[SmolVLA-tiny].pretrained: --pretrained '{tmp_path / 'act'}' is a 'act' checkpoint, not 'smolvla'":
+            _micro(**{"policies.0.pretrained": str(tmp_path / "act")}),
+    }
+    for message, data in cases.items():
+        path = tmp_path / "study.json"
+        path.write_text(json.dumps(data))
+        assert main(["study", str(path), "--out", str(out)]) == 2, message
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+        assert not out.exists()
+    # Done units need no source: the record and train units marked done, the study reads neither.
+    path = tmp_path / "study.json"
+    path.write_text(json.dumps(_micro(**{"datasets.0.expert": f"ppo:{tmp_path / 'moved.pt'}",
+                                         "policies.0.pretrained": str(tmp_path / "nowhere")})))
+    study = Study(StudyCommand(config=str(path), out=out))
+    for unit in study.record_units():
+        mark_done(out, unit, {}, 1.0)
+    with pytest.raises(ValueError, match=r"^policies\[SmolVLA-tiny\]\.pretrained"):
+        study.check_sources()  # the expert is not read; the checkpoint that a train unit will load is
+    (out / "units" / "train-SmolVLA-tiny-sj-b4c4.json").write_text("{}")
+    study.check_sources()
 
 
 def test_a_moved_study_is_refused_before_any_unit_runs_again(tmp_path, capsys):

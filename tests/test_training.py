@@ -198,6 +198,22 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
                  "--", "--dataset.root=/tmp"]) == 2
     assert "--dataset.root after -- is vla-ladder's to set; use --dataset" in capsys.readouterr().err
     assert not (tmp_path / "elsewhere").exists() and not (tmp_path / "g").exists()
+    # An unknown raw flag printed argparse's usage of every LeRobot flag (540 lines); tyro's failure, 5 lines.
+    for extra, says in ((["--", "--unknown_flag=3"], "lerobot-train: unrecognized arguments: --unknown_flag=3"),
+                        (["--", "--policy.chunk_size=x"], "`chunk_size`: Couldn't parse 'x' into an int"),
+                        (["--rename-map", "a"], "--rename-map: no type matching")):
+        assert main(base + ["--policy-type", "act", *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "run").exists()
+    # The grid ignored --train.print-command and trained: now it prints each model's command and writes nothing.
+    assert main(["grid", "--train.policy-type", "act", "--train.dataset", str(data), "--train.print-command",
+                 "--out", str(tmp_path / "g"), "--batch-sizes", "8", "--chunk-sizes", "4", "8", "--horizons", "4"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert [line.split()[0] for line in lines] == ["lerobot-train"] * 2, lines
+    assert all("--batch_size=8" in line for line in lines)
+    assert "--policy.chunk_size=4" in lines[0] and "--policy.chunk_size=8" in lines[1]
+    assert not (tmp_path / "g").exists()
 
     wrong = tmp_path / "wrong"
     (wrong / "meta").mkdir(parents=True)

@@ -160,9 +160,8 @@ def refuse_past_max_clients(connection, max_clients: int, log):
 
 def check_port_free(host: str, port: int, flag: str = "--port") -> None:
     """ValueError when `host`:`port` cannot be listened on (in use, or not an address of this machine). Binds the
-    way asyncio's server does (SO_REUSEADDR), so a port in TIME_WAIT is free. Port 0 (any free port) always is."""
-    if port == 0:
-        return
+    way asyncio's server does (SO_REUSEADDR), so a port in TIME_WAIT is free. Port 0 (any free port) always is, but
+    its host is checked all the same."""
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except socket.gaierror as e:

@@ -18,6 +18,7 @@ def parse_config(cls: type[T], argv: list[str], prog: str, description: str | No
     import tyro
 
     check_no_repeated_flags(argv)
+    check_no_empty_paths(cls, argv)
     with _one_line_value_errors():
         return tyro.cli(cls, args=argv, prog=prog, description=description, default=default)
 
@@ -53,6 +54,26 @@ def check_no_repeated_flags(argv: list[str]) -> None:
             seen.add(flag)
 
 
+def check_no_empty_paths(cls: type, argv: list[str]) -> None:
+    """ValueError for a path flag given an empty value (`--out ""`, an unset shell variable): tyro reads it as
+    Path(""), which is ".", so results would land in the current directory."""
+    import dataclasses
+    import pathlib
+    import typing
+
+    if not dataclasses.is_dataclass(cls):
+        return
+    hints = typing.get_type_hints(cls, include_extras=False)
+    paths = {"--" + f.name.replace("_", "-") for f in dataclasses.fields(cls)
+             if pathlib.Path in (hints[f.name], *typing.get_args(hints[f.name]))}
+    for i, arg in enumerate(argv):
+        if arg == "--":
+            break
+        flag, eq, value = arg.partition("=")
+        if flag in paths and ((eq and not value.strip()) or (not eq and i + 1 < len(argv) and not argv[i + 1].strip())):
+            raise ValueError(f"{flag} is empty; give a path (an empty one would mean the current directory)")
+
+
 @contextmanager
 def _one_line_value_errors():
     """A config's __post_init__ rejects bad values with a ValueError that names what is allowed; tyro would draw
@@ -70,7 +91,9 @@ def _one_line_value_errors():
         if isinstance(event, errors.InstantiationFailure):
             arg = event.argument
             flag = "/".join(arg.lowered.name_or_flags) if arg is not None and arg.lowered.name_or_flags else ""
-            raise ValueError(f"{flag}: {event.message}" if flag else event.message)
+            # tyro's own failures go on with a list of the types it tried: their first line says it
+            message = next((line.strip() for line in str(event.message).splitlines() if line.strip()), "bad value")
+            raise ValueError(f"{flag}: {message}" if flag else message)
 
     with hook(handle):
         yield

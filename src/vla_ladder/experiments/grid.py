@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shlex
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -131,6 +132,13 @@ def run(cfg: GridConfig) -> int:
     out = cfg.out
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {str(out)!r} is a file; give a directory")
+    if cfg.train.print_command:  # a dry run: each model's lerobot-train command, nothing written
+        for bs in cfg.batch_sizes:
+            for cs in cfg.chunk_sizes:
+                train = replace(cfg.train, out=out / "runs" / f"b{bs}_c{cs}" / "train", batch_size=bs,
+                                chunk_size=cs, n_action_steps=cs)
+                print(shlex.join(train.lerobot_command()))
+        return 0
     # LeRobot's side of the training config (policy flags, tokenizer) is checked once, before the first training.
     probe = replace(cfg.train, out=out / "runs" / ".check")
     check_offline_assets(probe.build_config().policy)

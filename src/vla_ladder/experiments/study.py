@@ -26,7 +26,7 @@ from vla_ladder import files
 from vla_ladder.checks import check_ray_address
 from vla_ladder.conditions import parse_regimes
 from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig
-from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
+from vla_ladder.experiments.units import Unit, is_done, marker, run_units, run_units_on_ray
 from vla_ladder.machine import check_workers, cores
 
 RANK_BY = ("success", "grasp_any", "reach")
@@ -304,8 +304,29 @@ class Study:
         return units
 
     # -- the whole study
+    def check_sources(self) -> None:
+        """Read every expert and pretrained checkpoint a unit still to run will load, so a missing or unreadable one
+        is refused in one line now, not in a unit's traceback after hours of recording."""
+        from vla_ladder.policies import check_spec
+        from vla_ladder.training.train import NO_PRETRAINED, pretrained_config
+        for d, unit in zip(self.cfg.datasets, self.record_units()):
+            if not is_done(self.root, unit):
+                try:
+                    check_spec(d.expert)
+                except ValueError as e:
+                    raise ValueError(f"datasets[{d.name}].expert: {e}") from None
+        for p, d, bcs in self.models():
+            trained = all(marker(self.root, Unit(f"train-{model_id(p, d, b, c)}", "train", "", {})).is_file()
+                          for b, c in bcs)
+            if p.pretrained not in NO_PRETRAINED and not trained:
+                try:
+                    pretrained_config(p.pretrained, p.type)
+                except ValueError as e:
+                    raise ValueError(f"policies[{p.name}].pretrained: {e}") from None
+
     def run(self) -> Path:
         root = self.root
+        self.check_sources()
         root.mkdir(parents=True, exist_ok=True)
         files.write_json(root / "study.json", asdict(self.cfg))
         self.run_phase(self.record_units())

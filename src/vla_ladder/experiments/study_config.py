@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import re
+import types
+import typing
 from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
@@ -128,6 +130,7 @@ class GridSpec:
     """first validation seed"""
 
     def __post_init__(self):
+        _unique(self, "batch_sizes", "chunk_sizes", "horizons")
         for name in ("batch_sizes", "chunk_sizes", "horizons"):
             values = getattr(self, name)
             if not values or not all(isinstance(v, int) and v >= 1 for v in values):
@@ -168,6 +171,7 @@ class EvaluationSpec:
 
     def __post_init__(self):
         _positive(self, "episodes")
+        _unique(self, "regimes", "num_objects", "reference_policies", "probes")
         ConditionGrid(tuple(self.regimes), ("canonical",), tuple(self.num_objects))
         for p in self.reference_policies:
             if p not in REFERENCE_POLICIES:
@@ -276,6 +280,7 @@ def from_dict(cls, data: dict, where: str):
     unknown = sorted(set(data) - set(known))
     if unknown:
         raise ValueError(f"{where + ': ' if where else ''}unknown field {unknown[0]!r}; allowed: {', '.join(known)}")
+    hints = typing.get_type_hints(cls)
     nested = {"datasets": DatasetSpec, "policies": PolicySpec, "grid": GridSpec, "evaluation": EvaluationSpec}
     kwargs = {}
     for key, value in data.items():
@@ -285,6 +290,7 @@ def from_dict(cls, data: dict, where: str):
         elif sub is not None:
             kwargs[key] = from_dict(sub, value, key)
         else:
+            _check_type(value, hints[key], f"{where + '.' if where else ''}{key}")
             kwargs[key] = value
     try:
         return cls(**kwargs)
@@ -292,6 +298,39 @@ def from_dict(cls, data: dict, where: str):
         raise ValueError(f"{where or 'study'}: {e}") from None
     except ValueError as e:
         raise ValueError(f"{where}: {e}" if where and not str(e).startswith(where) else str(e)) from None
+
+
+TYPE_WORDS = {int: "an integer", str: "a string", bool: "true or false", float: "a number", type(None): "null"}
+
+
+def _check_type(value, hint, where: str) -> None:
+    """A one-line ValueError naming the field when JSON gave another type ("5" for 5, "all" for ["all"]): the
+    checks in __post_init__ would otherwise compare a string with a number or read a string letter by letter."""
+    options = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
+    for option in options:
+        if typing.get_origin(option) is list:
+            (item,) = typing.get_args(option)
+            if isinstance(value, list):
+                for i, v in enumerate(value):
+                    _check_type(v, item, f"{where}[{i}]")
+                return
+        elif option is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+            return
+        elif type(value) is option:  # not isinstance: JSON's true is no integer here
+            return
+    said = " or ".join(f"a list of {TYPE_WORDS[typing.get_args(o)[0]].split(' ', 1)[1]}s"
+                       if typing.get_origin(o) is list else TYPE_WORDS[o] for o in options)
+    shown = json.dumps(value)
+    raise ValueError(f"{where}: expected {said}, got {shown if len(shown) <= 60 else shown[:57] + '...'}")
+
+
+def _unique(obj, *names: str) -> None:
+    # A value twice would train, play or show the same thing twice under one name (the same unit id).
+    for name in names:
+        values = getattr(obj, name)
+        twice = sorted({str(v) for v in values if values.count(v) > 1})
+        if twice:
+            raise ValueError(f"{name}: {', '.join(twice)} given twice; name each once, got {values}")
 
 
 def _positive(obj, name: str) -> None:

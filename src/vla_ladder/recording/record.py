@@ -124,6 +124,10 @@ class RecordConfig:
         check_instruction_set(self.instructions)
         for url in self.server:
             check_ws_url(url, "--server")
+        twice = sorted({url for url in self.server if self.server.count(url) > 1})
+        if twice:  # two connections to one server: its episodes drawn twice as fast, not two servers' worth
+            raise ValueError(f"--server {twice[0]} is given twice; name each server once (a server with more "
+                             "envs serves more: its --num-envs)")
         from vla_ladder.policies import check_expert, check_spec, parse_spec
         # The local servers' expert is checked here, before they start (each refused it, and the recorder said to
         # rerun); with --server the servers' expert is the one recorded.

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import io
 import json
 import logging
 import os
@@ -59,6 +60,10 @@ def policy_types() -> list[str]:
     from lerobot.configs.policies import PreTrainedConfig
 
     return sorted(PreTrainedConfig.get_known_choices())
+
+
+NO_PRETRAINED = ("", "none", "None")
+"""--pretrained values that mean from scratch"""
 
 
 @dataclass
@@ -120,7 +125,7 @@ class TrainConfig:
         check_features(self.info, self.dataset)
         if self.pretrained == "default":
             self.pretrained = DEFAULT_PRETRAINED.get(self.policy_type)
-        if self.pretrained in ("", "none", "None"):
+        if self.pretrained in NO_PRETRAINED:
             self.pretrained = None
         self.condition = dataset_condition(self.dataset)
         self.contract = dataset_contract(self.dataset)
@@ -209,17 +214,23 @@ class TrainConfig:
 
     def build_config(self):
         """LeRobot's TrainPipelineConfig, parsed by LeRobot's own parser from the flags above."""
+        said = io.StringIO()
         try:
-            return self._parse_config()
+            with contextlib.redirect_stderr(said):  # argparse's usage of every LeRobot flag: 500 lines
+                return self._parse_config()
+        except SystemExit:  # draccus's argparse refused a flag (an unknown one after --, a value of another type)
+            last = said.getvalue().strip().splitlines()[-1:] or ["it refused the flags"]
+            reason = last[0].split("error: ", 1)[-1]
+            raise ValueError(f"lerobot-train: {reason} (the flags after -- are lerobot-train's: "
+                             "`lerobot-train --help` lists them)") from None
         except Exception as e:
             if isinstance(e, ValueError):
                 raise
             # draccus wraps LeRobot's own checks (e.g. n_action_steps > chunk_size) in its DecodingError
-            raise ValueError(f"LeRobot rejects this configuration: {e}") from e
+            raise ValueError(f"LeRobot rejects this configuration: {' '.join(str(e).split())}") from e
 
     def _parse_config(self):
         import draccus
-        from lerobot.configs.policies import PreTrainedConfig
         from lerobot.configs.train import TrainPipelineConfig
 
         extra_policy = [f"--{a[len('--policy.'):]}" for a in self.lerobot_args if a.startswith("--policy.")]
@@ -227,15 +238,7 @@ class TrainConfig:
         policy_flags = self.policy_flags() + extra_policy
         if self.pretrained:
             cfg = draccus.parse(TrainPipelineConfig, args=self.pipeline_flags() + extra_other)
-            try:
-                with files.own_tempdir():  # LeRobot leaves a copy of the config in the temp directory otherwise
-                    cfg.policy = PreTrainedConfig.from_pretrained(self.pretrained, cli_overrides=policy_flags)
-            except Exception as e:  # hub errors come in many types; all mean the same here
-                raise ValueError(f"cannot load the pretrained config {self.pretrained!r} ({e}); offline, pass "
-                                 "a local checkpoint directory or --pretrained none") from e
-            if cfg.policy.type != self.policy_type:
-                raise ValueError(f"--pretrained {self.pretrained!r} is a {cfg.policy.type!r} checkpoint, "
-                                 f"not {self.policy_type!r}")
+            cfg.policy = pretrained_config(self.pretrained, self.policy_type, policy_flags)
             cfg.policy.pretrained_path = Path(self.pretrained)
             if not cfg.rename_map:
                 cfg.rename_map = _rename_for({k: v for k, v in cfg.policy.input_features.items()})
@@ -244,6 +247,22 @@ class TrainConfig:
                                 + [f"--policy.type={self.policy_type}"]
                                 + [f"--policy.{f[2:]}" for f in policy_flags])
         return cfg
+
+
+def pretrained_config(pretrained: str, policy_type: str, overrides: list[str] | None = None):
+    """The LeRobot config of the checkpoint to fine-tune (a local directory or a hub id), or a one-line
+    ValueError when it cannot be read or is another policy type. The study calls it before recording."""
+    from lerobot.configs.policies import PreTrainedConfig
+    try:
+        with files.own_tempdir():  # LeRobot leaves a copy of the config in the temp directory otherwise
+            cfg = PreTrainedConfig.from_pretrained(pretrained, cli_overrides=list(overrides or []))
+    except Exception as e:  # hub errors come in many types; all mean the same here
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(f"cannot load the pretrained config {pretrained!r} ({reason}); offline, pass a local "
+                         "checkpoint directory or --pretrained none") from e
+    if cfg.type != policy_type:
+        raise ValueError(f"--pretrained {pretrained!r} is a {cfg.type!r} checkpoint, not {policy_type!r}")
+    return cfg
 
 
 def check_offline_assets(policy_cfg) -> None:
