@@ -120,6 +120,11 @@ def test_absent_metrics_tell_grounded_shortcut_and_blind_policies_apart():
     assert four["grasp_change"]["value"] == -1 and four["grasp_change"]["method"] == "newcombe paired score"
     assert four["grasp_change"]["ci95"] == pytest.approx(list(paired_difference(np.ones(10, bool),
                                                                                  np.zeros(10, bool))))
+    # The table shows McNemar's p beside a paired change (it showed none), and none beside a share change.
+    from vla_ladder.report.probes import table_html
+    assert f"p={four['grasp_change']['mcnemar_p']:.2g}" in table_html({"probe": "absent-object",
+                                                                         "conditions": {"x": four}})
+    assert "p=" not in table_html({"probe": "absent-object", "conditions": {"x": g}})
     s = grounding.absent_object(*absent_plays(shortcut))[key]
     assert s["shortcut_reach"]["value"] == 1 and s["grasp_absent"]["value"] == 0 and s["same_grasp"]["value"] == 0
     b = grounding.absent_object(*absent_plays(blind))[key]

@@ -79,3 +79,19 @@ def test_the_architecture_page_names_every_module_under_its_package():
         if path.name != "__init__.py" and path.name not in blocks.get(package if package != "cli" else "cli.py", ""):
             missing.append(str(path.relative_to(SRC)))
     assert missing == [], f"docs/architecture.md's tree does not name {missing}"
+
+
+def test_every_policy_flag_help_lists_every_policy_kind():
+    """The recipe for a policy kind names these help texts; diagnose's lacked `committed`."""
+    import inspect
+    import re
+
+    from vla_ladder.evaluation.runner import EvalConfig
+    from vla_ladder.experiments.diagnose import DiagnoseConfig
+    from vla_ladder.experiments.probes import ProbeConfig
+    from vla_ladder.policies import POLICY_KINDS
+
+    for cls in (EvalConfig, ProbeConfig, DiagnoseConfig):
+        help_text = re.search(r"\n    policy: [^\n]*\n    \"\"\"(.*?)\"\"\"", inspect.getsource(cls), re.S).group(1)
+        words = set(re.findall(r"[a-z][a-z-]*(?=[:,\s)]|$)", " ".join(help_text.split())))
+        assert set(POLICY_KINDS) <= words, (cls.__name__, sorted(set(POLICY_KINDS) - words))

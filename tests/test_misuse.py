@@ -580,6 +580,8 @@ def test_inputs_a_cli_review_found_accepted_are_refused_before_work(tmp_path, re
           str(out)], "no LeRobot checkpoint at '/nonexistent'"),  # after scripted's evaluation
         (["experiment", "ladder", "--policy", "label=a,spec=scripted,label=b", "--out", str(out)],
          "label given twice"),  # kept b
+        (["experiment", "ladder", "--policy", "label=modèle,spec=scripted", "label=modéle,spec=nearest", "--out",
+          str(out)], "'modèle' and 'modéle' both name runs/mod_le"),  # said only "share a label"
     ], out)
 
 

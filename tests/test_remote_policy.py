@@ -1,6 +1,7 @@
 """`--policy remote:URL` and `vla-ladder serve-policy`: openpi's policy-server protocol over a real loopback WebSocket,
 a real LeRobot checkpoint served by a real `vla-ladder serve-policy` process, episodes in the real simulator."""
 
+import contextlib
 import json
 import os
 import pickle
@@ -129,49 +130,57 @@ def test_bad_remote_specs_fail_in_one_line_before_work(tmp_path, capsys):
         "ws://h:1", {"n_action_steps": 3, "instruction": "grasp the object"})
 
 
-def test_a_server_that_does_not_name_a_horizon_needs_one(tmp_path, capsys):
-    """openpi's servers send empty metadata: the horizon must then be given, not defaulted to the whole chunk."""
+@contextlib.contextmanager
+def metadata_server(metadata: dict):
+    """The URL of a WebSocket server on loopback that sends `metadata` (read when each client connects, so a test may
+    change it between connections) and nothing else."""
     import threading
 
     from websockets.sync.server import serve
-
-    from vla_ladder.policies.remote import check_server
-
-    def openpi_like(ws):
-        ws.send(pack({}))
-        for _ in ws:
-            pass
-
-    with serve(openpi_like, "127.0.0.1", 0) as server:
-        threading.Thread(target=server.serve_forever, daemon=True).start()
-        url = f"ws://127.0.0.1:{server.socket.getsockname()[1]}"
-        assert main(["eval", "--policy", f"remote:{url}", *EVAL, "--out", str(tmp_path / "run")]) == 2
-        err = capsys.readouterr().err
-        assert "does not say how many actions of a chunk to run" in err and f"remote:{url}?n_action_steps=H" in err
-        assert not (tmp_path / "run").exists()
-        check_server(f"{url}?n_action_steps=5")
-        server.shutdown()
-
-
-def test_a_policy_served_under_another_task_contract_is_refused(tmp_path, capsys):
-    """A server that names the contract its policy was trained under is checked before any episode, as a lerobot:
-    checkpoint is: another control rate is named and refused; the same contract, or none said, passes."""
-    import threading
-
-    from websockets.sync.server import serve
-
-    from vla_ladder.policies.remote import check_server
-
-    said = {}
 
     def server_side(ws):
-        ws.send(pack(said))
+        ws.send(pack(metadata))
         for _ in ws:
             pass
 
     with serve(server_side, "127.0.0.1", 0) as server:
         threading.Thread(target=server.serve_forever, daemon=True).start()
-        url = f"ws://127.0.0.1:{server.socket.getsockname()[1]}?n_action_steps=2"
+        yield f"ws://127.0.0.1:{server.socket.getsockname()[1]}"
+        server.shutdown()
+
+
+def test_a_server_that_does_not_name_a_horizon_needs_one(tmp_path, capsys):
+    """openpi's servers send empty metadata: the horizon must then be given, not defaulted to the whole chunk."""
+    from vla_ladder.policies.remote import check_server
+
+    with metadata_server({}) as url:
+        assert main(["eval", "--policy", f"remote:{url}", *EVAL, "--out", str(tmp_path / "run")]) == 2
+        err = capsys.readouterr().err
+        assert "does not say how many actions of a chunk to run" in err and f"remote:{url}?n_action_steps=H" in err
+        assert not (tmp_path / "run").exists()
+        check_server(f"{url}?n_action_steps=5")
+
+
+def test_a_horizon_past_the_served_chunk_is_refused(tmp_path, capsys):
+    """n_action_steps=1000 on a 16-step chunk ran the whole chunk while the run directory said 1000."""
+    from vla_ladder.policies.remote import check_server
+
+    with metadata_server({"server": "vla-ladder", "policy": {"chunk_size": 16}, "n_action_steps": 8}) as url:
+        assert main(["eval", "--policy", f"remote:{url}?n_action_steps=17", *EVAL, "--out", str(tmp_path / "run")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"n_action_steps must be from 1 to the chunk size of the policy served at {url} (16), got 17" in err
+        assert len(err.splitlines()) == 1 and not (tmp_path / "run").exists()
+        check_server(f"{url}?n_action_steps=16")
+
+
+def test_a_policy_served_under_another_task_contract_is_refused(tmp_path, capsys):
+    """A server that names the contract its policy was trained under is checked before any episode, as a lerobot:
+    checkpoint is: another control rate is named and refused; the same contract, or none said, passes."""
+    from vla_ladder.policies.remote import check_server
+
+    said = {}
+    with metadata_server(said) as server_url:
+        url = f"{server_url}?n_action_steps=2"
         said[CONTRACT_KEY] = {**policy_fingerprint(), "control_hz": 10}
         assert main(["eval", "--policy", f"remote:{url}", *EVAL, "--out", str(tmp_path / "run")]) == 2
         err = capsys.readouterr().err
@@ -185,7 +194,6 @@ def test_a_policy_served_under_another_task_contract_is_refused(tmp_path, capsys
         check_server(url)
         del said[CONTRACT_KEY]
         check_server(url)
-        server.shutdown()
 
 
 def test_a_server_error_without_words_is_still_one_clear_error():

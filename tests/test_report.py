@@ -154,6 +154,26 @@ def test_study_probe_table_names_the_model_and_explains_its_probes():
     assert "<b>instruction-swap</b>" not in page
 
 
+def test_study_probe_table_shows_the_nmi_as_a_share_with_its_p_and_every_wording():
+    """The NMI was printed x100 under "Rates in %" without its permutation p, and the paraphrase probe, whose
+    conditions hold one entry per wording, had no row at all."""
+    from vla_ladder.report.study import PROBE_TABLE_NOTE, probe_rows, probes_markdown
+    nmi = {"value": 0.05, "ci95": [0.0, 0.21], "n": 60, "plug_in": 0.11, "null_mean": 0.09, "permutation_p": 0.31}
+    wording = {"n": 20, "success": 0.4, "grasp_any": 0.9, "reach": 1.0,
+               "ci95": {"success": [0.22, 0.61], "grasp_any": [0.7, 0.97], "reach": [0.84, 1.0]}}
+    change = {"value": -0.2, "ci95": [-0.41, 0.03], "n": 20, "mcnemar_p": 0.125}
+    probes = {"m-instruction-swap": {"probe": "instruction-swap", "conditions": {"c": {"nmi": nmi}}},
+              "m-paraphrase": {"probe": "paraphrase", "conditions": {"c": {
+                  "canonical": {**wording, "success": 0.6, "ci95": {**wording["ci95"], "success": [0.39, 0.78]}},
+                  "paraphrase-heldout": {**wording, "vs_canonical": {"success": change}}}}}}
+    assert [r[3:] for r in probe_rows(probes)] == [
+        ["nmi", "0.05 [0.00, 0.21] (p=0.31)", "60"],
+        ["success, canonical", "60 [39, 78]", "20"],
+        ["success, paraphrase-heldout", "40 [22, 61]", "20"],
+        ["Δ success vs canonical, paraphrase-heldout", "-20 [-41, 3], p=0.12", "20"]]
+    assert probes_markdown(probes).rstrip().endswith(PROBE_TABLE_NOTE)
+
+
 def test_experiment_configs_and_policy_entries():
     assert set(available()) >= {"ladder", "pairings", "data_scaling", "object_count"}
     assert [c.regime for c in ExperimentConfig.load("ladder").conditions] == \

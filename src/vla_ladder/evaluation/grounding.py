@@ -8,8 +8,9 @@ on what the instruction says:
   object is not the same under all instructions) and scene accuracy (the instructed object is held under every
   instruction) are scene-level proportions: Wilson intervals. Grounded accuracy P(held = instructed | something
   held) and success over all plays pool correlated plays of a scene: Wilson on their design-effect sample size
-  (pooled_rate). The normalised mutual information I(instructed; held | objects) / H(instructed | objects): a
-  percentile bootstrap over scenes, beside its permutation null (nmi_null: the plug-in estimate is biased up).
+  (pooled_rate). The normalised mutual information I(instructed; held | objects) / H(instructed | objects): the
+  jackknife over scenes, bias-corrected, with its normal interval (the plug-in estimate is biased up, and a
+  bootstrap over scenes adds to that bias), beside the plug-in's permutation null and p (nmi_null).
 - paraphrases and appearance swaps: rates of each variant on the same scenes (Wilson), their paired difference
   (Newcombe's paired interval, stats.paired_difference) and McNemar's exact test.
 - absent object: the same scenes instructing an object that is not on the table. The grasp rate (something held)
@@ -34,6 +35,7 @@ An object "held" is the one grasped at the final step ("none" when nothing is), 
 from __future__ import annotations
 
 import json
+from statistics import NormalDist
 from typing import Callable
 
 import numpy as np
@@ -49,7 +51,8 @@ from vla_ladder.task.layouts import REGION_CENTERS, usual_regions
 from vla_ladder.task.objects import OBJECT_NAMES, OBJECTS, object_index
 
 RESAMPLES = 2000
-BOOTSTRAP_SEED = 0
+PERMUTATION_SEED = 0
+NMI_METHOD = "jackknife over scenes, bias-corrected"
 COLOUR_OUTCOMES = ("instructed", "partner", "other", "none")
 """What is held under an appearance swap: the instructed object (follows its shape and the words), the
 partner that wears the instructed object's usual colour (follows colour), another object, nothing."""
@@ -68,20 +71,23 @@ def wilson_rate(k: int, n: int) -> dict:
     return _interval(k / n if n else float("nan"), lo, hi, "wilson", n)
 
 
-def bootstrap(stat: Callable[[np.ndarray], np.ndarray], clusters: int, resamples: int = RESAMPLES,
-              seed: int = BOOTSTRAP_SEED) -> tuple[float, float]:
-    """Percentile interval of `stat` over resamples of `clusters` scenes with replacement; `stat` takes a
-    (resamples, clusters) index array and returns one value per resample (nan values are dropped)."""
-    if clusters == 0:
-        return float("nan"), float("nan")
-    idx = np.random.default_rng(seed).integers(0, clusters, size=(resamples, clusters))
-    values = np.asarray(stat(idx), dtype=float)
-    values = values[np.isfinite(values)]
-    if not len(values):
-        return float("nan"), float("nan")
-    tail = (1 - CONFIDENCE) / 2 * 100
-    lo, hi = np.percentile(values, [tail, 100 - tail])
-    return float(lo), float(hi)
+def jackknife(stat: Callable[[np.ndarray], np.ndarray], clusters: int) -> tuple[float, float, float]:
+    """(bias-corrected value, lo, hi) of `stat` by the jackknife over `clusters` scenes: each left out once, the
+    bias removed (n·full - (n-1)·mean of the leave-one-out values) and a normal interval from the jackknife standard
+    error, both clipped to [0, 1] (`stat` is a share). `stat` takes a (k, m) index array and returns k values. Fewer
+    than two scenes, or a leave-one-out value that is undefined: the plain value and no interval."""
+    full = float(np.asarray(stat(np.arange(clusters)[None]), dtype=float)[0]) if clusters else float("nan")
+    if clusters < 2:
+        return full, float("nan"), float("nan")
+    keep = ~np.eye(clusters, dtype=bool)
+    left_out = np.asarray(stat(np.broadcast_to(np.arange(clusters), keep.shape)[keep].reshape(clusters, -1)), float)
+    if not np.isfinite(left_out).all() or not np.isfinite(full):
+        return full, float("nan"), float("nan")
+    mean = left_out.mean()
+    value = clusters * full - (clusters - 1) * mean
+    se = float(np.sqrt((clusters - 1) / clusters * ((left_out - mean) ** 2).sum()))
+    z = NormalDist().inv_cdf(1 - (1 - CONFIDENCE) / 2)
+    return float(np.clip(value, 0, 1)), float(np.clip(value - z * se, 0, 1)), float(np.clip(value + z * se, 0, 1))
 
 
 def pooled_rate(num: np.ndarray, den: np.ndarray) -> dict:
@@ -132,7 +138,7 @@ def normalised_mutual_information(joint: np.ndarray) -> np.ndarray:
 
 
 def nmi_null(instructed: np.ndarray, held: np.ndarray, stratum: np.ndarray, outcomes: int,
-             resamples: int = RESAMPLES, seed: int = BOOTSTRAP_SEED) -> np.ndarray:
+             resamples: int = RESAMPLES, seed: int = PERMUTATION_SEED) -> np.ndarray:
     """The NMI of `resamples` tables where, within each scene, what was held is shuffled among the scene's plays: what
     the estimate gives when the held object does not depend on the instruction. The plug-in estimate is biased upwards,
     so that is not 0 (about 0.07 for 20 scenes of five plays holding one of the five objects or none, uniformly at
@@ -175,7 +181,7 @@ def instruction_swap(plays: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
         held = [s["held"].tolist() for s in scenes]
         sensitive = sum(len(set(h)) > 1 for h in held)
         accurate = sum(all(h == t for h, t in zip(s["held"], s["target"])) for s in scenes)
-        # Per-scene tables: the bootstrap resamples scenes by summing their tables.
+        # Per-scene tables: the jackknife and the permutations build tables of scenes by summing theirs.
         rows, cols = list(OBJECT_NAMES), list(HELD_COLUMNS)
         tables = np.zeros((n, len(rows), len(cols)))
         for i, s in enumerate(scenes):
@@ -203,7 +209,7 @@ def instruction_swap(plays: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
             "instruction_sensitivity": wilson_rate(sensitive, n),
             "scene_accuracy": wilson_rate(accurate, n),
             "grounded_accuracy": pooled_rate(diag, grasped),
-            "nmi": {**_interval(nmi_value, *bootstrap(nmi, n, resamples), "bootstrap over scenes", int(n * ranks)),
+            "nmi": {**_interval(*jackknife(nmi, n), NMI_METHOD, int(n * ranks)), "plug_in": nmi_value,
                     "null_mean": float(null.mean()) if n else float("nan"),
                     "permutation_p": float((1 + (null >= nmi_value - 1e-12).sum()) / (1 + len(null))) if n
                     else float("nan")},
@@ -238,8 +244,16 @@ def transitions(before: list[str], after: list[str], outcomes: tuple[str, ...]) 
 
 def same_scenes(a: pd.DataFrame, b: pd.DataFrame, suffixes: tuple[str, str], same_target: bool = False) -> pd.DataFrame:
     """Two variants' plays of the same scenes side by side, paired on condition and episode index (columns suffixed
-    `suffixes`); ValueError when they played different seeds (or, `same_target`, named different targets)."""
-    merged = a.merge(b, on=[*CONDITION_KEYS, "episode"], suffixes=suffixes)
+    `suffixes`); ValueError when a scene is in one only, or they played different seeds (or, `same_target`, named
+    different targets). An inner join would drop the unmatched scenes without a word."""
+    merged = a.merge(b, on=[*CONDITION_KEYS, "episode"], how="outer", suffixes=suffixes, indicator=True)
+    alone = merged[merged["_merge"] != "both"]
+    if len(alone):
+        row = alone.iloc[0]
+        raise ValueError(f"the variants played different scenes: {len(alone)} in one only (e.g. "
+                         f"{condition_key(row['regime'], row['split'], row['num_objects'])} episode {row['episode']}); "
+                         "a probe compares the same scenes")
+    merged = merged.drop(columns="_merge")
     first, second = suffixes
     if (merged[f"seed{first}"] != merged[f"seed{second}"]).any() or (
             same_target and (merged[f"target{first}"] != merged[f"target{second}"]).any()):

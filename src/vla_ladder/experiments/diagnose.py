@@ -87,8 +87,8 @@ class DiagnoseConfig:
     policies, with one page of answers (`vla-ladder diagnose --policy SPEC --out DIR`)."""
 
     policy: tuple[str, ...] = ()
-    """policy spec, or several side by side: lerobot:DIR[?n_action_steps=H], remote:URL, ppo:PATH, scripted, nearest,
-    layout-prior, random (required)"""
+    """policy spec, or several side by side: lerobot:DIR[?n_action_steps=H], remote:URL, ppo:PATH, scripted, committed,
+    nearest, layout-prior, random (required)"""
     out: Path | None = None
     """diagnosis directory: policy/ (policies/<label>/ for several), references/, diagnosis.json, report.html
     (required)"""

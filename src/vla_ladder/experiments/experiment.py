@@ -135,8 +135,12 @@ def plan(cfg: ExperimentConfig, entries: list[PolicyEntry]) -> list[tuple[Policy
     """Which conditions each policy is evaluated on; ValueError on entries that do not fit the experiment."""
     if not entries:
         raise ValueError("give at least one --policy")
-    if len({e.slug for e in entries}) != len(entries):
-        raise ValueError("two --policy entries share a label (and regime/size): give each a distinct label=")
+    seen: dict[str, PolicyEntry] = {}
+    for e in entries:
+        if (first := seen.setdefault(e.slug, e)) is not e:  # a label is a run directory's name, cleaned
+            raise ValueError(f"two --policy entries share a label (and regime/size): {first.label!r} and {e.label!r} "
+                             f"both name runs/{e.slug}; give each a distinct label= (letters, digits, '.', '_' and "
+                             "'-' are kept, anything else becomes '_')")
     if cfg.table != "data_scaling":
         extra = [e for e in entries if e.regime or e.size]
         if extra:

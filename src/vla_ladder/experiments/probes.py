@@ -227,7 +227,7 @@ class ProbeConfig:
     videos: int = 0
     """film the first K scenes of each condition in every variant"""
     resamples: int = grounding.RESAMPLES
-    """resamples for the intervals without a closed form (the instruction swap's NMI and its permutation null)"""
+    """shuffles of the instruction swap's permutation null (its NMI's p-value)"""
     report: bool = True
     """write report.html (the variants' results and the probe's section)"""
     overwrite: bool = False

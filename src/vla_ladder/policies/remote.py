@@ -309,6 +309,13 @@ def horizon(url: str, n_action_steps: int | None, metadata: dict) -> int:
     Never a silent default: an openpi server says nothing, and running its whole chunk (pi0's 50 steps are a whole
     episode) open-loop is rarely what anyone means."""
     if n_action_steps is not None:
+        # vla-ladder's server says its chunk size (metadata "policy"): more steps than a chunk holds would run the
+        # whole chunk while the run directory says otherwise. An openpi server does not say.
+        policy = metadata.get("policy")
+        chunk = policy.get("chunk_size") if isinstance(policy, dict) else None
+        if isinstance(chunk, int) and not isinstance(chunk, bool) and chunk > 0 and int(n_action_steps) > chunk:
+            raise ValueError(f"n_action_steps must be from 1 to the chunk size of the policy served at {url} "
+                             f"({chunk}), got {n_action_steps}")
         return int(n_action_steps)
     served = metadata.get("n_action_steps")
     if isinstance(served, int) and not isinstance(served, bool) and served > 0:

@@ -4,8 +4,7 @@ A probe directory holds probe.json (experiments/probes.py) and its variants' run
 a probe next to any run it is given (a run directory whose parent holds probe.json) or is handed the probe
 directories directly. Every value is shown with its 95% interval: Wilson for proportions over scenes, Wilson on
 the effective number of plays where plays of one scene are pooled (grounded accuracy, the absent plays of a
-scene), a bootstrap over scenes for the mutual information (beside what shuffling the held objects within scenes
-gives, and its permutation p); Newcombe's paired interval and McNemar's exact p with every paired change.
+scene), the bias-corrected jackknife over scenes for the mutual information (beside its permutation p); Newcombe's paired interval and McNemar's exact p with every paired change.
 """
 
 from __future__ import annotations
@@ -129,12 +128,14 @@ def _cell(entry: dict, scale: str = "pct") -> str:
 
 
 def _nmi(entry: dict) -> str:
-    """The NMI cell: its value and interval, then (probes from before the permutation null: nothing more) what
-    shuffling the held objects within scenes gives and the permutation p."""
+    """The NMI cell: its value and interval, then the permutation p. Probes from before 2026-11-27 give the plug-in
+    value with a percentile bootstrap interval (both biased up): the mean of the shuffles is shown beside them, the
+    value to compare with; older still, nothing more."""
     cell = _cell(entry, "unit")
     if "null_mean" not in entry:
         return cell
-    return cell + f"<span class=ci> (shuffled {entry['null_mean']:.2f}, p={entry['permutation_p']:.2g})</span>"
+    shuffled = "" if "plug_in" in entry else f"shuffled {entry['null_mean']:.2f}, "
+    return cell + f"<span class=ci> ({shuffled}p={entry['permutation_p']:.2g})</span>"
 
 
 def _rate(cond: dict, metric: str) -> str:
@@ -149,7 +150,8 @@ def _signed(entry: dict, note: str = "") -> str:
 
 
 def _delta(entry: dict) -> str:
-    return _signed(entry, f", p={entry['mcnemar_p']:.2g}")
+    """A paired change with McNemar's p where it has one (a share change over several plays a scene has none)."""
+    return _signed(entry, f", p={entry['mcnemar_p']:.2g}" if "mcnemar_p" in entry else "")
 
 
 def _table(head: list[str], rows: list[list[str]]) -> str:
@@ -202,7 +204,7 @@ def _absent_table(conds: dict) -> tuple[list[str], list[list[str]]]:
     head = ["condition", "scenes (absent plays)", "success, own target named", "grasp: present → absent",
             "Δ grasp", "shortcut reach", "usual place empty", "same grasp as present"]
     return head, [[html.escape(k), f"{c['scenes']} ({c['absent_plays']})", _cell(c["success_present"]),
-                   f"{_cell(c['grasp_present'])} → {_cell(c['grasp_absent'])}", _signed(c["grasp_change"]),
+                   f"{_cell(c['grasp_present'])} → {_cell(c['grasp_absent'])}", _delta(c["grasp_change"]),
                    *(["n/a (no usual place)"] * 2 if c["shortcut_reach"] is None else
                      [_cell(c["shortcut_reach"]), _cell(c["usual_place_empty"])]), _cell(c["same_grasp"])]
                   for k, c in conds.items()]

@@ -174,17 +174,47 @@ def _metric(m: dict) -> str:
     return f"{_pct(m['value'])} [{_pct(lo)}, {_pct(hi)}]"
 
 
+def _probe_value(metric: str, m: dict) -> str:
+    """A probe metric's cell: % with its interval, and the p of its test where it has one; the NMI is a share of
+    the instruction's entropy, not a rate, and stays one (0.25), with its permutation p."""
+    if metric != "nmi":
+        p = m.get("mcnemar_p")
+        return _metric(m) + ("" if p is None else f", p={p:.2g}")
+    lo, hi = m["ci95"]
+    cell = f"{m['value']:.2f} [{lo:.2f}, {hi:.2f}]"
+    if "permutation_p" not in m:
+        return cell
+    # Probes from before 2026-11-27 hold the plug-in value (biased up): the shuffles' mean is what to compare it with.
+    shuffled = "" if "plug_in" in m else f"shuffled {m['null_mean']:.2f}, "
+    return f"{cell} ({shuffled}p={m['permutation_p']:.2g})"
+
+
 def probe_rows(probes: dict[str, dict]) -> list[list[str]]:
     """probes: the probe's directory name (model label, "-", probe) -> probe.json data (or a unit's {probe,
-    conditions}); one row per metric."""
+    conditions}); one row per metric at a condition's top, and for the paraphrase probe, whose conditions hold one
+    entry of rates per wording, each wording's success and its paired change from the canonical wording."""
     rows = []
     for name, data in probes.items():
         model = name.removesuffix(f"-{data['probe']}")
         for cond, metrics in data["conditions"].items():
+            def row(metric: str, m: dict, label: str | None = None) -> None:
+                rows.append([model, data["probe"], cond, label or metric.replace("_", " "), _probe_value(metric, m),
+                             str(m.get("n", ""))])
+
             for metric, m in metrics.items():
                 if isinstance(m, dict) and "value" in m and "ci95" in m:
-                    rows.append([model, data["probe"], cond, metric.replace("_", " "), _metric(m), str(m.get("n", ""))])
+                    row(metric, m)
+                elif isinstance(m, dict) and isinstance(m.get("ci95"), dict):  # a wording's rates (stats.rates)
+                    row("success", {"value": m["success"], "ci95": m["ci95"]["success"], "n": m["n"]},
+                        f"success, {metric}")
+                    if "vs_canonical" in m:
+                        row("success", m["vs_canonical"]["success"], f"Δ success vs canonical, {metric}")
     return rows
+
+
+PROBE_TABLE_NOTE = ("Rates and their changes in %, with 95% intervals and, for a paired change, McNemar's exact p; "
+                    "the NMI is a share (0 to 1) with its permutation p. n counts scenes for rates over scenes and "
+                    "paired changes, plays for rates pooled over a scene's plays and for the NMI.")
 
 
 def probes_markdown(probes: dict[str, dict]) -> str:
@@ -192,7 +222,7 @@ def probes_markdown(probes: dict[str, dict]) -> str:
     lines = ["**Grounding probes of the learned policies (docs/probes.md says how to read them).**", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(r) + " |" for r in probe_rows(probes)]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n\n" + PROBE_TABLE_NOTE + "\n"
 
 
 def probes_html(probes: dict[str, dict]) -> str:
@@ -200,4 +230,4 @@ def probes_html(probes: dict[str, dict]) -> str:
     kinds = [k for k in VIEWS if any(d["probe"] == k for d in probes.values())]
     notes = "".join(f"<p class=note><b>{k}</b>. {VIEWS[k].explain}</p>" for k in kinds)
     return ("<table><tr><th>model</th><th>probe</th><th>condition</th><th>metric</th><th>value [95% CI]</th>"
-            f"<th>n</th></tr>{rows}</table><p class=note>Rates in %.</p>{notes}")
+            f"<th>n</th></tr>{rows}</table><p class=note>{PROBE_TABLE_NOTE}</p>{notes}")
