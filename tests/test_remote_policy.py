@@ -173,6 +173,16 @@ def test_a_horizon_past_the_served_chunk_is_refused(tmp_path, capsys):
         check_server(f"{url}?n_action_steps=16")
 
 
+def test_more_workers_than_the_server_takes_are_refused_before_the_run(tmp_path, capsys):
+    """Each worker holds a connection: past the server's --max-clients the extra workers failed once playing."""
+    with metadata_server({"server": "vla-ladder", "n_action_steps": 2, "max_clients": 1}) as url:
+        assert main(["eval", "--policy", f"remote:{url}", *EVAL[:-2], "--workers", "2", "--out", str(tmp_path / "run")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert (f"--workers 2 would open 2 connections to the policy server at {url}, which serves at most 1 (its "
+                "--max-clients); use --workers 1 or fewer, or --num-envs N") in err
+        assert len(err.splitlines()) == 1 and not (tmp_path / "run").exists()
+
+
 def test_a_policy_served_under_another_task_contract_is_refused(tmp_path, capsys):
     """A server that names the contract its policy was trained under is checked before any episode, as a lerobot:
     checkpoint is: another control rate is named and refused; the same contract, or none said, passes."""
@@ -372,7 +382,9 @@ def test_a_server_at_its_max_clients_refuses_more_until_one_leaves(served, monke
 
     _, url = served
     monkeypatch.setenv("VLA_LADDER_API_KEY", KEY)
-    clients = [remote_connect(url)[0] for _ in range(5)]  # each has read the metadata its handler sends
+    first, metadata = remote_connect(url)
+    assert metadata["max_clients"] == 5  # what eval checks its --workers against
+    clients = [first] + [remote_connect(url)[0] for _ in range(4)]  # each has read the metadata its handler sends
     try:
         with pytest.raises(ValueError) as busy:
             remote_connect(url)

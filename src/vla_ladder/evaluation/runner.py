@@ -287,6 +287,9 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
         if not cfg.policy:
             raise ValueError("--policy SPEC is required; allowed: " + ", ".join(POLICY_KINDS))
         check_spec(cfg.policy)  # an unknown spec or a missing checkpoint fails before any file is written
+        if cfg.policy.startswith("remote:") and cfg.num_envs == 1 and cfg.workers != 1:  # a connection per worker
+            from vla_ladder.policies.remote import check_server
+            check_server(cfg.policy.partition(":")[2], min(auto_workers(cfg.workers), max(len(cfg.jobs()), 1)))
     spec = cfg.policy or policy.name
     weights = weights_identity(cfg.policy) if policy is None and cfg.out is not None else None
     rows = open_run_dir(cfg, weights) if cfg.out is not None else []

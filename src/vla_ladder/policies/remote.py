@@ -347,14 +347,21 @@ def pipeline_depth(metadata: dict) -> int:
     return depth if isinstance(depth, int) and not isinstance(depth, bool) and depth > 0 else 1
 
 
-def check_server(arg: str) -> None:
+def check_server(arg: str, connections: int = 1) -> None:
     """The spec's options parse, a policy server answers at its URL, its policy was trained under this task
-    contract (where it says) and the horizon is known: checked before any long work."""
+    contract (where it says), the horizon is known and the server takes `connections` clients at once (where it
+    says: vla-ladder's metadata "max_clients"): checked before any long work."""
     url, options = parse_arg(arg)
     ws, metadata = connect(url)
     ws.close()
     check_contract(url, metadata)
     horizon(url, options.get("n_action_steps"), metadata)
+    most = metadata.get("max_clients")
+    if isinstance(most, int) and not isinstance(most, bool) and connections > most:
+        # Each worker process holds a connection of its own; the ones past the limit would fail in the worker.
+        raise ValueError(f"--workers {connections} would open {connections} connections to the policy server at {url}, "
+                         f"which serves at most {most} (its --max-clients); use --workers {most} or fewer, or "
+                         "--num-envs N (one connection for N envs)")
 
 
 def make_policy(arg: str | None, **kwargs) -> RemotePolicy:

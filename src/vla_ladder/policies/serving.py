@@ -169,6 +169,7 @@ class PolicyServer:
             # what an evaluation's run directory keeps of the weights, so that it refuses to resume with others
             "weights_sha256": weights_identity(cfg.policy)["sha256"],
             "n_action_steps": self.policy.n_action_steps, "action_dim": ACTION_DIM, "max_pipelined": cfg.max_batch,
+            "max_clients": cfg.max_clients,
             "observation": {"cameras": {c.key: list(c.shape) for c in CAMERAS}, "state": [STATE_KEY, STATE_DIM],
                             "prompt": PROMPT_KEY, "episode_seed": SEED_KEY, "chunk_index": CHUNK_KEY},
         }
