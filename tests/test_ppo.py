@@ -181,6 +181,18 @@ def test_a_run_saved_for_the_gpu_resumes_on_a_cpu_machine_with_the_flags_that_fi
             cli_config(["--out", str(out), "--resume"])
 
 
+def test_a_directory_of_other_files_is_refused_and_a_killed_run_starts_again(tmp_path):
+    """train-expert wrote its run among a directory's other files; a run killed before its first checkpoint (its
+    config.json and tb/ only) still starts again there."""
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match=r"--out '.*' is not empty and holds no PPO run \(notes.txt\); use a new"):
+        Args(out=tmp_path, **TINY)
+    killed = tmp_path / "killed"
+    (killed / "tb").mkdir(parents=True)
+    (killed / "config.json").write_text("{}")
+    assert Args(out=killed, **TINY).out == killed
+
+
 @pytest.mark.slow
 def test_bad_input_errors(tmp_path, run_dir):
     with pytest.raises(ValueError, match="no PPO checkpoint"):

@@ -23,6 +23,10 @@ TRAIN_SEED_MIN = 2**30
 SIM_BACKENDS = ("physx_cuda", "physx_cpu")
 
 
+RUN_FILES = ("config.json", "state.json", "checkpoints", "evals.json", "tb")
+"""what a run writes in --out (a run killed before its first checkpoint holds some of them and starts again)"""
+
+
 @dataclass
 class Args:
     """Train the PPO privileged-state expert (CleanRL-style PPO on GraspObject-v1)."""
@@ -138,6 +142,11 @@ class Args:
             raise ValueError(f"evaluation seeds must stay below the training seeds ({TRAIN_SEED_MIN}): "
                              f"need 0 <= eval_first_seed <= {TRAIN_SEED_MIN - self.eval_episodes}")
         check_output_dir(self.out, "--out")
+        if self.out.is_dir() and not self.resume:  # a run writes its files among others' and mixes with them
+            foreign = sorted(p.name for p in self.out.iterdir() if p.name not in RUN_FILES and not p.name.startswith("."))
+            if foreign:
+                raise ValueError(f"--out {str(self.out)!r} is not empty and holds no PPO run ({', '.join(foreign[:3])}"
+                                 f"{', ...' if len(foreign) > 3 else ''}); use a new or empty --out")
         self._check_machine()
 
     def _check_machine(self) -> None:
