@@ -158,6 +158,12 @@ def refuse_past_max_clients(connection, max_clients: int, log):
                               "--max-clients); try again once one has left\n")
 
 
+def refusal_body(error) -> str:
+    """What a server said with its refusal of a WebSocket handshake (websockets' InvalidStatus), cut short: the
+    reason refuse_past_max_clients gives, or "" (a server may say nothing)."""
+    return error.response.body.decode(errors="replace").strip()[:200]
+
+
 def check_port_free(host: str, port: int, flag: str = "--port") -> None:
     """ValueError when `host`:`port` cannot be listened on (in use, or not an address of this machine). Binds the
     way asyncio's server does (SO_REUSEADDR), so a port in TIME_WAIT is free. Port 0 (any free port) always is, but

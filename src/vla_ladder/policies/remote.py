@@ -45,7 +45,7 @@ import msgpack
 import numpy as np
 import torch
 
-from vla_ladder.checks import check_ws_url
+from vla_ladder.checks import check_ws_url, refusal_body
 from vla_ladder.contract import ACTION_DIM, CAMERAS, POLICY_FIELDS, STATE_KEY, contract_changes
 from vla_ladder.policies import Policy, instruction_text, parse_options, positive_int
 
@@ -166,8 +166,7 @@ def connect(url: str, timeout_s: float = CONNECT_TIMEOUT_S):
             raise ValueError(f"the policy server at {url} refused the connection: it needs its --api-key in "
                              f"${API_KEY_ENV}") from None
         if e.response.status_code == 503:  # vla-ladder's serve-policy at its --max-clients
-            said = e.response.body.decode(errors="replace").strip()[:200]
-            raise ValueError(f"the policy server at {url} is busy: {said or 'HTTP 503'}") from None
+            raise ValueError(f"the policy server at {url} is busy: {refusal_body(e) or 'HTTP 503'}") from None
         raise ValueError(f"{url} refused the WebSocket connection (HTTP {e.response.status_code}); is it a policy "
                          "server?") from None
     except (OSError, TimeoutError, WebSocketException) as e:

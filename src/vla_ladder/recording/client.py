@@ -15,6 +15,7 @@ from typing import Callable
 
 import numpy as np
 
+from vla_ladder.checks import refusal_body
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
 from vla_ladder.recording import protocol as P
@@ -133,9 +134,8 @@ class EpisodeClient:
                                     open_timeout=open_timeout, ping_interval=self.ping_interval,
                                     ping_timeout=self.ping_timeout)
         except InvalidStatus as e:  # a busy server (503, at its --max-clients) may take us later; anything else won't
-            status = e.response.status_code
-            body = e.response.body.decode(errors="replace").strip()[:200]
-            raise ServerError(self.url, f"refused the connection (HTTP {status}{': ' + body if body else ''})",
+            status, said = e.response.status_code, refusal_body(e)
+            raise ServerError(self.url, f"refused the connection (HTTP {status}{': ' + said if said else ''})",
                               permanent=status != 503) from None
         except (OSError, TimeoutError, WebSocketException) as e:
             raise ServerError(self.url, f"cannot connect: {e}") from None
