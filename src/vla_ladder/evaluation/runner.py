@@ -286,10 +286,10 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
     if policy is None:
         if not cfg.policy:
             raise ValueError("--policy SPEC is required; allowed: " + ", ".join(POLICY_KINDS))
-        check_spec(cfg.policy)  # an unknown spec or a missing checkpoint fails before any file is written
-        if cfg.policy.startswith("remote:") and cfg.num_envs == 1 and cfg.workers != 1:  # a connection per worker
-            from vla_ladder.policies.remote import check_server
-            check_server(cfg.policy.partition(":")[2], min(auto_workers(cfg.workers), max(len(cfg.jobs()), 1)))
+        # An unknown spec or a missing checkpoint fails before any file is written; a policy server must take a
+        # connection per worker process (one for a batch of envs).
+        check_spec(cfg.policy, connections=1 if cfg.num_envs > 1 else min(auto_workers(cfg.workers),
+                                                                           max(len(cfg.jobs()), 1)))
     spec = cfg.policy or policy.name
     weights = weights_identity(cfg.policy) if policy is None and cfg.out is not None else None
     rows = open_run_dir(cfg, weights) if cfg.out is not None else []

@@ -92,13 +92,19 @@ def best_row(df: pd.DataFrame) -> dict:
     return order.iloc[0].to_dict()
 
 
+def model_train(cfg: GridConfig, bs: int, cs: int) -> TrainConfig:
+    """The training of the grid's (batch size, chunk size) model, into OUT/runs/b{B}_c{C}/train."""
+    return replace(cfg.train, out=cfg.out / "runs" / f"b{bs}_c{cs}" / "train", batch_size=bs, chunk_size=cs,
+                   n_action_steps=cs)
+
+
 def units(cfg: GridConfig) -> tuple[list[Unit], list[tuple[int, int, int, Unit]]]:
     """The training units, and (batch, chunk, horizon, unit) for every evaluation."""
     trains, evals = [], []
     for bs in cfg.batch_sizes:
         for cs in cfg.chunk_sizes:
-            model_dir = cfg.out / "runs" / f"b{bs}_c{cs}"
-            train = replace(cfg.train, out=model_dir / "train", batch_size=bs, chunk_size=cs, n_action_steps=cs)
+            train = model_train(cfg, bs, cs)
+            model_dir = train.out.parent
             trains.append(Unit(f"train-b{bs}_c{cs}", "train", "vla_ladder.experiments.units:train_unit",
                                files.plain(asdict(train)), cpus=2))
             for h in cfg.horizons:
@@ -135,9 +141,7 @@ def run(cfg: GridConfig) -> int:
     if cfg.train.print_command:  # a dry run: each model's lerobot-train command, nothing written
         for bs in cfg.batch_sizes:
             for cs in cfg.chunk_sizes:
-                train = replace(cfg.train, out=out / "runs" / f"b{bs}_c{cs}" / "train", batch_size=bs,
-                                chunk_size=cs, n_action_steps=cs)
-                print(shlex.join(train.lerobot_command()))
+                print(shlex.join(model_train(cfg, bs, cs).lerobot_command()))
         return 0
     # LeRobot's side of the training config (policy flags, tokenizer) is checked once, before the first training.
     probe = replace(cfg.train, out=out / "runs" / ".check")

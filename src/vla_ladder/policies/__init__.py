@@ -158,10 +158,10 @@ def _sha256(path: str, inode: int, size: int, mtime_ns: int) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
-def check_spec(spec: str) -> tuple[str, str | None]:
+def check_spec(spec: str, connections: int = 1) -> tuple[str, str | None]:
     """parse_spec, plus: a ppo: spec must name a readable checkpoint trained under this task contract, a lerobot:
     spec one whose options fit it, whose inputs the env provides and whose training data had this contract
-    (lerobot.checked_config), a remote: spec a server that answers. Commands call
+    (lerobot.checked_config), a remote: spec a server that answers and takes `connections` clients. Commands call
     it before any long work (a server would otherwise build its simulator and fail every request; an evaluation
     would write its run directory and fail in its first worker)."""
     kind, arg = parse_spec(spec)
@@ -175,5 +175,5 @@ def check_spec(spec: str) -> tuple[str, str | None]:
         checked_config(path, **{k: v for k, v in options.items() if k in CONFIG_OPTIONS})
     elif kind == "remote":
         from vla_ladder.policies.remote import check_server
-        check_server(arg)
+        check_server(arg, connections)
     return kind, arg
