@@ -110,9 +110,11 @@ def test_regime_lists():
         parse_regimes(["all", "small_jitter"])
     # A repeated split or count played its episodes twice under one key, a run the tool then refused to read.
     for grid, words in ((dict(num_objects=(1, 1)), "num_objects must be distinct, got 1 1"),
-                        (dict(splits=("canonical", "canonical")), "splits must be distinct, got canonical canonical")):
+                        (dict(splits=("canonical", "canonical")), "splits must be distinct, got canonical canonical"),
+                        (dict(regimes=("small_jitter", "full_random,small_jitter")),
+                         "regimes must be distinct, got small_jitter full_random small_jitter")):
         with pytest.raises(ValueError, match=words):
-            ConditionGrid(("small_jitter",), **grid)
+            ConditionGrid(**{"regimes": ("small_jitter",), **grid})
 
 
 @pytest.mark.slow

@@ -91,6 +91,8 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
     assert main(["study", "micro", "--out", str(tmp_path / "out"), "--num-envs", str(cores() + 1)]) == 2
     assert "--num-envs must be from 1 to the" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+    assert main(["study", "micro", "--out", str(tmp_path / "out"), "--report-only"]) == 2
+    assert "--report-only: " in capsys.readouterr().err and not (tmp_path / "out").exists()
 
 
 def test_experts_and_pretrained_checkpoints_are_read_before_the_first_unit(tmp_path, capsys):
@@ -328,3 +330,17 @@ def test_micro_study_survives_kills_mid_record_and_mid_train_and_reports_learned
     subprocess.run([*cmd[:4], str(reworded), "--out", str(out)], env=ENV, check=True, stdout=subprocess.DEVNULL,
                    timeout=600)
     assert _done_markers(out) == after
+
+    # Copied without its datasets, models and units (as benchmarks/results/ keeps a study), --report-only writes
+    # the summary and report again from the evaluations alone: the displacement curves come back, nothing runs.
+    copy = tmp_path / "copied"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns("data", "models", "units", "logs", "blind"))
+    (copy / "report.html").unlink()
+    trimmed = {k: v for k, v in summary.items() if k != "displacement"}
+    files.write_json(copy / "summary.json", trimmed)
+    subprocess.run([*cmd[:4], str(copy / "study.json"), "--out", str(copy), "--report-only"], env=ENV, check=True,
+                   stdout=subprocess.DEVNULL, timeout=600)
+    again = json.loads((copy / "summary.json").read_text())
+    assert again["displacement"] == summary["displacement"] and again["cells"] == summary["cells"]
+    assert "Study: where the models trained on sj stop finding the object" in (copy / "report.html").read_text()
+    assert not (copy / "units").exists() and not (copy / "models").exists()

@@ -116,7 +116,9 @@ def parse_regimes(names) -> tuple[str, ...]:
     for r in flat:
         if r not in REGIMES:
             raise ValueError(f"unknown regime {r!r}; allowed: {', '.join(REGIMES)} or {ALL}")
-    return tuple(dict.fromkeys(flat))
+    if len(set(flat)) != len(flat):  # as splits and object counts: a repeat is a typo, not a request
+        raise ValueError(f"regimes must be distinct, got {' '.join(flat)}")
+    return tuple(flat)
 
 
 @dataclass(frozen=True)

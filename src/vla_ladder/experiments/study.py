@@ -51,6 +51,9 @@ class StudyCommand:
     """run the units as Ray tasks (a local Ray, or the cluster at --ray-address)"""
     ray_address: str | None = None
     """address of a running Ray cluster (implies --ray)"""
+    report_only: bool = False
+    """run nothing: write summary.json, tables/ and report.html again from the finished study's evaluations and
+    probes, with this version's metrics (for a study copied without its datasets and models)"""
 
     def __post_init__(self):
         self.out = Path(self.out)
@@ -70,7 +73,10 @@ class StudyCommand:
                              "same config, reworded, or with grounding probes added to evaluation.probes)")
         if self.out.is_dir() and any(self.out.iterdir()) and not saved.is_file():
             raise ValueError(f"{self.out} is not empty and holds no study; use a new --out")
-        ran_at = _where_it_ran(self.out)
+        if self.report_only and not (self.out / "summary.json").is_file():
+            raise ValueError(f"--report-only: {self.out} holds no finished study (no summary.json); run the study "
+                             "without --report-only first")
+        ran_at = None if self.report_only else _where_it_ran(self.out)  # a report runs nothing of theirs
         if ran_at is not None:  # else every unit would run again, hours of recording and training
             raise ValueError(f"{self.out} was moved: its units ran in {ran_at}, and their configs and the LeRobot "
                              f"checkpoints hold that path; restore it there (docs/study.md) or use a new --out")
@@ -325,7 +331,11 @@ class Study:
                     raise ValueError(f"policies[{p.name}].pretrained: {e}") from None
 
     def run(self) -> Path:
+        from vla_ladder.experiments.study_results import write_report, write_results
+
         root = self.root
+        if self.cmd.report_only:
+            return write_report(root, json.loads((root / "summary.json").read_text()))
         self.check_sources()
         root.mkdir(parents=True, exist_ok=True)
         files.write_json(root / "study.json", asdict(self.cfg))
@@ -338,7 +348,6 @@ class Study:
         results = self.run_phase(self.eval_units(chosen))
         curves = self.run_phase(self.curve_units(chosen))
         results.update(self.run_phase(self.probe_units(chosen)))
-        from vla_ladder.experiments.study_results import write_results
         return write_results(self, chosen, results, curves)
 
 

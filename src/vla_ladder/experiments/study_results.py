@@ -62,37 +62,59 @@ def displacement_curves(runs: dict[str, tuple]) -> dict[str, dict]:
 
 
 def write_results(study, chosen: dict, results: dict, curves_results: dict) -> Path:
-    from vla_ladder.report import study as present
-    from vla_ladder.report.html import build_report, displacement_section, reference_data
-
+    """Gather a finished study's cells, selection and learning curves, then write_report."""
     root, cfg = study.root, study.cfg
-    cells, runs, labels, trained = [], [], [], []
+    cells = []
     for p, d, _ in study.models():
-        run_dir = root / "eval" / f"{p.name}-{d.name}"
-        cells += cells_of(run_dir, p.name, (d.name, d.condition))
-        runs.append(load_run(run_dir))
-        labels.append(f"{p.name} ({d.name})")
-        trained.append((d.name, d.condition))
+        cells += cells_of(root / "eval" / f"{p.name}-{d.name}", p.name, (d.name, d.condition))
     for ref in cfg.evaluation.reference_policies:
         for run_dir in sorted((root / "eval").glob(f"reference-{ref}-*")):
             cells += cells_of(run_dir, ref)
-            runs.append(load_run(run_dir))
-            labels.append(f"{ref} #{run_dir.name.rsplit('-', 1)[1]}")
-            trained.append(None)
-    displacement = displacement_curves({label: (run, t) for label, run, t in zip(labels, runs, trained)})
     for cell in cells:  # relative to the study's folder, so that its summary holds wherever it is copied
         cell["run"] = os.path.relpath(cell["run"], root)
-    curves = curve_points(study, chosen)
+    summary = {"study": cfg.name, "description": cfg.description, "cells": cells,
+               "selection": {f"{p}/{d}": v for (p, d), v in chosen.items()}, "curves": curve_points(study, chosen),
+               "units": results}
+    return write_report(root, summary)
+
+
+def study_runs(root: Path, cells: list[dict]) -> dict[str, tuple]:
+    """label -> (Run, its training (dataset name, condition key) or None for a reference), in the cells' order:
+    "SmolVLA (sj)" for a model, "layout-prior #0" for a reference's run eval/reference-layout-prior-0."""
+    runs, seen = {}, set()
+    for cell in cells:  # one cell per condition; a run holds several
+        run_dir = cell["run"]
+        if run_dir in seen:
+            continue
+        seen.add(run_dir)
+        if cell["train_dataset"] is None:
+            label, train = f"{cell['policy']} #{run_dir.rsplit('-', 1)[1]}", None
+        else:
+            label, train = f"{cell['policy']} ({cell['train_dataset']})", (cell["train_dataset"],
+                                                                            cell["train_condition"])
+        runs[label] = (load_run(root / run_dir), train)
+    return runs
+
+
+def write_report(root: Path, summary: dict) -> Path:
+    """From a study's summary (cells, selection, curves, units) and the evaluation and probe directories under
+    `root`: rescore the probes and the displacement curves, then write summary.json, tables/ and report.html.
+    `vla-ladder study --report-only` calls it on a finished study's summary.json: a study copied without its
+    datasets and models gets this version's metrics and report."""
+    from vla_ladder.report import study as present
+    from vla_ladder.report.html import build_report, displacement_section, reference_data
+
+    cells, curves = summary["cells"], summary["curves"]
+    runs = study_runs(root, cells)
+    displacement = displacement_curves(runs)
     # Probe metrics are recomputed from the plays (cheap), so a re-run with newer metrics refreshes them.
     probes = {}
-    for uid in results:
+    for uid in summary["units"]:
         if uid.startswith("probe-"):
             data = rescore_probe(root / "probes" / uid.removeprefix("probe-"))
             probes[uid.removeprefix("probe-")] = {"probe": data["probe"], "conditions": data["conditions"]}
-    summary = {"study": cfg.name, "description": cfg.description, "cells": cells,
-               "selection": {f"{p}/{d}": v for (p, d), v in chosen.items()}, "curves": curves, "probes": probes,
-               "displacement": displacement,
-               "units": {**results, **{f"probe-{name}": r for name, r in probes.items()}},
+    summary = {**summary, "probes": probes, "displacement": displacement,
+               "units": {**summary["units"], **{f"probe-{name}": r for name, r in probes.items()}},
                "provenance": files.provenance()}
     files.write_json(root / "summary.json", summary)
     paper = reference_data("paper.json")
@@ -117,10 +139,11 @@ def write_results(study, chosen: dict, results: dict, curves_results: dict) -> P
         sections.append(("Study: learning curves (validation episodes of the training condition)",
                          f"<img class=plot alt=curves src='data:image/png;base64,"
                          f"{base64.b64encode(png.read_bytes()).decode()}'>"))
-    report = root / "report.html"
-    build_report(runs, report, title=f"vla-ladder study: {cfg.name}", labels=labels, sections=sections)
+    report, title = root / "report.html", f"vla-ladder study: {summary['study']}"
+    labels = list(runs)
+    run_list = [run for run, _ in runs.values()]
+    build_report(run_list, report, title=title, labels=labels, sections=sections)
     if report.stat().st_size > REPORT_MAX_BYTES:  # a page that mails and commits: frame strips only
-        build_report(runs, report, title=f"vla-ladder study: {cfg.name}", labels=labels, sections=sections,
-                     with_video=False)
+        build_report(run_list, report, title=title, labels=labels, sections=sections, with_video=False)
     print((tables / "matrix.md").read_text())
     return report
