@@ -106,7 +106,7 @@ def test_experts_and_pretrained_checkpoints_are_read_before_the_first_unit(tmp_p
     ACTConfig().save_pretrained(tmp_path / "act")
     out = tmp_path / "out"
     cases = {
-        f"datasets[sj].expert: ": _micro(**{"datasets.0.expert": f"ppo:{tmp_path / 'moved.pt'}"}),
+        "datasets[sj].expert: ": _micro(**{"datasets.0.expert": f"ppo:{tmp_path / 'moved.pt'}"}),
         f"policies[SmolVLA-tiny].pretrained: cannot load the pretrained config '{tmp_path / 'nowhere'}'": _micro(
             **{"policies.0.pretrained": str(tmp_path / "nowhere")}),
         f"policies[SmolVLA-tiny].pretrained: --pretrained '{tmp_path / 'act'}' is a 'act' checkpoint, not 'smolvla'":

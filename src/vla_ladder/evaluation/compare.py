@@ -119,7 +119,8 @@ def format_table(result: dict, alpha: float = 0.05) -> str:
     lines += ["", f"* paired difference significant at {alpha} (McNemar exact), row by row: with many rows, expect "
               "some stars by chance (no correction for multiple comparisons)",
               "95% CI: of B-A, Newcombe's interval for paired rates; z: pooled two-proportion z of B-A, unpaired",
-              "     (the interval is approximate and McNemar's exact test conservative: near the edge one may exclude 0",
+              "     (the interval is approximate and McNemar's exact test conservative: near the edge one may "
+              "exclude 0",
               "     while the other is not significant, e.g. 4 A-only of 10: [-69, -4] and p 0.125; read both)",
               f"MDD: the smallest difference (points) these n scenes find with probability {DETECT_POWER} at this rate",
               "     when episodes are independent draws; a smaller B-A without * is not evidence of no difference"]

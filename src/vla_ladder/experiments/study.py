@@ -11,7 +11,8 @@
    the paper's (Markdown and LaTeX, tables/), the learning curves, and report.html.
 
 Every step is a unit (experiments/units.py): a re-run with the same CONFIG and DIR skips finished units and
-continues interrupted ones; each unit's config and log land in DIR/units/ and DIR/logs/.
+continues interrupted ones; each unit's config and log land in DIR/units/ and DIR/logs/. `--report-only` runs step
+5 alone, from the results of a finished study (experiments/study_results.py).
 """
 
 from __future__ import annotations
@@ -346,9 +347,9 @@ class Study:
         chosen = self.best(selected)
         files.write_json(root / "selection.json", {f"{p}/{d}": v for (p, d), v in chosen.items()})
         results = self.run_phase(self.eval_units(chosen))
-        curves = self.run_phase(self.curve_units(chosen))
+        self.run_phase(self.curve_units(chosen))  # read back from their directories (curve_points)
         results.update(self.run_phase(self.probe_units(chosen)))
-        return write_results(self, chosen, results, curves)
+        return write_results(self, chosen, results)
 
 
 def run(cmd: StudyCommand) -> int:

@@ -61,7 +61,7 @@ def displacement_curves(runs: dict[str, tuple]) -> dict[str, dict]:
     return out
 
 
-def write_results(study, chosen: dict, results: dict, curves_results: dict) -> Path:
+def write_results(study, chosen: dict, results: dict) -> Path:
     """Gather a finished study's cells, selection and learning curves, then write_report."""
     root, cfg = study.root, study.cfg
     cells = []

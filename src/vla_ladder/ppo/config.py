@@ -143,7 +143,8 @@ class Args:
                              f"need 0 <= eval_first_seed <= {TRAIN_SEED_MIN - self.eval_episodes}")
         check_output_dir(self.out, "--out")
         if self.out.is_dir() and not self.resume:  # a run writes its files among others' and mixes with them
-            foreign = sorted(p.name for p in self.out.iterdir() if p.name not in RUN_FILES and not p.name.startswith("."))
+            foreign = sorted(p.name for p in self.out.iterdir()
+                             if p.name not in RUN_FILES and not p.name.startswith("."))
             if foreign:
                 raise ValueError(f"--out {str(self.out)!r} is not empty and holds no PPO run ({', '.join(foreign[:3])}"
                                  f"{', ...' if len(foreign) > 3 else ''}); use a new or empty --out")

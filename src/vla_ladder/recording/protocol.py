@@ -23,7 +23,6 @@ import numpy as np
 from vla_ladder.contract import CAMERAS, EPISODE_STEPS
 
 PROTOCOL_VERSION = 2
-SUBPROTOCOL = "vla-ladder.v2"
 
 # Close codes: 1000-1011 are the WebSocket standard ones, 4000-4999 are left to applications.
 CLOSE_NORMAL = 1000

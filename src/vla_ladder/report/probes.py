@@ -4,7 +4,8 @@ A probe directory holds probe.json (experiments/probes.py) and its variants' run
 a probe next to any run it is given (a run directory whose parent holds probe.json) or is handed the probe
 directories directly. Every value is shown with its 95% interval: Wilson for proportions over scenes, Wilson on
 the effective number of plays where plays of one scene are pooled (grounded accuracy, the absent plays of a
-scene), the bias-corrected jackknife over scenes for the mutual information (beside its permutation p); Newcombe's paired interval and McNemar's exact p with every paired change.
+scene), the bias-corrected jackknife over scenes for the mutual information (beside its permutation p);
+Newcombe's paired interval and McNemar's exact p with every paired change.
 """
 
 from __future__ import annotations

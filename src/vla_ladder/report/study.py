@@ -16,8 +16,6 @@ from vla_ladder.files import atomic_path
 from vla_ladder.report.probes import VIEWS
 from vla_ladder.report.tables import METRIC_NAMES, REGIME_NAMES, SPLIT_NAMES, tex_escape
 
-SHORT = {"success": "S", "grasp_any": "G", "reach": "R"}
-
 
 def _pct(x: float) -> str:
     return "–" if x != x else f"{100 * x:.0f}"
