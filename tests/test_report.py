@@ -236,6 +236,13 @@ def test_report_command_and_bad_input(runs, tmp_path, capsys):
     assert main(["report", str(bad), "--out", str(out)]) == 2
     assert "missing summary.json" in capsys.readouterr().err
     json.loads((runs[0].path / "summary.json").read_text())
+    # A run copied without its videos: its filmed episodes say which file is missing, not that none was filmed.
+    copy = tmp_path / "copied"
+    shutil.copytree(runs[0].path, copy, ignore=shutil.ignore_patterns("videos"))
+    assert main(["report", str(copy), "--out", str(out), "--no-placements"]) == 0
+    page = out.read_text()
+    missing = runs[0].episodes["video"].loc[lambda v: v != ""].iloc[0]
+    assert f"video {missing} not found in the run" in page and "no video recorded" not in page
 
 
 def test_report_trained_in_adds_success_against_the_named_objects_distance(runs, tmp_path, capsys):

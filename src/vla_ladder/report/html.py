@@ -237,8 +237,9 @@ def _episode_card(run: Run, row, with_video: bool) -> str:
             f"success {int(row['success'])}, grasp-any {int(row['grasp_any'])}, reach {int(row['reach'])} "
             f"(d={row['reach_dist']:.3f} m); {html.escape(row['regime'])}/{html.escape(row['split'])}/"
             f"{row['num_objects']} seed {row['seed']}</div>")
-    if path is None:
-        return f"<div class=episode>{head}<p class=note>no video recorded</p></div>"
+    if path is None:  # filmed, but the file is not with the run: say so rather than that nothing was filmed
+        note = "no video recorded" if not row["video"] else f"video {html.escape(row['video'])} not found in the run"
+        return f"<div class=episode>{head}<p class=note>{note}</p></div>"
     frames = _read_frames(path)
     strip = "".join(
         f"<figure><img class=frame alt='t={t * 1000 // CONTROL_HZ} ms' "
