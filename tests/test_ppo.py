@@ -17,7 +17,7 @@ from vla_ladder.policies.ppo import Agent, load_agent, save_agent
 from vla_ladder.ppo.config import TRAIN_SEED_MIN, Args
 from vla_ladder.ppo.envs import TrainEnvs, slot_conditions, train_seeds
 from vla_ladder.ppo.loss import compute_gae, ppo_loss
-from vla_ladder.ppo.train import cli_config, train
+from vla_ladder.ppo.train import cli_config, noise_seed, train
 from vla_ladder.task.layouts import sample_layout
 
 TINY = dict(sim_backend="physx_cpu", num_envs=1, total_timesteps=100, eval_freq=1, eval_episodes=1,
@@ -142,6 +142,15 @@ def test_a_killed_save_neither_costs_the_checkpoint_nor_the_best_score(tmp_path)
     best.write_text(json.dumps({**json.loads(best.read_text()), "best_success": 0.5}))
     assert load_run_state(tmp_path)["best_success"] == 0.5
     assert json.loads((tmp_path / "state.json").read_text())["best_success"] == 0.25
+
+
+def test_a_resumed_run_draws_noise_no_other_run_draws():
+    """A fresh run seeds torch and NumPy with train_seed (the committed curves); a run resumed at iteration i with a
+    seed that no run of any train_seed starts from or resumes to, reproducibly."""
+    assert [noise_seed(s, 0) for s in range(4)] == [0, 1, 2, 3]
+    resumed = {(s, i): noise_seed(s, i) for s in range(20) for i in range(1, 20)}
+    assert len(set(resumed.values())) == len(resumed) and not set(resumed.values()) & set(range(20))
+    assert all(0 <= v < 2**32 for v in resumed.values()) and noise_seed(3, 7) == resumed[(3, 7)]
 
 
 @pytest.mark.slow

@@ -34,6 +34,16 @@ from vla_ladder.task.layouts import sample_layout
 from vla_ladder.task.objects import OBJECT_NAMES
 
 
+def noise_seed(train_seed: int, iteration: int) -> int:
+    """The seed of torch's and NumPy's generators (action noise, minibatch order) for a run started at
+    `iteration`: train_seed itself for a fresh run, and for a resumed one a hash of both, so that a resume draws
+    fresh, reproducible noise that is no other run's (with train_seed + iteration, a run of seed 0 resumed at
+    iteration 1 drew the noise of a fresh run of seed 1)."""
+    if iteration == 0:
+        return train_seed
+    return int(np.random.SeedSequence([train_seed, iteration]).generate_state(1)[0])
+
+
 def evaluate(agent: Agent, envs: TrainEnvs, args: Args) -> dict:
     """Deterministic episodes on held-out seeds: eval_episodes per condition; rates in all, per condition and per
     instructed object (an expert that never grasps an object records no episode instructing it)."""
@@ -85,7 +95,7 @@ def train(args: Args) -> dict:
     device = torch.device("cuda" if cuda else "cpu")
     if not cuda:
         torch.set_num_threads(args.torch_threads)
-    seed = (args.train_seed + state["iteration"]) % 2**32  # a resumed run draws fresh, reproducible noise
+    seed = noise_seed(args.train_seed, state["iteration"])
     torch.manual_seed(seed)
     np.random.seed(seed)
 
