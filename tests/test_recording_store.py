@@ -230,7 +230,16 @@ def test_writers_sharing_the_seed_book_start_after_the_datasets_seeds(tmp_path):
     again.close()
 
 
-def test_ctrl_c_while_an_episode_is_written_commits_it_with_its_batch(tmp_path, monkeypatch):
+@pytest.fixture
+def python_ctrl_c():
+    """Python's own Ctrl-C handler, whatever this process inherited: a test run started with `&` from a script
+    inherits SIGINT ignored (SIG_IGN), and the writer rightly leaves an ignored Ctrl-C ignored."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_ctrl_c_while_an_episode_is_written_commits_it_with_its_batch(tmp_path, monkeypatch, python_ctrl_c):
     """Ctrl-C lands inside add() most of the time when the writer is the slow stage: it waits for the episode to be
     whole, then close() commits the batch (it dropped every pending episode, up to --commit-every of them)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
