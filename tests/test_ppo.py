@@ -118,6 +118,14 @@ def test_tiny_cpu_run_writes_checkpoint_that_acts(run_dir, make_env):
         obs, *_ = env.step(action)
     again = load_policy(f"ppo:{run_dir}/checkpoints/best", device="cpu")
     assert again.act(obs, env.unwrapped.instructions).shape == (1, 7)
+    assert again.describe()["selected_on"] == {"first_seed": args.eval_first_seed, "episodes": args.eval_episodes,
+                                               "conditions": [c.key for c in args.conditions]}
+    # `vla-ladder eval` of it on the episode it was chosen on keeps the count in summary.json.
+    from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
+    summary = run_evaluation(EvalConfig(f"ppo:{run_dir}/checkpoints/best", out=run_dir.parent / "eval", episodes=2,
+                                        grid=TINY["grid"], workers=1), progress=False)
+    assert summary["episodes_seen_in_selection"] == 1
+    assert json.loads((run_dir.parent / "eval" / "summary.json").read_text())["episodes_seen_in_selection"] == 1
 
 
 def test_a_killed_save_neither_costs_the_checkpoint_nor_the_best_score(tmp_path):
@@ -142,6 +150,35 @@ def test_a_killed_save_neither_costs_the_checkpoint_nor_the_best_score(tmp_path)
     best.write_text(json.dumps({**json.loads(best.read_text()), "best_success": 0.5}))
     assert load_run_state(tmp_path)["best_success"] == 0.5
     assert json.loads((tmp_path / "state.json").read_text())["best_success"] == 0.25
+
+
+def test_evaluating_the_best_checkpoint_on_the_seeds_it_was_chosen_on_is_said(tmp_path, capsys):
+    """checkpoints/best is the best of the run's evaluations on seeds eval_first_seed + j of its training conditions:
+    an evaluation that plays any of those episodes says how many before it starts (its rates lean high there) and
+    keeps the count in summary.json; other seeds, other conditions and the latest checkpoint say nothing."""
+    from vla_ladder.evaluation.runner import EvalConfig, selection_overlap
+    from vla_ladder.ppo.checkpoint import save_checkpoint
+
+    agent = Agent(4, 2, (8,))
+    optimizer = torch.optim.AdamW(agent.parameters())
+    state = {"global_step": 100, "iteration": 2, "best_success": 0.25}
+    save_checkpoint(tmp_path, agent, optimizer, state, keep=1, best=True,
+                    selected_on={"first_seed": 10, "episodes": 20, "conditions": ["small_jitter/canonical/5"]})
+    best = f"ppo:{tmp_path}/checkpoints/best"
+    assert load_policy(best, device="cpu").describe()["selected_on"]["first_seed"] == 10
+
+    def overlap(spec, **kw) -> int:
+        return selection_overlap(EvalConfig(policy=spec, **kw))
+
+    # Seeds 0-99 of four regimes: only small_jitter's seeds 10-29 were seen.
+    assert overlap(best) == 20
+    assert "best of its training evaluations, on seeds 10 to 29; 20 of the 400 episodes" in capsys.readouterr().out
+    assert overlap(best, first_seed=25, episodes=10) == 5
+    assert "--first-seed 30 or above plays held-out episodes" in capsys.readouterr().out
+    assert overlap(best, first_seed=30) == 0
+    assert overlap(best, grid=ConditionGrid(("small_jitter",), num_objects=(3,))) == 0
+    assert overlap(f"ppo:{tmp_path}") == 0 and overlap("scripted") == 0
+    assert capsys.readouterr().out == ""
 
 
 def test_a_resumed_run_draws_noise_no_other_run_draws():

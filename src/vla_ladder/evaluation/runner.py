@@ -28,7 +28,7 @@ from vla_ladder.contract import EPISODE_STEPS, contract_changes, fingerprint
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, check_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS, read_episodes
-from vla_ladder.policies import POLICY_KINDS, Policy, check_spec, weights_identity
+from vla_ladder.policies import POLICY_KINDS, Policy, check_spec, selection_episodes, weights_identity
 from vla_ladder.task.robot import check_robot_mesh
 
 SIM_BACKENDS = ("physx_cpu", "physx_cuda")
@@ -277,6 +277,23 @@ def summarize_run(rows: list[dict], cfg: EvalConfig, policy_info: dict, timing: 
     return df, summary
 
 
+def selection_overlap(cfg: EvalConfig) -> int:
+    """How many of the run's episodes the checkpoint was chosen on (said before the run, and kept in summary.json as
+    episodes_seen_in_selection): a train-expert run's checkpoints/best is the best of its evaluations on seeds
+    eval_first_seed + j of its training conditions, and its success on those episodes leans high."""
+    held = selection_episodes(cfg.policy)
+    seeds = range(cfg.first_seed, cfg.first_seed + cfg.episodes)
+    overlap = sum(len(range(max(seeds.start, held[c.key].start), min(seeds.stop, held[c.key].stop)))
+                  for c in cfg.conditions if c.key in held)
+    if overlap:
+        last = max(r.stop for r in held.values())
+        print(f"[eval] warning: {cfg.policy} was chosen as the best of its training evaluations, on seeds "
+              f"{min(r.start for r in held.values())} to {last - 1}; {overlap} of the "
+              f"{len(cfg.conditions) * cfg.episodes} episodes here are among them, so its rates lean high; "
+              f"--first-seed {last} or above plays held-out episodes")
+    return overlap
+
+
 def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool = True) -> dict:
     """Evaluate cfg.policy (or `policy`, an instance labelled cfg.policy, played in this process) on every
     condition and return the summary dict; with cfg.out, also write (or resume) the run directory."""
@@ -291,6 +308,7 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
         check_spec(cfg.policy, connections=1 if cfg.num_envs > 1 else min(auto_workers(cfg.workers),
                                                                            max(len(cfg.jobs()), 1)))
     spec = cfg.policy or policy.name
+    overlap = selection_overlap(cfg) if policy is None else 0
     weights = weights_identity(cfg.policy) if policy is None and cfg.out is not None else None
     rows = open_run_dir(cfg, weights) if cfg.out is not None else []
     done = {(r["regime"], r["split"], r["num_objects"], r["episode"]) for r in rows}
@@ -315,6 +333,8 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
     def flush() -> dict:
         timing["wall_s"] = wall_before + time.monotonic() - started
         df, summary = summarize_run(rows, cfg, policy_info, timing)
+        if overlap:
+            summary["episodes_seen_in_selection"] = overlap
         if cfg.out is not None:
             files.write_parquet(cfg.out / "episodes.parquet", df)
             files.write_json(cfg.out / "summary.json", summary)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+import json
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -146,6 +147,17 @@ def weights_identity(spec: str) -> dict | None:
         return None
     stat = Path(path).stat()
     return {"file": str(path), "sha256": _sha256(str(path), stat.st_ino, stat.st_size, stat.st_mtime_ns)}
+
+
+def selection_episodes(spec: str) -> dict[str, range]:
+    """The episodes a ppo: spec's checkpoint was chosen on, {condition key: seeds} (a train-expert run's
+    checkpoints/best, the best of its evaluations on them), where its success leans high; {} for the others."""
+    kind, arg = parse_spec(spec)
+    if kind != "ppo":
+        return {}
+    from vla_ladder.policies import ppo
+    state = ppo.checkpoint_dir(arg) / "state.json"
+    return ppo.selection_episodes(json.loads(state.read_text())) if state.is_file() else {}
 
 
 @functools.lru_cache(maxsize=32)

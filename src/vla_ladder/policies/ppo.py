@@ -88,6 +88,16 @@ def checkpoint_dir(path: str | Path) -> Path:
                      "or a checkpoint directory with model.safetensors")
 
 
+def selection_episodes(state: dict) -> dict[str, range]:
+    """The episodes a checkpoint was chosen on, from its state.json, as {condition key: seeds}: checkpoints/best is
+    the best of the run's evaluations, each on seeds first_seed + j (j < episodes) of every training condition, so its
+    success on those episodes leans high."""
+    sel = state.get("selected_on")
+    if not sel:
+        return {}
+    return {key: range(sel["first_seed"], sel["first_seed"] + sel["episodes"]) for key in sel["conditions"]}
+
+
 def load_agent(path: str | Path, obs_dim: int | None = None, act_dim: int | None = None,
                device: str | torch.device = "cpu") -> Agent:
     """Load model.safetensors of a checkpoint (or run) directory; ValueError when it is unreadable, was trained
@@ -154,7 +164,8 @@ class PPOPolicy(Policy):
 
     def describe(self) -> dict:
         return {"name": self.name, "checkpoint": str(self.checkpoint), "deterministic": self.deterministic,
-                "global_step": self.state.get("global_step")}
+                "global_step": self.state.get("global_step"),
+                **({"selected_on": self.state["selected_on"]} if "selected_on" in self.state else {})}
 
 
 def make_policy(arg: str | None, **kwargs) -> PPOPolicy:

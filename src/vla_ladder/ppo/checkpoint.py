@@ -39,9 +39,11 @@ def load_optimizer(path: Path, optimizer: torch.optim.Optimizer) -> None:
 
 
 def save_checkpoint(out: Path, agent: Agent, optimizer: torch.optim.Optimizer, state: dict, keep: int,
-                    best: bool) -> None:
+                    best: bool, selected_on: dict | None = None) -> None:
     """Write checkpoints/step_N/ in full, then point state.json at it: a crash leaves the previous
-    checkpoint in charge."""
+    checkpoint in charge. `selected_on` (the evaluation's first_seed, episodes per condition and conditions) goes into
+    checkpoints/best/state.json: the best model was chosen on those seeds, so its success there is biased upward,
+    and `vla-ladder eval` says so when asked to play them."""
     name = f"checkpoints/step_{state['global_step']:012d}"
     ck = out / name
     save_agent(ck / "model.safetensors", agent)
@@ -50,7 +52,7 @@ def save_checkpoint(out: Path, agent: Agent, optimizer: torch.optim.Optimizer, s
     if best:
         best_dir = out / "checkpoints" / "best"
         save_agent(best_dir / "model.safetensors", agent)
-        files.write_json(best_dir / "state.json", state)
+        files.write_json(best_dir / "state.json", {**state, **({"selected_on": selected_on} if selected_on else {})})
     files.write_json(out / "state.json", {**state, "checkpoint": name})
     # Directory names sort by step. Those past this one are a killed run's unfinished saves (a resumed run may count
     # in other batches); they go first, so that the newest `keep` never leave out the one state.json points to.

@@ -142,7 +142,9 @@ def train(args: Args) -> dict:
         best = result["all"]["success"] > state["best_success"]
         if best:
             state["best_success"] = result["all"]["success"]
-        save_checkpoint(out, agent, optimizer, state, args.keep_checkpoints, best)
+        save_checkpoint(out, agent, optimizer, state, args.keep_checkpoints, best,
+                        selected_on={"first_seed": args.eval_first_seed, "episodes": args.eval_episodes,
+                                     "conditions": [c.key for c in args.conditions]})
         by_target = ", ".join(f"{name} {round(r['success'] * r['n'])}/{r['n']}"
                               for name, r in result["targets"].items())
         bar.write(f"step {state['global_step']}: eval success {result['all']['success']:.3f} "
