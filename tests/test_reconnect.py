@@ -8,6 +8,7 @@ a frozen VM does): the client must take that for a lost connection, not a refusa
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import logging
 import threading
@@ -123,6 +124,69 @@ def test_a_server_that_answers_pings_but_sends_no_episode_is_not_waited_for_fore
         finally:
             source.stop()
     assert e.value.permanent
+
+
+async def _episode_server(ready, delay: float, drop_first: bool = False, dropped: list | None = None) -> None:
+    """The protocol's server side without a simulator: every requested seed comes back after `delay` seconds as a
+    failed episode (no frames). With `drop_first`, the first connection is closed (1001, going away: worth a
+    reconnect) as soon as its first request arrives, and that request's seeds are kept in `dropped`."""
+    from websockets.asyncio.server import serve
+    from websockets.exceptions import ConnectionClosed
+
+    metrics = {"success": False, "grasp_any": False, "reach": False, "lifted": False, "held": "", "reach_dist": 0.1}
+    connections = itertools.count()
+
+    async def handle(ws):
+        first = next(connections) == 0
+        P.decode(await ws.recv())  # the hello
+        await ws.send(P.encode({"type": "welcome", "protocol": P.PROTOCOL_VERSION, "server": {"num_envs": 1},
+                                "limits": {"max_outstanding": 8, "max_seeds_per_request": 16}}))
+        with contextlib.suppress(ConnectionClosed):  # the source stops once it has what it needs
+            async for data in ws:
+                seeds = P.decode(data).header["seeds"]
+                if drop_first and first:
+                    dropped.extend(seeds)
+                    await ws.close(P.CLOSE_GOING_AWAY, "going away")
+                    return
+                for seed in seeds:
+                    await asyncio.sleep(delay)
+                    await ws.send(P.encode({"type": "episode", "seed": seed, "instruction": "grasp the apple",
+                                            "target": "apple", "layout": {}, "metrics": metrics,
+                                            "expert": {"spec": "scripted"}, "condition": "small_jitter/canonical/2",
+                                            "object_set": "standin", "num_frames": 50, "has_frames": False}))
+
+    async with serve(handle, "127.0.0.1", 0) as server:
+        ready(f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}")
+        await asyncio.Future()
+
+
+def _draw(urls: list[str], n: int, max_held: int = 0) -> list[int]:
+    seeds = itertools.count()
+    source = EpisodeSource(urls, lambda k: [next(seeds) for _ in range(k)], successes_needed=1, max_held=max_held,
+                           **PING).start()
+    try:
+        return [source.get(timeout=60).seed for _ in range(n)]
+    finally:
+        source.stop()
+
+
+def test_episodes_come_out_in_seed_order_from_servers_of_unequal_speed():
+    """A server 15x faster than the other delivers its seeds first; the source hands them on in seed order (the
+    dataset of a recording is then the same for any number of servers), and a seed lost with a dropped connection
+    is skipped, not waited for. With at most one episode held, the fast server waits instead of running ahead."""
+    import functools
+
+    slow, fast = functools.partial(_episode_server, delay=0.3), functools.partial(_episode_server, delay=0.02)
+    with LoopThread(slow) as a, LoopThread(fast) as b:
+        assert _draw([a.url, b.url], 16) == list(range(16))
+        assert _draw([a.url, b.url], 8, max_held=1) == list(range(8))
+
+    dropped: list[int] = []
+    dropping = functools.partial(_episode_server, delay=0.02, drop_first=True, dropped=dropped)
+    with LoopThread(slow) as a, LoopThread(dropping) as b:
+        seeds = _draw([a.url, b.url], 16)
+    assert dropped and seeds == sorted(seeds)
+    assert seeds == [s for s in range(max(seeds) + 1) if s not in dropped]
 
 
 @pytest.mark.slow

@@ -131,6 +131,8 @@ def test_dataset_format_and_contents(recorded):
     assert tuple(ds.features["action"]["shape"]) == (7,) and info.total_frames == EPISODE_STEPS * EPISODES
     prov = read_provenance(root)
     assert prov["success"].all(), "a failed episode was written"
+    # In seed order, as many local servers as cores (two on CI) and a resume notwithstanding.
+    assert prov["seed"].is_monotonic_increasing and prov["seed"].is_unique
     for _, row in prov.iterrows():
         layout = json.loads(row["layout"])
         assert layout["seed"] == row["seed"] and layout["target"] == row["target"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import heapq
 import logging
 import math
 import queue
@@ -148,8 +149,8 @@ class EpisodeClient:
         return msg.header
 
     async def request(self, seeds: list[int], failed_frames: bool = False) -> None:
+        self.requested.update(seeds)  # first: a request lost with the connection leaves its seeds given up there
         await self._send(P.run(seeds, failed_frames))
-        self.requested.update(seeds)
 
     async def receive(self) -> Episode:
         """The next episode; ServerError (permanent) for a malformed one or one of a seed not asked for on this
@@ -208,6 +209,42 @@ class EpisodeClient:
         return ServerError(self.url, f"server closed the connection: {reason}", code)
 
 
+class SeedOrder:
+    """Episodes handed on in the order of their seeds, whatever order the servers deliver them in: an episode waits
+    until every seed handed out before it has arrived, or was lost with a dropped connection. The dataset is then
+    the same for any number of servers: its episodes in seed order, and its first N successes those of the first
+    seeds, not of whichever server was faster (two servers stored 200 demos with 11 neighbours swapped, so a
+    model trained again on a new recording of them was trained on other batches)."""
+
+    def __init__(self):
+        self._unresolved: list[int] = []  # a heap of the seeds handed out and not yet handed on or skipped
+        self._arrived: dict[int, Episode | None] = {}  # None: lost with its connection
+
+    def hand_out(self, seeds: list[int]) -> None:
+        for seed in seeds:
+            heapq.heappush(self._unresolved, seed)
+
+    def arrive(self, episode: Episode) -> None:
+        self._arrived[episode.seed] = episode
+
+    def lose(self, seeds) -> None:
+        self._arrived.update(dict.fromkeys(seeds))
+
+    @property
+    def held(self) -> int:
+        """Episodes that arrived and wait for an earlier seed."""
+        return sum(e is not None for e in self._arrived.values())
+
+    def ready(self) -> list[Episode]:
+        """The episodes whose every earlier seed is resolved, in seed order (a lost seed is skipped)."""
+        out = []
+        while self._unresolved and self._unresolved[0] in self._arrived:
+            episode = self._arrived.pop(heapq.heappop(self._unresolved))
+            if episode is not None:
+                out.append(episode)
+        return out
+
+
 class _Failed:
     """Queue marker: every server is gone."""
 
@@ -221,12 +258,14 @@ class EpisodeSource:
     Seeds come from `reserve(n)` (the dataset store, which never hands a seed out twice). Each server gets
     at most `window` seeds ahead of what it has delivered, and received episodes wait in a queue of
     `queue_size`: a slow writer blocks the receivers, which stops the requests, which idles the servers.
+    Episodes come out in seed order (`SeedOrder`); one that waits for a slower server's earlier seed is held, and
+    while `max_held` are held no new seeds are asked for.
     """
 
     def __init__(self, urls: list[str], reserve: Callable[[int], list[int]], successes_needed: int,
                  check_server: Callable[[str, dict], None] | None = None, token: str | None = None,
                  queue_size: int = 4, retries: int = 3, failed_frames: bool = False,
-                 ping_interval: float = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S):
+                 ping_interval: float = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S, max_held: int = 0):
         if not urls:
             raise ValueError("need at least one server URL")
         self.urls, self.reserve, self.token = list(urls), reserve, token
@@ -236,12 +275,16 @@ class EpisodeSource:
         self.received = self.successes = 0
         self.outstanding: dict[str, int] = {u: 0 for u in self.urls}
         self.welcomes: dict[str, dict] = {}
+        # Held episodes are whole demos in memory (20 MB each): a few per server cover servers of unequal speed.
+        self.max_held = max_held or max(16, 4 * len(self.urls))
+        self._order = SeedOrder()
         self._out: queue.Queue = queue.Queue(maxsize=queue_size)
         self._stopping = threading.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._main: asyncio.Task | None = None
         self._thread = threading.Thread(target=self._run, name="episode-source", daemon=True)
         self._changed: asyncio.Event | None = None
+        self._handing_on: asyncio.Lock | None = None
 
     # ------------------------------------------------------------------ writer-side API
     def start(self) -> "EpisodeSource":
@@ -274,6 +317,7 @@ class EpisodeSource:
     async def _amain(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._changed = asyncio.Event()
+        self._handing_on = asyncio.Lock()
         self._main = asyncio.current_task()
         if self._stopping.is_set():
             return
@@ -289,7 +333,7 @@ class EpisodeSource:
         """How many more seeds to request now: enough that the expected successes of everything
         outstanding cover what is still needed (success rate estimated as it goes)."""
         needed = self.successes_needed - self.successes
-        if needed <= 0 or free <= 0:
+        if needed <= 0 or free <= 0 or self._order.held >= self.max_held:
             return 0
         p = (self.successes + 1) / (self.received + 1)
         want = math.ceil(needed / p - sum(self.outstanding.values()))
@@ -319,8 +363,10 @@ class EpisodeSource:
                 await asyncio.sleep(2 ** (attempt - 1))
             finally:
                 self.outstanding[url] = 0  # seeds in flight on a lost connection are given up, never reused
+                self._order.lose(client.requested)
                 self._changed.set()
                 await client.close()
+                await self._hand_on()
 
     async def _pump(self, url: str, client: EpisodeClient, welcome: dict) -> None:
         try:
@@ -335,6 +381,7 @@ class EpisodeSource:
             k = self._demand(window - self.outstanding[url])
             if k:
                 seeds = self.reserve(k)  # fewer than k when the seeds run out
+                self._order.hand_out(seeds)
                 await client.request(seeds, self.failed_frames)
                 self.outstanding[url] += len(seeds)
             if self.outstanding[url] == 0:
@@ -351,7 +398,14 @@ class EpisodeSource:
             self.received += 1
             self.successes += episode.success
             self._changed.set()
-            await asyncio.to_thread(self._put, episode)
+            self._order.arrive(episode)
+            await self._hand_on()
+
+    async def _hand_on(self) -> None:
+        # One receiver at a time: two putting from their threads side by side could swap two episodes.
+        async with self._handing_on:
+            for episode in self._order.ready():
+                await asyncio.to_thread(self._put, episode)
 
     def _put(self, item) -> None:
         while not self._stopping.is_set():
