@@ -3,6 +3,7 @@ recording pipeline, evaluated in the real simulator (with rendering) by the eval
 
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -286,6 +287,14 @@ def test_grid_2x2_keeps_every_run_and_picks_the_best(data, tmp_path_factory, tmp
     assert {k: grid["best"][k] for k in ("batch_size", "chunk_size", "n_action_steps")} == \
         {k: expected[k] for k in ("batch_size", "chunk_size", "n_action_steps")}
     assert len(grid["runs"]) == 4
+    # The best's rates are the best of 4 on the same episodes: grid.json and the output say how to measure it on
+    # the next ones, and that command runs.
+    held_out = shlex.split(grid["best_held_out_command"])
+    assert held_out[held_out.index("--first-seed") + 1] == "101" and held_out[held_out.index("--policy") + 1] == \
+        grid["best"]["policy"]
+    assert "the best of 4 runs on the same episodes" in capsys.readouterr().out
+    assert main(held_out[1:]) == 0
+    assert json.loads((out / "best_held_out" / "summary.json").read_text())["first_seed"] == 101
 
     # A rerun finds every model and evaluation done and only rewrites the tables.
     stamp = (out / "runs" / "b2_c4" / "eval_h2" / "summary.json").stat().st_mtime_ns
