@@ -407,7 +407,8 @@ def test_a_host_that_is_not_this_machines_is_refused_with_any_port(capsys):
 def test_serve_refuses_bad_limits_and_names_before_binding(capsys):
     _one_line_error(capsys, main(["serve", "--port", "0", "--max-outstanding", "-1"]),
                     "max_outstanding must be >= 0 (0: 4 x num_envs, at least 8), got -1")
-    _one_line_error(capsys, main(["serve", "--port", "0", "--max-clients", "0"]), "--max-clients must be a positive integer, got 0")
+    _one_line_error(capsys, main(["serve", "--port", "0", "--max-clients", "0"]),
+                    "--max-clients must be a positive integer, got 0")
     # Checked before the port is bound: the server listened, then its simulator failed and it served nothing.
     _one_line_error(capsys, main(["serve", "--port", "0", "--robot-mesh", "foo"]),
                     "unknown robot_mesh 'foo'; allowed: lite, full")

@@ -122,7 +122,8 @@ def test_bad_remote_specs_fail_in_one_line_before_work(tmp_path, capsys):
                           ([], "--policy lerobot:CHECKPOINT is required"),
                           (["--policy", "lerobot:/nonexistent", "--host", "0.0.0.0"], "needs --api-key"),
                           (["--policy", "lerobot:/nonexistent", "--port", "70000"], "port must be in 0..65535"),
-                          (["--policy", "lerobot:/nonexistent", "--max-clients", "0"], "--max-clients must be a positive integer, got 0")]:
+                          (["--policy", "lerobot:/nonexistent", "--max-clients", "0"],
+                           "--max-clients must be a positive integer, got 0")]:
         assert main(["serve-policy", *argv]) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and message in err, err
@@ -176,7 +177,8 @@ def test_a_horizon_past_the_served_chunk_is_refused(tmp_path, capsys):
 def test_more_workers_than_the_server_takes_are_refused_before_the_run(tmp_path, capsys):
     """Each worker holds a connection: past the server's --max-clients the extra workers failed once playing."""
     with metadata_server({"server": "vla-ladder", "n_action_steps": 2, "max_clients": 1}) as url:
-        assert main(["eval", "--policy", f"remote:{url}", *EVAL[:-2], "--workers", "2", "--out", str(tmp_path / "run")]) == 2
+        assert main(["eval", "--policy", f"remote:{url}", *EVAL[:-2], "--workers", "2",
+                     "--out", str(tmp_path / "run")]) == 2
         err = capsys.readouterr().err.strip()
         assert (f"--workers 2 would open 2 connections to the policy server at {url}, which serves at most 1 (its "
                 "--max-clients); use --workers 1 or fewer, or --num-envs N") in err
