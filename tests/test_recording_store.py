@@ -230,6 +230,43 @@ def test_writers_sharing_the_seed_book_start_after_the_datasets_seeds(tmp_path):
     again.close()
 
 
+def test_seeds_in_flight_when_a_recording_stops_are_handed_out_again(tmp_path):
+    """Seeds reserved but never counted (in flight when the recorder stopped: its target reached, Ctrl-C, a server
+    error) go out again on resume, so a recording stopped and resumed, or extended, is the one made in one go;
+    committed or not, the dataset's state says where it goes on. A book shared with other writers gives nothing
+    back (they may hold those seeds)."""
+    from vla_ladder.recording.store import SeedBook
+
+    root = tmp_path / "back"
+    store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=10)
+    assert store.reserve_seeds(4) == [0, 1, 2, 3]  # two servers' windows
+    for seed in (0, 1):
+        store.count(True, seed)
+        store.add(synthetic_episode(seed))
+    store.close(give_back=True)
+    assert read_recording_state(root)["next_seed"] == 2 and read_provenance(root)["seed"].tolist() == [0, 1]
+    again = DatasetStore(root, Recording(**CONFIG, video=False))
+    assert again.reserve_seeds(3) == [2, 3, 4]
+    again.count(False, 2)  # seed 2 failed, then the recorder stopped: nothing to commit but the counters and the seed
+    again.close(give_back=True)
+    assert read_recording_state(root)["next_seed"] == 3 and read_recording_state(root)["counters"]["attempted"] == 3
+    third = DatasetStore(root, Recording(**CONFIG, video=False))
+    assert third.reserve_seeds(2) == [3, 4]
+    third.close(give_back=True)  # stopped before any episode arrived: both go out again
+    fourth = DatasetStore(root, Recording(**CONFIG, video=False))
+    assert fourth.reserve_seeds(1) == [3]
+    fourth.close(commit=False, give_back=True)  # dropped (an exception): the book keeps its reservation
+    fifth = DatasetStore(root, Recording(**CONFIG, video=False))
+    assert fifth.next_seed == 4
+    fifth.close()
+
+    shard = DatasetStore(tmp_path / "shard", Recording(**CONFIG, video=False), seed_book=tmp_path / "book.json")
+    other = SeedBook(tmp_path / "book.json", Recording(**CONFIG, video=False), floor=0)
+    assert shard.reserve_seeds(2) == [0, 1] and other.reserve(2) == [2, 3]
+    shard.close(give_back=True)
+    assert other.reserve(1) == [4]
+
+
 @pytest.fixture
 def python_ctrl_c():
     """Python's own Ctrl-C handler, whatever this process inherited: a test run started with `&` from a script

@@ -278,6 +278,8 @@ class EpisodeSource:
         # Held episodes are whole demos in memory (20 MB each): a few per server cover servers of unequal speed.
         self.max_held = max_held or max(16, 4 * len(self.urls))
         self._order = SeedOrder()
+        self._retry: list[int] = []  # seeds of lost connections, to play again
+        self._retried: set[int] = set()
         self._out: queue.Queue = queue.Queue(maxsize=queue_size)
         self._stopping = threading.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -325,6 +327,9 @@ class EpisodeSource:
             results = await asyncio.gather(*(self._serve(u) for u in self.urls), return_exceptions=True)
         except asyncio.CancelledError:
             return
+        self._order.lose(self._retry)  # no server left to play them: what waited behind them goes out
+        self._retry.clear()
+        await self._hand_on()
         errors = [r for r in results if isinstance(r, Exception)]
         if errors and not self._stopping.is_set():
             self._put(_Failed(errors))
@@ -343,6 +348,7 @@ class EpisodeSource:
         attempt = 0
         while not self._stopping.is_set():
             client = EpisodeClient(url, self.token, ping_interval=self.ping_interval, ping_timeout=self.ping_timeout)
+            lost_connection = False
             try:
                 welcome = await client.connect()
                 if self.check_server is not None:
@@ -355,6 +361,7 @@ class EpisodeSource:
                 await asyncio.to_thread(self._put, _Failed([e]))
                 return
             except ServerError as e:
+                lost_connection = not e.permanent
                 if e.permanent or attempt >= self.retries:
                     log.error("giving up on %s", e)
                     raise
@@ -362,8 +369,8 @@ class EpisodeSource:
                 log.warning("%s; reconnecting in %d s (%d/%d)", e, 2 ** (attempt - 1), attempt, self.retries)
                 await asyncio.sleep(2 ** (attempt - 1))
             finally:
-                self.outstanding[url] = 0  # seeds in flight on a lost connection are given up, never reused
-                self._order.lose(client.requested)
+                self.outstanding[url] = 0
+                self._requeue(client.requested, lost_connection)
                 self._changed.set()
                 await client.close()
                 await self._hand_on()
@@ -378,14 +385,20 @@ class EpisodeSource:
         if window < 1:  # asked for nothing, it would wait for nothing, forever
             raise ServerError(url, f"its welcome allows no episode in flight ({str(welcome)[:200]})", permanent=True)
         while True:
-            k = self._demand(window - self.outstanding[url])
-            if k:
-                seeds = self.reserve(k)  # fewer than k when the seeds run out
-                self._order.hand_out(seeds)
+            free = window - self.outstanding[url]
+            # Seeds of a lost connection go first, whatever the demand: later episodes wait for them.
+            seeds = self._retry[:max(free, 0)]
+            del self._retry[:len(seeds)]
+            k = self._demand(free) - len(seeds)
+            if k > 0:
+                new = self.reserve(k)  # fewer than k when the seeds run out
+                self._order.hand_out(new)
+                seeds += new
+            if seeds:
                 await client.request(seeds, self.failed_frames)
                 self.outstanding[url] += len(seeds)
             if self.outstanding[url] == 0:
-                if self.successes >= self.successes_needed:
+                if self.successes >= self.successes_needed and not self._retry:
                     return
                 self._changed.clear()
                 try:  # another server's results may change the demand
@@ -400,6 +413,17 @@ class EpisodeSource:
             self._changed.set()
             self._order.arrive(episode)
             await self._hand_on()
+
+    def _requeue(self, seeds: set[int], lost_connection: bool) -> None:
+        """The seeds in flight on a closed connection: played again by the next server to ask (once each) when the
+        connection was lost, so that the dataset is the one an unbroken connection gives; given up when the server
+        refused us, and on a second loss (a seed whose simulation fails is not handed from server to server)."""
+        for seed in sorted(seeds):
+            if lost_connection and seed not in self._retried:
+                self._retried.add(seed)
+                self._retry.append(seed)
+            else:
+                self._order.lose([seed])
 
     async def _hand_on(self) -> None:
         # One receiver at a time: two putting from their threads side by side could swap two episodes.

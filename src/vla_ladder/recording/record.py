@@ -210,12 +210,13 @@ def run(cfg: RecordConfig) -> int:
                                token=cfg.token).start()
         progress = Progress(cfg.episodes, store.saved)
         while store.saved + store.pending < cfg.episodes:
-            episode = source.get()
-            store.count(episode.success)
+            episode = source.get()  # in seed order, so the seeds after the last one counted are all unused
+            store.count(episode.success, episode.seed)
             if episode.success and episode.has_frames:
                 store.add(episode)
             progress.update(episode, store)
-        store.close()
+        source.stop()  # first: it would reserve seeds past the ones given back
+        store.close(give_back=True)
         progress.report(store, final=True)
         report_targets(cfg.out)
         return 0
@@ -224,7 +225,9 @@ def run(cfg: RecordConfig) -> int:
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
         try:
             log.info("interrupted: committing the %d pending episodes", store.pending)
-            store.close()
+            if source is not None:
+                source.stop()
+            store.close(give_back=True)
         finally:
             signal.signal(signal.SIGINT, previous)
         return 130
@@ -233,7 +236,9 @@ def run(cfg: RecordConfig) -> int:
         log.info("committing the %d episodes received complete%s", store.pending,
                  # (a server that refused us, e.g. a message limit, refuses a rerun too)
                  "; rerun the same command to continue" if store.next_seed < SEED_LIMIT and not e.permanent else "")
-        store.close()
+        if source is not None:
+            source.stop()
+        store.close(give_back=True)
         return 1
     except BaseException:
         store.close(commit=False)

@@ -59,5 +59,8 @@ def run(cfg: ServeConfig) -> int:
 
 
 def _exit_on_eof() -> None:
-    sys.stdin.buffer.read()
+    # os.read, not sys.stdin: a daemon thread blocked in the buffered reader holds its lock, and Python's shutdown
+    # after Ctrl-C then died on it ("Fatal Python error: _enter_buffered_busy"), aborting the server.
+    while os.read(sys.stdin.fileno(), 65536):
+        pass
     os._exit(0)  # the parent is gone: do not wait for the episode in progress

@@ -95,6 +95,8 @@ class DatasetStore:
         self.object_set: str | None = state.get("object_set") if state else None
         floor = max(config.first_seed, int(state["next_seed"]) if state else 0)
         self.seeds = SeedBook(Path(seed_book) if seed_book else self.work / "seeds.json", config, floor)
+        self._shared_book = seed_book is not None  # other writers reserve from it too: nothing is given back
+        self._unused_from = floor  # the seed after the last one counted: none from there on reached the dataset
         self.pending = 0
         # Shards of a merge that was killed after its swap are in the dataset already.
         for name in (state or {}).get("merged_shards", []):
@@ -150,10 +152,13 @@ class DatasetStore:
                       key=lambda p: p.name)
 
     # ------------------------------------------------------------------ writing
-    def count(self, success: bool) -> None:
-        """Account for an attempted episode (written or not) in the recording state."""
+    def count(self, success: bool, seed: int | None = None) -> None:
+        """Account for an attempted episode (written or not) in the recording state; `seed`, its seed, for
+        close(give_back=True)."""
         self.counters["attempted"] += 1
         self.counters["failed"] += not success
+        if seed is not None:
+            self._unused_from = max(self._unused_from, seed + 1)
 
     def add(self, episode) -> int:
         """Write one successful episode (a client.Episode) into staging; returns its episode_index."""
@@ -213,24 +218,29 @@ class DatasetStore:
     def commit(self) -> None:
         """Make every episode added so far part of DATASET_DIR, atomically."""
         if self.pending == 0:
-            if self.counters != self._published and (self.root / RECORDING_FILE).is_file():
-                # Failed attempts since the last commit: only the counters change, in our own file, replaced
-                # atomically (a recorder that ends on failures would otherwise report too few attempts).
-                files.write_json(self.root / RECORDING_FILE, {**read_recording_state(self.root),
-                                                              "counters": self.counters})
+            published = read_recording_state(self.root) if (self.root / RECORDING_FILE).is_file() else None
+            if published and (self.counters != self._published or published["next_seed"] != self.next_seed):
+                # Failed attempts since the last commit, or seeds given back: only the counters and the next seed
+                # change, in our own file, replaced atomically (a recorder that ends on failures would otherwise
+                # report too few attempts).
+                files.write_json(self.root / RECORDING_FILE, {**published, "counters": self.counters,
+                                                              "next_seed": self.next_seed})
                 self._published = dict(self.counters)
             return
         t0 = time.perf_counter()
-        self._ds.finalize()
-        self._ds = None
-        self.counters["commits"] += 1
-        self.counters["saved"] = self.saved + self.pending
-        files.write_parquet(self.staging / PROVENANCE_DIR / f"commit-{self.counters['commits']:06d}.parquet",
-                            pd.DataFrame(self._rows))
-        self._publish(self._state())
-        self.saved += self.pending
-        self.pending = 0
-        self._rows = []
+        # Ctrl-C waits for the commit's end: cut short after the swap, the store took the committed episodes for
+        # pending ones, and the recorder's closing commit failed on them.
+        with _sigint_held():
+            self._ds.finalize()
+            self._ds = None
+            self.counters["commits"] += 1
+            self.counters["saved"] = self.saved + self.pending
+            files.write_parquet(self.staging / PROVENANCE_DIR / f"commit-{self.counters['commits']:06d}.parquet",
+                                pd.DataFrame(self._rows))
+            self._publish(self._state())
+            self.saved += self.pending
+            self.pending = 0
+            self._rows = []
         log.info("committed: %d episodes in %s (%.2f s)", self.saved, self.root, time.perf_counter() - t0)
 
     def merge(self, shards: list[Path]) -> None:
@@ -325,14 +335,20 @@ class DatasetStore:
                 "updated": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                 "provenance": files.provenance(self.object_set), "contract": fingerprint()}
 
-    def close(self, commit: bool = True) -> None:
+    def close(self, commit: bool = True, give_back: bool = False) -> None:
         """Commit what is pending (or drop it) and release the dataset. Episodes pending when an exception
-        interrupted add() are dropped: LeRobot's files may then be out of step (Ctrl-C waits for add() to end)."""
+        interrupted add() are dropped: LeRobot's files may then be out of step (Ctrl-C waits for add() to end).
+        `give_back`: the seeds after the last one counted (with its seed), reserved but in flight when the recording
+        stopped, go out again on resume, so that a recording stopped and resumed, or extended, is the one made in
+        one go; only where episodes are counted in seed order (`record`'s writer) and no other writer shares the
+        seed book."""
         if commit and self._writing:
             log.warning("interrupted while writing an episode: dropping the %d pending episodes", self.pending)
             commit = False
         try:
             if commit:
+                if give_back and not self._shared_book:
+                    self.seeds.give_back(self._unused_from)
                 self.commit()
             elif self._ds is not None:
                 with contextlib.suppress(Exception):  # staging is discarded: only release threads and files
@@ -375,6 +391,13 @@ class SeedBook:
     @property
     def next_seed(self) -> int:
         return max(self.floor, self._booked())
+
+    def give_back(self, next_seed: int) -> None:
+        """Make next_seed the next seed handed out, when it is below it and not below the floor: the seeds from
+        there on were reserved but never reached the dataset. Only for a book one writer alone uses."""
+        with self._locked():
+            if self.floor <= next_seed < self._booked():
+                files.write_json(self.path, {"config": self.config.to_dict(), "next_seed": next_seed})
 
     def reserve(self, n: int) -> list[int]:
         """Up to n new seeds: fewer when the seeds below 2**32 run out (failed attempts use seeds too, so the
