@@ -303,6 +303,30 @@ def test_ctrl_c_while_an_episode_is_written_commits_it_with_its_batch(tmp_path, 
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+def test_ctrl_c_during_a_commit_waits_for_its_end(tmp_path, monkeypatch, python_ctrl_c):
+    """Ctrl-C inside a commit (here while the dataset card is written, just before the swap) lets the commit end,
+    then interrupts; the recorder's closing commit finds nothing pending (cut short after the swap, the store took the
+    committed episode for a pending one and the closing commit died on LeRobot's released dataset)."""
+    from vla_ladder.recording import card
+
+    real = card.write_card
+
+    def write_card(root):
+        os.kill(os.getpid(), signal.SIGINT)
+        return real(root)
+
+    monkeypatch.setattr(card, "write_card", write_card)
+    root = tmp_path / "mid-commit"
+    store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=1)
+    (seed,) = store.reserve_seeds(1)
+    store.count(True, seed)
+    with pytest.raises(KeyboardInterrupt):
+        store.add(synthetic_episode(seed))
+    assert store.pending == 0 and store.saved == 1
+    store.close(give_back=True)
+    assert read_recording_state(root)["counters"]["saved"] == 1 and read_provenance(root)["seed"].tolist() == [seed]
+
+
 def test_a_merge_waits_for_a_shards_writer_to_finish_committing(tmp_path):
     """A killed recorder's writers commit on the SIGINT they get; a rerun merges each shard only once its writer
     has let go of it (it merged it half-way)."""
