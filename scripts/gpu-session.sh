@@ -70,6 +70,7 @@ if [ "$PART" = record ]; then
   step eval_filmed "$(n 120 600)" python3 benchmarks/eval_speed.py --workers "$(n 16 2)" --num-envs 1 \
     --episodes "$(n 64 4)" --filmed "$(n 64 2)" --out "$R/eval_speed_scripted_cuda.json"
   # 3. A long recording with record's defaults (AV1, scenes rebuilt): its steady rate, which 128 demos could not show.
+  rm -rf /tmp/long /tmp/.long.recording  # a fresh one: an earlier call's would resume
   step record_long "$(n 180 600)" python3 -m vla_ladder.cli record --out /tmp/long --episodes "$(n 800 4)" \
     --workers "$(n 16 2)" --num-objects 5
   # 4. Training speed on that recording (torchcodec on PyAV's FFmpeg now; the H100's figures had PyAV decoding).
