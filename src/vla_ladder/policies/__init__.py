@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import functools
 import importlib
-import json
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -156,8 +155,7 @@ def selection_episodes(spec: str) -> dict[str, range]:
     if kind != "ppo":
         return {}
     from vla_ladder.policies import ppo
-    state = ppo.checkpoint_dir(arg) / "state.json"
-    return ppo.selection_episodes(json.loads(state.read_text())) if state.is_file() else {}
+    return ppo.selection_episodes(ppo.checkpoint_state(ppo.checkpoint_dir(arg)))
 
 
 @functools.lru_cache(maxsize=32)

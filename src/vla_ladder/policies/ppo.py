@@ -88,6 +88,12 @@ def checkpoint_dir(path: str | Path) -> Path:
                      "or a checkpoint directory with model.safetensors")
 
 
+def checkpoint_state(checkpoint: Path) -> dict:
+    """A checkpoint directory's state.json ({} where it has none)."""
+    state = checkpoint / "state.json"
+    return json.loads(state.read_text()) if state.is_file() else {}
+
+
 def selection_episodes(state: dict) -> dict[str, range]:
     """The episodes a checkpoint was chosen on, from its state.json, as {condition key: seeds}: checkpoints/best is
     the best of the run's evaluations, each on seeds first_seed + j (j < episodes) of every training condition, so its
@@ -136,8 +142,7 @@ class PPOPolicy(Policy):
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.agent = load_agent(self.checkpoint, device=self.device).eval()
         self.deterministic = deterministic
-        state = self.checkpoint / "state.json"
-        self.state = json.loads(state.read_text()) if state.is_file() else {}
+        self.state = checkpoint_state(self.checkpoint)
         self._generator: torch.Generator | None = None
 
     def reset(self, seeds: Sequence[int], env_ids: Sequence[int] | None = None) -> None:
