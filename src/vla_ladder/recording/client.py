@@ -149,7 +149,7 @@ class EpisodeClient:
         return msg.header
 
     async def request(self, seeds: list[int], failed_frames: bool = False) -> None:
-        self.requested.update(seeds)  # first: a request lost with the connection leaves its seeds given up there
+        self.requested.update(seeds)  # first: the seeds of a request lost with the connection count as in flight
         await self._send(P.run(seeds, failed_frames))
 
     async def receive(self) -> Episode:
@@ -211,14 +211,14 @@ class EpisodeClient:
 
 class SeedOrder:
     """Episodes handed on in the order of their seeds, whatever order the servers deliver them in: an episode waits
-    until every seed handed out before it has arrived, or was lost with a dropped connection. The dataset is then
+    until every seed handed out before it has arrived or was given up (`lose`). The dataset is then
     the same for any number of servers: its episodes in seed order, and its first N successes those of the first
     seeds, not of whichever server was faster (two servers stored 200 demos with 11 neighbours swapped, so a
     model trained again on a new recording of them was trained on other batches)."""
 
     def __init__(self):
         self._unresolved: list[int] = []  # a heap of the seeds handed out and not yet handed on or skipped
-        self._arrived: dict[int, Episode | None] = {}  # None: lost with its connection
+        self._arrived: dict[int, Episode | None] = {}  # None: given up
 
     def hand_out(self, seeds: list[int]) -> None:
         for seed in seeds:
