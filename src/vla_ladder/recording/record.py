@@ -194,6 +194,12 @@ def run(cfg: RecordConfig) -> int:
                  store.next_seed)
     local: list[LocalServer] = []
     source = None
+
+    def close_giving_back() -> None:
+        if source is not None:
+            source.stop()  # first: it would reserve seeds past the ones given back
+        store.close(give_back=True)
+
     try:
         if cfg.server:
             urls = list(cfg.server)
@@ -210,13 +216,12 @@ def run(cfg: RecordConfig) -> int:
                                token=cfg.token).start()
         progress = Progress(cfg.episodes, store.saved)
         while store.saved + store.pending < cfg.episodes:
-            episode = source.get()  # in seed order, so the seeds after the last one counted are all unused
+            episode = source.get()  # in seed order, so the seeds after the last one used are all unused
             store.count(episode.success, episode.seed)
             if episode.success and episode.has_frames:
                 store.add(episode)
             progress.update(episode, store)
-        source.stop()  # first: it would reserve seeds past the ones given back
-        store.close(give_back=True)
+        close_giving_back()
         progress.report(store, final=True)
         report_targets(cfg.out)
         return 0
@@ -225,9 +230,7 @@ def run(cfg: RecordConfig) -> int:
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
         try:
             log.info("interrupted: committing the %d pending episodes", store.pending)
-            if source is not None:
-                source.stop()
-            store.close(give_back=True)
+            close_giving_back()
         finally:
             signal.signal(signal.SIGINT, previous)
         return 130
@@ -236,9 +239,7 @@ def run(cfg: RecordConfig) -> int:
         log.info("committing the %d episodes received complete%s", store.pending,
                  # (a server that refused us, e.g. a message limit, refuses a rerun too)
                  "; rerun the same command to continue" if store.next_seed < SEED_LIMIT and not e.permanent else "")
-        if source is not None:
-            source.stop()
-        store.close(give_back=True)
+        close_giving_back()
         return 1
     except BaseException:
         store.close(commit=False)
