@@ -259,6 +259,11 @@ def test_seeds_in_flight_when_a_recording_stops_are_handed_out_again(tmp_path):
     fifth = DatasetStore(root, Recording(**CONFIG, video=False))
     assert fifth.next_seed == 4
     fifth.close()
+    sixth = DatasetStore(root, Recording(**CONFIG, video=False))
+    assert sixth.reserve_seeds(1) == [4]
+    sixth.count(True, 4)  # Ctrl-C after a success was counted, before add() wrote it: its seed goes out again
+    sixth.close(give_back=True)
+    assert read_recording_state(root)["next_seed"] == 4
 
     shard = DatasetStore(tmp_path / "shard", Recording(**CONFIG, video=False), seed_book=tmp_path / "book.json")
     other = SeedBook(tmp_path / "book.json", Recording(**CONFIG, video=False), floor=0)

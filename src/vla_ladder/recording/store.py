@@ -96,7 +96,7 @@ class DatasetStore:
         floor = max(config.first_seed, int(state["next_seed"]) if state else 0)
         self.seeds = SeedBook(Path(seed_book) if seed_book else self.work / "seeds.json", config, floor)
         self._shared_book = seed_book is not None  # other writers reserve from it too: nothing is given back
-        self._unused_from = floor  # the seed after the last one counted: none from there on reached the dataset
+        self._unused_from = floor  # after the last seed written or counted failed: none from there reached the dataset
         self.pending = 0
         # Shards of a merge that was killed after its swap are in the dataset already.
         for name in (state or {}).get("merged_shards", []):
@@ -154,10 +154,11 @@ class DatasetStore:
     # ------------------------------------------------------------------ writing
     def count(self, success: bool, seed: int | None = None) -> None:
         """Account for an attempted episode (written or not) in the recording state; `seed`, its seed, for
-        close(give_back=True)."""
+        close(give_back=True): a failure's is used once counted, a success's once add() has written it (Ctrl-C
+        between the two would otherwise skip a demo that was never written)."""
         self.counters["attempted"] += 1
         self.counters["failed"] += not success
-        if seed is not None:
+        if seed is not None and not success:
             self._unused_from = max(self._unused_from, seed + 1)
 
     def add(self, episode) -> int:
@@ -185,6 +186,7 @@ class DatasetStore:
             index = self.saved + self.pending
             self._rows.append(_provenance_row(index, episode))
             self.pending += 1
+            self._unused_from = max(self._unused_from, episode.seed + 1)
         if self.pending >= self.commit_every or time.monotonic() - self._batch_started >= self.commit_seconds:
             self.commit()
         return index
@@ -338,7 +340,7 @@ class DatasetStore:
     def close(self, commit: bool = True, give_back: bool = False) -> None:
         """Commit what is pending (or drop it) and release the dataset. Episodes pending when an exception
         interrupted add() are dropped: LeRobot's files may then be out of step (Ctrl-C waits for add() to end).
-        `give_back`: the seeds after the last one counted (with its seed), reserved but in flight when the recording
+        `give_back`: the seeds after the last one written or counted failed, reserved but in flight when the recording
         stopped, go out again on resume, so that a recording stopped and resumed, or extended, is the one made in
         one go; only where episodes are counted in seed order (`record`'s writer) and no other writer shares the
         seed book."""
