@@ -371,3 +371,26 @@ def test_server_dropped_mid_episode_leaves_no_partial_episode(server, recorded, 
     assert prov.iloc[:len(before)].equals(before) and prov["seed"].is_unique and prov["success"].all()
     # Its episodes were simulated on a reused scene: the dataset says they do not promise a bit-exact replay.
     assert before["replayable"].all() and not prov["replayable"].iloc[len(before):].any()
+
+
+def test_a_ctrl_c_at_the_terminal_is_the_recorders_alone_to_act_on(tmp_path):
+    """Local servers run in a session of their own: a Ctrl-C sent to the recorder's process group reaches the
+    recorder alone, which decides when they stop. A recorder that ignores SIGINT (`record ... &` in a script, or
+    nohup) records on to the end; its servers used to die of that Ctrl-C and the recording stopped short."""
+    root = tmp_path / "grasp"
+    log = tmp_path / "record.log"
+    cmd = _cli("record", *CONDITION, "--episodes", "8", "--out", str(root), "--workers", "2")
+    with open(log, "w") as out:
+        proc = subprocess.Popen(cmd, env=ENV, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+        try:
+            _wait_for(lambda: "progress:" in log.read_text(), 900, "the first episode", proc)
+            servers = _children(proc.pid)
+            assert len(servers) == 2
+            os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does to its foreground group
+            assert proc.wait(timeout=900) == 0, log.read_text()
+        finally:
+            proc.kill()
+    text = log.read_text()
+    assert _saved(root) == 8 and "reconnecting" not in text and "connection lost" not in text, text
+    _wait_for(lambda: not any(_alive(p) for p in servers), 30, "the servers to exit")

@@ -366,7 +366,11 @@ class LocalServer:
         if threads:  # several servers on one machine: one renderer thread each instead of all fighting for all
             env.update(LP_NUM_THREADS=str(threads), OMP_NUM_THREADS=str(threads))
         log.info("starting a local server: %s", " ".join(cmd[2:]))
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+        # A session of its own: a Ctrl-C at the terminal reaches the recorder alone, which commits, then closes our
+        # end of stdin. In the recorder's process group the servers died first, and the recorder logged their lost
+        # connections, or (run with SIGINT ignored, as `cmd &` in a script does) lost its servers and stopped.
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+                                     start_new_session=True)
         self.url: str | None = None
 
     def wait_ready(self) -> str:
