@@ -92,6 +92,8 @@ def test_stats_quantiles_are_over_all_frames(recorded):
     # LeRobot's averaging is off here, which is what the recorder corrects: the gripper's q10 and q90.
     gripper_error = [abs(_lerobot_average(root, "action", q)[6] - stats["action"][q][6]) for q in ("q10", "q90")]
     assert max(gripper_error) > 0.3, gripper_error
+    # Features in a fixed order (LeRobot's follows the hash seed), so recording the same episodes gives the same file.
+    assert list(stats) == sorted(stats)
 
 
 def test_card_says_what_was_recorded(recorded):

@@ -77,5 +77,7 @@ def write_exact_quantiles(root: str | Path) -> dict[str, dict[str, list[float]]]
     exact = exact_quantiles(root)
     for k, qs in exact.items():
         stats[k].update(qs)
-    files.write_json(root / STATS_FILE, stats)
+    # LeRobot aggregates over a set of feature names, whose order follows the process's hash seed: sorted, two
+    # recordings of the same episodes write the same file.
+    files.write_json(root / STATS_FILE, dict(sorted(stats.items())))
     return exact
