@@ -215,7 +215,7 @@ class Player:
 
 
 # ---------------------------------------------------------------------- worker processes
-_PLAYER: Player | None = None
+_PLAYER: Player | Exception | None = None
 
 
 def _start_worker(spec: str, settings: EnvSettings, threads: int) -> None:
@@ -226,10 +226,15 @@ def _start_worker(spec: str, settings: EnvSettings, threads: int) -> None:
     exit_with_parent()  # an evaluation killed with -9 does not leave its workers behind
     limit_threads(threads)
     global _PLAYER
-    _PLAYER = Player(load_policy(spec), settings)
+    try:
+        _PLAYER = Player(load_policy(spec), settings)
+    except Exception as e:  # raised by the first job instead: an initializer's error only breaks the pool, unsaid
+        _PLAYER = e
 
 
 def _play_in_worker(jobs: tuple[Job, ...]) -> list[dict]:
+    if isinstance(_PLAYER, Exception):
+        raise _PLAYER
     return _PLAYER.play(jobs)
 
 

@@ -28,7 +28,7 @@ from vla_ladder.contract import EPISODE_STEPS, contract_changes, fingerprint
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, check_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS, read_episodes
-from vla_ladder.policies import POLICY_KINDS, Policy, check_spec, selection_episodes, weights_identity
+from vla_ladder.policies import Policy, allowed_specs, check_spec, selection_episodes, weights_identity
 from vla_ladder.task.robot import check_robot_mesh
 
 SIM_BACKENDS = ("physx_cpu", "physx_cuda")
@@ -49,8 +49,8 @@ class EvalConfig:
 
     policy: str | None = None
     """policy spec: scripted, committed, nearest, layout-prior, random, ppo:PATH, lerobot:DIR[?n_action_steps=H&...]
-    or remote:ws://HOST:PORT[?n_action_steps=H] (required on the command line; the grid and the study set it per
-    model)"""
+    or remote:ws://HOST:PORT[?n_action_steps=H], or KIND[:ARG] of an installed policy plugin (required on the
+    command line; the grid and the study set it per model)"""
     out: Path | None = None
     """run directory to write: episodes.parquet, summary.json, config.json, videos/ (required on the command line)"""
     grid: Annotated[ConditionGrid, tyro.conf.arg(name="")] = field(default_factory=ConditionGrid)
@@ -302,7 +302,7 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
     started = time.monotonic()
     if policy is None:
         if not cfg.policy:
-            raise ValueError("--policy SPEC is required; allowed: " + ", ".join(POLICY_KINDS))
+            raise ValueError("--policy SPEC is required; allowed: " + allowed_specs())
         # An unknown spec or a missing checkpoint fails before any file is written; a policy server must take a
         # connection per worker process (one for a batch of envs).
         check_spec(cfg.policy, connections=1 if cfg.num_envs > 1 else min(auto_workers(cfg.workers),

@@ -88,7 +88,7 @@ class DiagnoseConfig:
 
     policy: tuple[str, ...] = ()
     """policy spec, or several side by side: lerobot:DIR[?n_action_steps=H], remote:URL, ppo:PATH, scripted, committed,
-    nearest, layout-prior, random (required)"""
+    nearest, layout-prior, random, or a plugin's KIND[:ARG] (required)"""
     out: Path | None = None
     """diagnosis directory: policy/ (policies/<label>/ for several), references/, diagnosis.json, report.html
     (required)"""

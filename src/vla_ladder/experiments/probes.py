@@ -50,7 +50,7 @@ from vla_ladder.contract import EPISODE_STEPS
 from vla_ladder.evaluation import grounding
 from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
-from vla_ladder.policies import POLICY_KINDS, Policy, check_spec, parse_spec
+from vla_ladder.policies import Policy, allowed_specs, check_spec, parse_spec
 from vla_ladder.task.appearance import SWAPS, SWAPS_VERSION
 from vla_ladder.task.instructions import INSTRUCTION_SETS, paraphrase_version
 
@@ -202,7 +202,7 @@ class ProbeConfig:
     name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME", help=f"the probe: {', '.join(PROBES)}")]
     policy: str | None = None
     """policy spec, as `vla-ladder eval --policy`: scripted, committed, nearest, layout-prior, random, ppo:PATH,
-    lerobot:DIR[?...] or remote:ws://HOST:PORT (required on the command line)"""
+    lerobot:DIR[?...], remote:ws://HOST:PORT or a plugin's KIND[:ARG] (required on the command line)"""
     out: Path | None = None
     """probe directory: one run directory per variant, probe.json, the figure, report.html (required)"""
     grid: Annotated[ProbeGrid, tyro.conf.arg(name="")] = field(
@@ -323,7 +323,7 @@ def run_probe(cfg: ProbeConfig, policy: Policy | None = None, progress: bool = T
     if cfg.out is None:
         raise ValueError("--out DIR is required: the probe directory to write")
     if policy is None and not cfg.policy:
-        raise ValueError("--policy SPEC is required; allowed: " + ", ".join(POLICY_KINDS))
+        raise ValueError("--policy SPEC is required; allowed: " + allowed_specs())
     if policy is None:
         check_spec(cfg.policy)  # a missing checkpoint or server fails before the probe directory is written
     open_probe_dir(cfg)

@@ -5,14 +5,16 @@ each kind lives in its own module of this package: scripted.py (the scripted exp
 layout-prior, random, committed), ppo.py (the PPO expert's network, checkpoint format and policy), lerobot.py (any
 LeRobot checkpoint), remote.py (a policy served by another process, in openpi's protocol; serving.py serves one).
 Recording and evaluation never care which kind they run. `load_policy("kind[:arg]")` builds one from a
-command-line spec; a kind's module is imported only when that kind is asked for.
+command-line spec; a kind's module is imported only when that kind is asked for. Installed distributions add
+kinds of their own through the `vla_ladder.policies` entry-point group (`policy_kinds`).
 """
 
 from __future__ import annotations
 
 import functools
-import importlib
+import sys
 from abc import ABC, abstractmethod
+from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
 from typing import Any, Callable, Sequence
 from urllib.parse import parse_qsl
@@ -52,7 +54,41 @@ POLICY_KINDS: dict[str, str] = {
     "committed": "vla_ladder.policies.reference:make_committed",
     "remote": "vla_ladder.policies.remote:make_policy",
 }
-# Kinds that need an argument, and what it is; every other kind takes none.
+PLUGIN_GROUP = "vla_ladder.policies"
+"""The entry-point group of policy plugins: a distribution that declares `[project.entry-points."vla_ladder.policies"]
+KIND = "module:factory"` adds `--policy KIND[:ARG]` to every command that plays a policy, in every worker process;
+factory(arg: str | None, **kwargs) -> Policy, as for the kinds above, and, if the factory has one, factory.check(arg)
+runs before any work (check_spec). docs/evaluation.md, "Your own policy"; examples/policy_plugin."""
+
+
+@functools.cache
+def policy_kinds() -> dict[str, str]:
+    """POLICY_KINDS and the kinds that installed plugins declare (PLUGIN_GROUP); a plugin cannot replace a
+    built-in kind, nor take a name that a spec cannot hold (it is skipped, with a warning on stderr)."""
+    kinds = dict(POLICY_KINDS)
+    for ep in entry_points(group=PLUGIN_GROUP):
+        if ep.name in kinds or not ep.name or any(c in ep.name for c in ":?/ "):
+            why = "a built-in kind's" if ep.name in kinds else "not one a spec can hold (no ':', '?', '/', ' ')"
+            print(f"[vla-ladder] warning: policy plugin {ep.name!r} ({ep.value}) skipped: its name is {why}",
+                  file=sys.stderr)
+        else:
+            kinds[ep.name] = ep.value
+    return kinds
+
+
+def _factory(kind: str) -> Callable[..., Policy]:
+    factory = EntryPoint(kind, policy_kinds()[kind], PLUGIN_GROUP)
+    if kind in POLICY_KINDS:
+        return factory.load()
+    try:  # someone else's code: whatever goes wrong, one line that names the plugin
+        return factory.load()
+    except Exception as e:
+        raise ValueError(f"policy plugin {kind!r} ({policy_kinds()[kind]}) does not load: "
+                         f"{type(e).__name__}: {e}") from None
+
+
+# Kinds that need an argument, and what it is; every other built-in kind takes none (a plugin's factory checks its
+# own).
 NEEDS_ARG = {"ppo": "PATH", "lerobot": "PATH", "remote": "URL"}
 EXPERT_KINDS = ("scripted", "ppo")
 """The kinds whose episodes are demonstrations to record (the others are references or learned policies)."""
@@ -67,15 +103,21 @@ def check_expert(spec: str, given: str) -> None:
 
 def parse_spec(spec: str) -> tuple[str, str | None]:
     kind, _, arg = spec.partition(":")
-    if kind not in POLICY_KINDS:
-        raise ValueError(f"unknown policy {spec!r}; allowed: " + ", ".join(
-            f"{k}:{NEEDS_ARG[k]}" if k in NEEDS_ARG else k for k in POLICY_KINDS))
+    if kind not in policy_kinds():
+        raise ValueError(f"unknown policy {spec!r}; allowed: " + allowed_specs())
     if kind in NEEDS_ARG and not arg:
         what = "a server" if kind == "remote" else "a path"
         raise ValueError(f"policy {kind!r} needs {what}: {kind}:{NEEDS_ARG[kind]}")
-    if kind not in NEEDS_ARG and arg:
+    if kind in POLICY_KINDS and kind not in NEEDS_ARG and arg:
         raise ValueError(f"policy {kind!r} takes no argument, got {spec!r}; write {kind}")
     return kind, (arg or None)
+
+
+def allowed_specs() -> str:
+    """The kinds a --policy spec may name, with their argument, for error messages."""
+    plugins = [k for k in policy_kinds() if k not in POLICY_KINDS]
+    return ", ".join([f"{k}:{NEEDS_ARG[k]}" if k in NEEDS_ARG else k for k in POLICY_KINDS]
+                     + [f"{k}[:ARG] (plugin)" for k in plugins])
 
 
 def positive_int(value: str) -> int:
@@ -119,8 +161,7 @@ def parse_options(kind: str, arg: str, allowed: dict[str, Callable[[str], Any]])
 
 def load_policy(spec: str, **kwargs) -> Policy:
     kind, arg = parse_spec(spec)
-    module, _, fn = POLICY_KINDS[kind].partition(":")
-    return getattr(importlib.import_module(module), fn)(arg, **kwargs)
+    return _factory(kind)(arg, **kwargs)
 
 
 def weights_identity(spec: str) -> dict | None:
@@ -186,4 +227,8 @@ def check_spec(spec: str, connections: int = 1) -> tuple[str, str | None]:
     elif kind == "remote":
         from vla_ladder.policies.remote import check_server
         check_server(arg, connections)
+    elif kind not in POLICY_KINDS:  # a plugin: its module must import, and its factory's own check(arg) pass
+        check = getattr(_factory(kind), "check", None)
+        if callable(check):
+            check(arg)
     return kind, arg

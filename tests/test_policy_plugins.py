@@ -1,0 +1,99 @@
+"""Policy plugins: an installed distribution's `vla_ladder.policies` entry points are --policy kinds.
+
+The plugin is the shipped example (examples/policy_plugin), "installed" the way pip leaves a distribution: a
+dist-info folder whose entry_points.txt is the one its pyproject.toml declares, on the path, with a second, broken
+plugin and two that may not take their names beside it."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+
+from vla_ladder import policies
+from vla_ladder.contract import ACTION_DIM, STATE_DIM
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "policy_plugin"
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory) -> Path:
+    """A folder holding the example plugin's distribution metadata and a broken plugin module."""
+    root = tmp_path_factory.mktemp("site")
+    declared = tomllib.loads((EXAMPLE / "pyproject.toml").read_text())["project"]["entry-points"][policies.PLUGIN_GROUP]
+    assert declared == {"constant": "constant_policy:make_policy"}
+    (root / "failing_plugin.py").write_text(
+        "def make(arg, **kwargs):\n    raise ValueError(f'failing: no weights at {arg}')\n")
+    info = root / "vla_ladder_example_policy-0.1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: vla-ladder-example-policy\nVersion: 0.1.0\n")
+    entries = {**declared, "failing": "failing_plugin:make", "missing": "no_such_module:make",
+               "ppo": "failing_plugin:make", "bad?name": "failing_plugin:make"}
+    (info / "entry_points.txt").write_text(f"[{policies.PLUGIN_GROUP}]\n"
+                                           + "".join(f"{k} = {v}\n" for k, v in entries.items()))
+    return root
+
+
+@pytest.fixture
+def installed(site, monkeypatch):
+    monkeypatch.syspath_prepend(str(EXAMPLE))
+    monkeypatch.syspath_prepend(str(site))
+    policies.policy_kinds.cache_clear()
+    yield
+    policies.policy_kinds.cache_clear()
+
+
+def test_a_plugin_is_a_kind_beside_the_built_in_ones(installed, capsys):
+    assert "constant[:ARG] (plugin)" in policies.allowed_specs()
+    err = capsys.readouterr().err
+    # A plugin cannot replace a built-in kind nor take a name a spec cannot hold: skipped, and said.
+    assert "policy plugin 'ppo' (failing_plugin:make) skipped: its name is a built-in kind's" in err
+    assert "policy plugin 'bad?name'" in err
+    assert policies.policy_kinds()["ppo"] == policies.POLICY_KINDS["ppo"] and "bad?name" not in policies.policy_kinds()
+    with pytest.raises(ValueError, match=r"unknown policy 'octo:x'; allowed: .*remote:URL, constant\[:ARG\] \(plugin\)"):
+        policies.parse_spec("octo:x")
+
+    policy = policies.load_policy("constant:0.5,0,-1,0,0,0,-1")
+    assert policy.obs_mode == "rgb" and policy.describe()["action"] == [0.5, 0, -1, 0, 0, 0, -1]
+    action = policy.act({"extra": {"proprio": torch.zeros(3, STATE_DIM)}}, ["grasp the mug"] * 3)
+    assert action.shape == (3, ACTION_DIM) and action[:, 0].eq(0.5).all() and action[:, 6].eq(-1).all()
+    assert policies.load_policy("constant").describe()["action"] == [0, 0, 0, 0, 0, 0, 1]
+
+
+def test_a_plugin_spec_is_checked_before_any_work(installed):
+    assert policies.check_spec("constant:0,0,0,0,0,0,1") == ("constant", "0,0,0,0,0,0,1")
+    with pytest.raises(ValueError, match=r"constant:A0,...,A6 takes 7 comma-separated numbers in \[-1, 1\], got '1,2'"):
+        policies.check_spec("constant:1,2")  # the factory's own check(arg)
+    with pytest.raises(ValueError, match=r"policy plugin 'missing' \(no_such_module:make\) does not load: "
+                                         r"ModuleNotFoundError: No module named 'no_such_module'"):
+        policies.check_spec("missing")
+    assert policies.check_spec("failing:x") == ("failing", "x")  # no check(arg): its error comes from the workers
+
+
+@pytest.mark.slow  # the real simulator and both cameras, in worker processes
+def test_eval_plays_a_plugin_in_worker_processes(site, tmp_path):
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(EXAMPLE), os.environ.get("PYTHONPATH", "")])}
+    cli = [sys.executable, "-m", "vla_ladder.cli", "eval", "--regimes", "small_jitter", "--episodes", "2",
+           "--workers", "2"]
+    out = tmp_path / "run"
+    done = subprocess.run(cli + ["--policy", "constant:0,0,0.2,0,0,0,1", "--out", str(out)], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["policy"] == {"name": "constant", "action": pytest.approx([0, 0, 0.2, 0, 0, 0, 1])}
+    rows = pd.read_parquet(out / "episodes.parquet")
+    # The arm rose with its gripper open the whole episode: it ends far from every object, holding none.
+    assert len(rows) == 2 and not rows["grasp_any"].any() and (rows["reach_dist"] > 0.3).all(), rows
+
+    # A plugin that fails in the workers (it has no check) ends in its own one-line error, not a broken pool.
+    done = subprocess.run(cli + ["--policy", "failing:x", "--out", str(tmp_path / "failing")], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 2 and done.stderr.splitlines()[-1] == "vla-ladder eval: error: failing: no weights at x", \
+        done.stderr
