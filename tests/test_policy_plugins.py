@@ -35,7 +35,8 @@ def site(tmp_path_factory) -> Path:
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: vla-ladder-example-policy\nVersion: 0.1.0\n")
     entries = {**declared, "failing": "failing_plugin:make", "missing": "no_such_module:make",
-               "ppo": "failing_plugin:make", "bad?name": "failing_plugin:make"}
+               "ppo": "failing_plugin:make", "bad?name": "failing_plugin:make",
+               "my-expert": "vla_ladder.policies.scripted:make_policy"}  # someone's expert: the scripted one
     (info / "entry_points.txt").write_text(f"[{policies.PLUGIN_GROUP}]\n"
                                            + "".join(f"{k} = {v}\n" for k, v in entries.items()))
     return root
@@ -75,6 +76,10 @@ def test_a_plugin_spec_is_checked_before_any_work(installed):
                                          r"ModuleNotFoundError: No module named 'no_such_module'"):
         policies.check_spec("missing")
     assert policies.check_spec("failing:x") == ("failing", "x")  # no check(arg): its error comes from the workers
+    # Recording takes a plugin as its expert (its author knows), never a built-in reference.
+    policies.check_expert("my-expert", "--policy my-expert")
+    with pytest.raises(ValueError, match=r"--policy random is not an expert; allowed: scripted, ppo:PATH, or a policy"):
+        policies.check_expert("random", "--policy random")
 
 
 @pytest.mark.slow  # the real simulator and both cameras, in worker processes
@@ -97,3 +102,27 @@ def test_eval_plays_a_plugin_in_worker_processes(site, tmp_path):
                           capture_output=True, text=True, timeout=600)
     last = done.stderr.splitlines()[-1]
     assert done.returncode == 2 and last == "vla-ladder eval: error: failing: no weights at x", done.stderr
+
+
+@pytest.mark.slow  # the real simulator, both cameras, a LeRobotDataset
+def test_record_takes_a_plugin_expert_and_gives_up_on_one_that_never_succeeds(site, tmp_path):
+    from vla_ladder.recordings import read_provenance, read_recording_state
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(EXAMPLE), os.environ.get("PYTHONPATH", "")])}
+    cli = [sys.executable, "-m", "vla_ladder.cli", "record", "--regime", "small_jitter", "--num-objects", "2",
+           "--episodes", "1", "--workers", "1"]
+    out = tmp_path / "demos"
+    done = subprocess.run(cli + ["--policy", "my-expert", "--out", str(out)], env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert read_recording_state(out)["config"]["policy"] == "my-expert" and len(read_provenance(out)) == 1
+
+    # The arm held still: no success in the first 3 episodes, so nothing to record (before: a loop until killed).
+    out = tmp_path / "never"
+    done = subprocess.run(cli + ["--policy", "constant", "--give-up-after", "3", "--out", str(out)], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 1, done.stderr
+    assert ("constant succeeded in none of the first 3 episodes of small_jitter/canonical/2: nothing to record"
+            in done.stderr), done.stderr
+    state = read_recording_state(out) if out.exists() else None
+    assert state is None or state["counters"]["saved"] == 0

@@ -95,10 +95,12 @@ EXPERT_KINDS = ("scripted", "ppo")
 
 
 def check_expert(spec: str, given: str) -> None:
-    """ValueError in one line unless `spec` names an expert (EXPERT_KINDS); `given` says where it came from."""
-    if parse_spec(spec)[0] not in EXPERT_KINDS:
+    """ValueError in one line unless `spec` names an expert: EXPERT_KINDS, or a plugin's kind (its author knows
+    whether its successes are demonstrations; the built-in references' are not). `given` says where it came from."""
+    kind = parse_spec(spec)[0]
+    if kind not in EXPERT_KINDS and kind in POLICY_KINDS:
         allowed = ", ".join(f"{k}:{NEEDS_ARG[k]}" if k in NEEDS_ARG else k for k in EXPERT_KINDS)
-        raise ValueError(f"{given} is not an expert; allowed: {allowed}")
+        raise ValueError(f"{given} is not an expert; allowed: {allowed}, or a policy plugin's KIND[:ARG]")
 
 
 def parse_spec(spec: str) -> tuple[str, str | None]:

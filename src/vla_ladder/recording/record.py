@@ -75,6 +75,9 @@ class RecordConfig:
     rewrites its file for every episode, so thousands cost more than they save: docs/recording.md)"""
     commit_seconds: float = 600.0
     """... or, at the next saved episode, when the open batch is older than this"""
+    give_up_after: int = 200
+    """stop when none of a run's first N episodes succeeded and the dataset holds none (0 of 200: a success rate
+    under 1.9%, 95% Wilson bound): the expert cannot do this condition, or is no expert; 0: never"""
     writers: int = 0
     """dataset writers, each a process of its own drawing from its share of the servers into a shard that is
     merged into --out at the end (LeRobot's writer costs 0.9 CPU s a demo on 2 idle cores, 3.3 on 16); 0: one per
@@ -99,6 +102,8 @@ class RecordConfig:
             from vla_ladder.task.physx_gpu import check_physx_cuda
             check_physx_cuda("--num-envs > 1 batches each local server on physx_cuda (a CUDA GPU); on a CPU use "
                              "--num-envs 1 and --workers N")
+        if self.give_up_after < 0:
+            raise ValueError(f"--give-up-after must be >= 0 (0: never), got {self.give_up_after}")
         if not self.commit_seconds > 0:  # (nan too)
             raise ValueError(f"--commit-seconds must be > 0, got {self.commit_seconds}")
         if self.first_seed < 0 or self.first_seed + self.episodes > SEED_LIMIT:
@@ -221,6 +226,12 @@ def run(cfg: RecordConfig) -> int:
             if episode.success and episode.has_frames:
                 store.add(episode)
             progress.update(episode, store)
+            if not store.saved and not progress.successes and progress.attempted == cfg.give_up_after:
+                log.error("%s succeeded in none of the first %d episodes of %s: nothing to record; check --policy "
+                          "and the condition (--give-up-after 0 never gives up)", recording.policy,
+                          progress.attempted, recording.condition.key)
+                close_giving_back()
+                return 1
         close_giving_back()
         progress.report(store, final=True)
         report_targets(cfg.out)
@@ -266,6 +277,7 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writer
         cmd = [sys.executable, "-m", "vla_ladder.cli", "record", "--out", str(store.shards_dir / f"{stamp}-{i:02d}"),
                "--episodes", str(needed // k + (i < needed % k)), "--first-seed", str(cfg.first_seed),
                "--commit-every", str(cfg.commit_every), "--commit-seconds", str(cfg.commit_seconds),
+               "--give-up-after", str(cfg.give_up_after),
                "--seed-book", str(store.seeds.path), "--writers", "1", "--encoder-threads", str(cfg.encoder_threads),
                "--vcodec", cfg.vcodec, *([] if cfg.video else ["--no-video"]),
                "--server", *urls[i::k]]
