@@ -67,6 +67,10 @@ def test_a_plugin_is_a_kind_beside_the_built_in_ones(installed, capsys):
     assert action.shape == (3, ACTION_DIM) and action[:, 0].eq(0.5).all() and action[:, 6].eq(-1).all()
     assert policies.load_policy("constant").describe()["action"] == [0, 0, 0, 0, 0, 0, 1]
 
+    from vla_ladder.experiments.diagnose import default_label  # a plugin's label on the diagnosis page: kind first
+    assert [default_label(s) for s in ("constant", "constant:0,0,1,0,0,0,1", "ppo:runs/x")] == \
+        ["constant", "constant-0_0_1_0_0_0_1", "x"]
+
 
 def test_a_plugin_spec_is_checked_before_any_work(installed):
     assert policies.check_spec("constant:0,0,0,0,0,0,1") == ("constant", "0,0,0,0,0,0,1")

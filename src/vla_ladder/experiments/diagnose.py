@@ -62,7 +62,7 @@ from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.experiments.probes import PROBES
 from vla_ladder.experiments.probes import ProbeConfig, run_probe
-from vla_ladder.policies import check_spec, parse_spec
+from vla_ladder.policies import POLICY_KINDS, check_spec, parse_spec
 from vla_ladder.report.diagnosis import answer_lines, diagnosis_html
 from vla_ladder.stats import paired_difference
 
@@ -193,13 +193,14 @@ _LABEL = re.compile(r"[A-Za-z0-9._-]+")
 
 def default_label(spec: str) -> str:
     """A policy's name on the page: the kind for a reference, a checkpoint's run directory (the path without
-    checkpoints/<step>/pretrained_model), a server's host:port."""
+    checkpoints/<step>/pretrained_model), a server's host:port; a plugin's kind before that."""
     kind, arg = parse_spec(spec)
     if arg is None:
         return kind
     parts = [p for p in re.split(r"[/\\]+", arg.partition("?")[0])
              if p and p not in ("pretrained_model", "checkpoints", "last", "ws:", "wss:") and not p.isdigit()]
-    return re.sub(r"[^A-Za-z0-9._-]", "_", parts[-1]) if parts else kind
+    label = re.sub(r"[^A-Za-z0-9._-]", "_", parts[-1]) if parts else kind
+    return label if kind in POLICY_KINDS or label == kind else f"{kind}-{label}"
 
 
 def open_diagnosis_dir(cfg: DiagnoseConfig) -> None:
