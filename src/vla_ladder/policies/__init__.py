@@ -77,12 +77,12 @@ def policy_kinds() -> dict[str, str]:
 
 
 def _factory(kind: str) -> Callable[..., Policy]:
-    factory = EntryPoint(kind, policy_kinds()[kind], PLUGIN_GROUP)
-    if kind in POLICY_KINDS:
-        return factory.load()
-    try:  # someone else's code: whatever goes wrong, one line that names the plugin
-        return factory.load()
+    try:
+        return EntryPoint(kind, policy_kinds()[kind], PLUGIN_GROUP).load()
     except Exception as e:
+        if kind in POLICY_KINDS:
+            raise
+        # someone else's code: whatever went wrong, one line that names the plugin
         raise ValueError(f"policy plugin {kind!r} ({policy_kinds()[kind]}) does not load: "
                          f"{type(e).__name__}: {e}") from None
 
