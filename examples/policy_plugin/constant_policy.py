@@ -1,6 +1,7 @@
 """An example vla-ladder policy plugin, to copy: the same action at every step, whatever it sees and is told.
 
-Installed (`pip install -e examples/policy_plugin`), it is `--policy constant[:A0,A1,...,A6]` for the vla-ladder
+Installed (`pip install -e examples/policy_plugin`, or `VIRTUAL_ENV=.venv uv pip install -e ...` in
+the venv of scripts/setup.sh), it is `--policy constant[:A0,A1,...,A6]` for the vla-ladder
 commands that play a policy (eval, probe, diagnose, experiment; record and serve take a plugin as their expert), in
 every worker process. The seven numbers are a pd_ee_delta_pose action in [-1, 1] (`vla_ladder.contract.ACTION_NAMES`:
 xyz, rotation, gripper); the default holds the arm still with the gripper open. Your policy replaces `act`.
