@@ -31,12 +31,17 @@ def site(tmp_path_factory) -> Path:
     assert declared == {"constant": "constant_policy:make_policy"}
     (root / "failing_plugin.py").write_text(
         "def make(arg, **kwargs):\n    raise ValueError(f'failing: no weights at {arg}')\n")
+    (root / "weighted_plugin.py").write_text(  # a plugin whose argument is its weights file
+        "from constant_policy import make_policy\n\n"
+        "def make(arg, **kwargs):\n    return make_policy(None)\n\n"
+        "make.weights_file = lambda arg: arg\n")
     info = root / "vla_ladder_example_policy-0.1.0.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: vla-ladder-example-policy\nVersion: 0.1.0\n")
     entries = {**declared, "failing": "failing_plugin:make", "missing": "no_such_module:make",
                "ppo": "failing_plugin:make", "bad?name": "failing_plugin:make",
-               "my-expert": "vla_ladder.policies.scripted:make_policy"}  # someone's expert: the scripted one
+               "my-expert": "vla_ladder.policies.scripted:make_policy",  # someone's expert: the scripted one
+               "weighted": "weighted_plugin:make"}
     (info / "entry_points.txt").write_text(f"[{policies.PLUGIN_GROUP}]\n"
                                            + "".join(f"{k} = {v}\n" for k, v in entries.items()))
     return root
@@ -84,6 +89,21 @@ def test_a_plugin_spec_is_checked_before_any_work(installed):
     policies.check_expert("my-expert", "--policy my-expert")
     with pytest.raises(ValueError, match=r"--policy random is not an expert; allowed: scripted, ppo:PATH, or a policy"):
         policies.check_expert("random", "--policy random")
+
+
+
+def test_a_plugin_that_names_its_weights_file_has_them_checked_on_resume(installed, tmp_path):
+    """weights_identity, which a run directory keeps so that a resume with other weights at the same path is refused,
+    hashes the file a plugin's weights_file(arg) names; a plugin without weights_file has none, like a reference."""
+    import hashlib
+
+    weights = tmp_path / "model.bin"
+    weights.write_bytes(b"first")
+    first = policies.weights_identity(f"weighted:{weights}")
+    assert first == {"file": str(weights), "sha256": hashlib.sha256(b"first").hexdigest()}
+    weights.write_bytes(b"retrained")
+    assert policies.weights_identity(f"weighted:{weights}")["sha256"] == hashlib.sha256(b"retrained").hexdigest()
+    assert policies.weights_identity("constant") is None
 
 
 @pytest.mark.slow  # the real simulator and both cameras, in worker processes

@@ -57,3 +57,6 @@ def make_policy(arg: str | None, **kwargs) -> ConstantPolicy:
 # Optional: vla-ladder calls the factory's `check(arg)` before any work, so that a bad spec is one line (exit 2)
 # rather than an error in the first worker. Make it cheap: no weights are read here.
 make_policy.check = parse
+# Optional too, for a policy with weights: the file they are in, hashed into every run directory so that resuming
+# one with retrained weights at the same path is refused. This one has none.
+make_policy.weights_file = lambda arg: None

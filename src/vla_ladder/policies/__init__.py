@@ -57,8 +57,9 @@ POLICY_KINDS: dict[str, str] = {
 PLUGIN_GROUP = "vla_ladder.policies"
 """The entry-point group of policy plugins: a distribution that declares `[project.entry-points."vla_ladder.policies"]
 KIND = "module:factory"` adds `--policy KIND[:ARG]` to every command that plays a policy, in every worker process;
-factory(arg: str | None, **kwargs) -> Policy, as for the kinds above, and, if the factory has one, factory.check(arg)
-runs before any work (check_spec). docs/evaluation.md, "Your own policy"; examples/policy_plugin."""
+factory(arg: str | None, **kwargs) -> Policy, as for the kinds above. Optional, on the factory: check(arg), run
+before any work (check_spec), and weights_file(arg), the file whose hash a run directory keeps (weights_identity).
+docs/evaluation.md, "Your own policy"; examples/policy_plugin."""
 
 
 @functools.cache
@@ -170,7 +171,8 @@ def weights_identity(spec: str) -> dict | None:
     """The sha256 of the weights file a ppo:/lerobot: spec names (for remote:, the one its server's metadata gives
     as weights_sha256, as `serve-policy` does), which a run directory keeps so that resuming it with a checkpoint
     retrained at the same path, or another model behind the same URL, is refused instead of mixing two models'
-    episodes; None for kinds without weights (the scripted and reference policies) and servers that do not say."""
+    episodes (a plugin's: the file its factory's `weights_file(arg)` names); None for kinds without weights (the
+    scripted and reference policies), servers that do not say and plugins without `weights_file`."""
     kind, arg = parse_spec(spec)
     if kind == "remote":
         from vla_ladder.policies.remote import connect, parse_arg as remote_arg
@@ -185,8 +187,11 @@ def weights_identity(spec: str) -> dict | None:
     elif kind == "ppo":
         from vla_ladder.policies.ppo import checkpoint_dir
         path = checkpoint_dir(arg) / "model.safetensors"
-    else:
-        return None
+    else:  # a plugin names the file that holds its weights, if any, with its factory's weights_file(arg)
+        weights_file = None if kind in POLICY_KINDS else getattr(_factory(kind), "weights_file", None)
+        path = weights_file(arg) if callable(weights_file) else None
+        if path is None:
+            return None
     stat = Path(path).stat()
     return {"file": str(path), "sha256": _sha256(str(path), stat.st_ino, stat.st_size, stat.st_mtime_ns)}
 
