@@ -1,8 +1,9 @@
 """Policy plugins: an installed distribution's `vla_ladder.policies` entry points are --policy kinds.
 
 The plugin is the shipped example (examples/policy_plugin), "installed" the way pip leaves a distribution: a
-dist-info folder whose entry_points.txt is the one its pyproject.toml declares, on the path, with a second, broken
-plugin and two that may not take their names beside it."""
+dist-info folder whose entry_points.txt is the one its pyproject.toml declares, on the path. Beside it: a plugin
+that fails in the workers, one whose module is missing, two that may not take their names, an expert (the scripted
+one under another name) and one that names its weights file."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "policy_plugin"
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory) -> Path:
-    """A folder holding the example plugin's distribution metadata and a broken plugin module."""
+    """A folder holding the plugins' distribution metadata and the test plugins' modules."""
     root = tmp_path_factory.mktemp("site")
     declared = tomllib.loads((EXAMPLE / "pyproject.toml").read_text())["project"]["entry-points"][policies.PLUGIN_GROUP]
     assert declared == {"constant": "constant_policy:make_policy"}
