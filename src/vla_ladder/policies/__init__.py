@@ -100,7 +100,7 @@ def check_expert(spec: str, given: str) -> None:
     whether its successes are demonstrations; the built-in references' are not). `given` says where it came from."""
     kind = parse_spec(spec)[0]
     if kind not in EXPERT_KINDS and kind in POLICY_KINDS:
-        allowed = ", ".join(f"{k}:{NEEDS_ARG[k]}" if k in NEEDS_ARG else k for k in EXPERT_KINDS)
+        allowed = ", ".join(map(_spec_form, EXPERT_KINDS))
         raise ValueError(f"{given} is not an expert; allowed: {allowed}, or a policy plugin's KIND[:ARG]")
 
 
@@ -116,11 +116,16 @@ def parse_spec(spec: str) -> tuple[str, str | None]:
     return kind, (arg or None)
 
 
+def _spec_form(kind: str) -> str:
+    """How a spec of `kind` is written, for error messages: scripted, ppo:PATH, constant[:ARG] (plugin)."""
+    if kind not in POLICY_KINDS:
+        return f"{kind}[:ARG] (plugin)"
+    return f"{kind}:{NEEDS_ARG[kind]}" if kind in NEEDS_ARG else kind
+
+
 def allowed_specs() -> str:
     """The kinds a --policy spec may name, with their argument, for error messages."""
-    plugins = [k for k in policy_kinds() if k not in POLICY_KINDS]
-    return ", ".join([f"{k}:{NEEDS_ARG[k]}" if k in NEEDS_ARG else k for k in POLICY_KINDS]
-                     + [f"{k}[:ARG] (plugin)" for k in plugins])
+    return ", ".join(map(_spec_form, policy_kinds()))
 
 
 def positive_int(value: str) -> int:
