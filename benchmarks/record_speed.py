@@ -321,6 +321,7 @@ def writer_scaling(episodes: list, work: Path, writers: int, threads: int, vcode
     demos/s written by all, CPU s per demo; then the merge of the shards into one dataset."""
     import multiprocessing
 
+    from vla_ladder.recording.ledger import Block
     from vla_ladder.recording.store import DatasetStore
     from vla_ladder.recordings import Recording
 
@@ -329,8 +330,8 @@ def writer_scaling(episodes: list, work: Path, writers: int, threads: int, vcode
     root = work / f"writers-{writers}-threads-{threads}"
     main = DatasetStore(root, Recording("scripted", Condition.parse(episodes[0].header["condition"]),
                                         robot_mesh=episodes[0].header["robot_mesh"], vcodec=vcodec))
-    procs = [ctx.Process(target=_write_shard,
-                         args=(str(main.shards_dir / f"w{i}"), episodes, vcodec, threads, ready, go, out))
+    n = len(episodes)  # writer i's shard stands for the block of seeds [i n, (i + 1) n)
+    procs = [ctx.Process(target=_write_shard, args=(str(main.shard(i * n)), episodes, vcodec, threads, ready, go, out))
              for i in range(writers)]
     for p in procs:
         p.start()
@@ -342,10 +343,10 @@ def writer_scaling(episodes: list, work: Path, writers: int, threads: int, vcode
         p.join()
     wall = time.perf_counter() - t0
     t = time.perf_counter()
-    main.merge(main.unmerged_shards())
+    main.merge([Block(i * n, (i + 1) * n, (i + 1) * n, n, n, 0, True) for i in range(writers)])
     merge = time.perf_counter() - t
     main.close()
-    n = writers * len(episodes)
+    n = writers * n
     print(f"writer stage, {writers} writers, --encoder-threads {threads}: {n / wall:.3f} demos/s, "
           f"{sum(cpu) / n:.2f} CPU s per demo, merge {merge:.1f} s", flush=True)
     return {"writers": writers, "encoder_threads": threads, "demos": n, "wall_s": wall, "demos_per_s": n / wall,

@@ -474,6 +474,7 @@ def test_a_flag_given_twice_is_refused_not_silently_dropped(argv, flag, capsys, 
     (["--policy", "ppo:/nonexistent"], "no PPO checkpoint at '/nonexistent'"),
     (["--robot-mesh", "foo"], "unknown robot_mesh 'foo'; allowed: lite, full"),
     (["--server", "ws://127.0.0.1:1", "ws://127.0.0.1:1"], "--server ws://127.0.0.1:1 is given twice"),
+    (["--ledger", "ledger.json"], "--ledger is for the writers `record --writers` starts: it needs their --server"),
 ])
 def test_record_writers_each_need_a_server(extra, says, tmp_path, capsys):
     rc = main(["record", "--out", str(tmp_path / "rec"), "--episodes", "1", *extra])

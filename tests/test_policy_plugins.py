@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import tomllib
@@ -135,19 +136,21 @@ def test_record_takes_a_plugin_expert_and_gives_up_on_one_that_never_succeeds(si
 
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(EXAMPLE), os.environ.get("PYTHONPATH", "")])}
     cli = [sys.executable, "-m", "vla_ladder.cli", "record", "--regime", "small_jitter", "--num-objects", "2",
-           "--episodes", "1", "--workers", "1"]
+           "--episodes", "1"]
     out = tmp_path / "demos"
-    done = subprocess.run(cli + ["--policy", "my-expert", "--out", str(out)], env=env, capture_output=True, text=True,
+    done = subprocess.run(cli + ["--workers", "1", "--policy", "my-expert", "--out", str(out)], env=env, capture_output=True, text=True,
                           timeout=600)
     assert done.returncode == 0, done.stderr
     assert read_recording_state(out)["config"]["policy"] == "my-expert" and len(read_provenance(out)) == 1
 
-    # The arm held still: no success in the first 3 episodes, so nothing to record (before: a loop until killed).
-    out = tmp_path / "never"
-    done = subprocess.run(cli + ["--policy", "constant", "--give-up-after", "3", "--out", str(out)], env=env,
-                          capture_output=True, text=True, timeout=600)
-    assert done.returncode == 1, done.stderr
-    assert ("constant succeeded in none of the first 3 episodes of small_jitter/canonical/2: nothing to record"
-            in done.stderr), done.stderr
-    state = read_recording_state(out) if out.exists() else None
-    assert state is None or state["counters"]["saved"] == 0
+    # The arm held still: no success in the first 3 episodes, so nothing to record (before: a loop until killed);
+    # with two writers the recorder counts their episodes and stops them.
+    for name, writers in (("never", ["--workers", "1"]), ("never2", ["--workers", "2", "--writers", "2"])):
+        out = tmp_path / name
+        done = subprocess.run(cli + writers + ["--policy", "constant", "--give-up-after", "3", "--out", str(out)],
+                              env=env, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 1, done.stderr
+        assert re.search(r"constant succeeded in none of the first \d+ episodes of small_jitter/canonical/2: nothing "
+                         "to record", done.stderr), done.stderr
+        state = read_recording_state(out) if out.exists() else None
+        assert state is None or state["counters"]["saved"] == 0

@@ -114,7 +114,11 @@ def test_killed_writer_leaves_a_loadable_dataset_and_resumes(recorded):
     assert min(new) > max(after_kill["seeds"]), "the resumed run replayed seeds of the killed one"
     state = read_recording_state(root)
     assert state["counters"]["saved"] == EPISODES and state["next_seed"] > prov["seed"].max()
-    assert state["counters"]["attempted"] >= EPISODES
+    # Every seed below where the recording ends was played once, none skipped: those in flight at the kill (never
+    # written) were played again, so the dataset is the one recorded in one go.
+    assert state["played_to"] == prov["seed"].max() + 1
+    assert state["counters"]["attempted"] == state["played_to"] - SEED
+    assert state["counters"]["failed"] == state["counters"]["attempted"] - EPISODES
     assert not (root.parent / f".{root.name}.recording" / "staging").exists()
 
 

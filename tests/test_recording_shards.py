@@ -5,6 +5,7 @@ provenance in step; atomic; never merged twice), and `record --writers 2` does i
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import multiprocessing
 import shutil
 from pathlib import Path
@@ -19,25 +20,108 @@ from test_recording_store import CONFIG, synthetic_episode
 FRAMES = 12
 
 
-def _reserve_many(path: str, blocks: int, queue) -> None:
-    book = SeedBook(Path(path), Recording(**CONFIG), floor=0)
-    queue.put([s for _ in range(blocks) for s in book.reserve(3)])
+def _succeeds(seed: int) -> bool:
+    """A stand-in expert: an episode's outcome is a function of its seed, as the simulator's is."""
+    return int(hashlib.sha256(str(seed).encode()).hexdigest(), 16) % 3 == 0
 
 
-def test_seed_book_hands_each_seed_out_once_across_processes(tmp_path):
+def _write_blocks(path: str, index: int, queue) -> None:
+    """A writer as `record --ledger` runs one (writers.write_blocks), episodes played in random time: take blocks,
+    ask the ledger about each seed in order, report, stop when told or once the ledger is done."""
+    import random
+    import time
+
+    from vla_ladder.recording.ledger import STOP, WAIT, Ledger
+
+    rng, ledger, kept = random.Random(index), Ledger(path), []
+    while not ledger.done():
+        if (block := ledger.take()) is None:  # the seeds in play should hold the missing demos: ask again later
+            time.sleep(0.005)
+            continue
+        saved = attempted = 0
+        for seed in range(*block):
+            time.sleep(rng.uniform(0, 0.004))
+            verdict = ledger.verdict(seed, _succeeds(seed))
+            if verdict == WAIT:
+                ledger.report(block[0], seed, saved, attempted, attempted - saved)
+                while (verdict := ledger.verdict(seed, _succeeds(seed))) == WAIT:
+                    time.sleep(0.001)
+            if verdict == STOP:
+                ledger.report(block[0], seed, saved, attempted, attempted - saved, done=True)
+                queue.put(kept)
+                return
+            attempted += 1
+            if _succeeds(seed):
+                saved += 1
+                kept.append(seed)
+            ledger.report(block[0], seed + 1, saved, attempted, attempted - saved)
+        ledger.report(block[0], block[1], saved, attempted, attempted - saved, done=True)
+    queue.put(kept)
+
+
+@pytest.mark.parametrize("writers", [1, 2, 4])
+def test_writers_sharing_a_ledger_keep_the_first_successes_whatever_their_number(tmp_path, writers):
+    """Writer processes playing blocks of seeds at random speeds keep exactly the first 30 successful seeds from
+    --first-seed, none twice and none beyond (what one writer keeps), and the ledger's blocks tile the seeds they
+    played; a second run (an extension to 45) starts with the seeds the first left unplayed in a block it stopped."""
+    from vla_ladder.recording.ledger import Block, Ledger
+
+    first = 1000
+    successes = [s for s in range(first, first + 1000) if _succeeds(s)]
+    path = tmp_path / "ledger.json"
+    Ledger.begin(path, {"recording": 1}, target=30, writers=writers, base_seed=first, base_saved=0, blocks=[])
     ctx = multiprocessing.get_context("spawn")
     queue = ctx.Queue()
-    procs = [ctx.Process(target=_reserve_many, args=(str(tmp_path / "seeds.json"), 40, queue)) for _ in range(4)]
+    procs = [ctx.Process(target=_write_blocks, args=(str(path), i, queue)) for i in range(writers)]
     for p in procs:
         p.start()
-    seeds = [s for _ in procs for s in queue.get(timeout=120)]
+    kept = sorted(s for _ in procs for s in queue.get(timeout=120))
     for p in procs:
         p.join()
-    assert sorted(seeds) == list(range(4 * 40 * 3)), "a seed was handed out twice or skipped"
-    book = SeedBook(tmp_path / "seeds.json", Recording(**CONFIG), floor=1000)
-    assert book.reserve(2) == [1000, 1001], "the floor (seeds a committed dataset used) comes first"
-    other = SeedBook(tmp_path / "seeds.json", Recording(**{**CONFIG, "video": False}), floor=5)
-    assert other.next_seed == 5, "a book kept for another recording says nothing about this one"
+    assert kept == successes[:30]
+    blocks = sorted(Ledger(path).blocks(), key=lambda b: b.start)
+    assert all(b.done for b in blocks) and blocks[0].start == first
+    assert all(a.end == b.start for a, b in zip(blocks, blocks[1:])), "blocks overlap or leave a gap"
+    prefix, cursor = [], first
+    for b in blocks:  # what the recorder merges: blocks seed after seed until 30 demos
+        if b.start != cursor or sum(p.saved for p in prefix) >= 30:
+            break
+        prefix.append(b)
+        cursor = b.played_to
+    assert sum(b.saved for b in prefix) == 30 and cursor == successes[29] + 1
+    assert sum(b.attempted for b in prefix) == cursor - first, "a seed of the dataset's was not played, or twice"
+
+    Ledger.begin(path, {"recording": 1}, target=45, writers=writers, base_seed=cursor, base_saved=30,
+                 blocks=[Block(cursor + 10, cursor + 20, cursor + 20, 4, 10, 6, True)])
+    again = Ledger(path)
+    assert again.take()[0] == cursor, "the seeds between the dataset and a shard left behind come first"
+
+
+def test_the_ledger_keeps_waits_and_stops(tmp_path):
+    """Blocks are handed out lowest seeds first, sized by what is missing; a success is kept when even all seeds
+    still unplayed below it could not push it out of the first `target`, waited on while they could, and
+    refused (stop) once the successes below it reach the target; a writer of an earlier run cannot report."""
+    from vla_ladder.recording.ledger import KEEP, STOP, WAIT, Block, Ledger
+
+    path = tmp_path / "ledger.json"
+    ledger = Ledger.begin(path, {}, target=5, writers=2, base_seed=100, base_saved=2,
+                          blocks=[Block(110, 120, 120, saved=1, attempted=10, failed=9, done=True)])
+    # 2 demos missing (2 in the dataset, 1 in a shard left at 110), 2 in 11 seeds succeeded (one assumed): 6 seeds a
+    # writer, from the gap before 110
+    assert ledger.take() == (100, 106) and ledger.take() == (106, 110)
+    assert ledger.verdict(100, True) == KEEP  # 2 demos below it, no seed unplayed: the dataset's third
+    assert ledger.verdict(106, True) == WAIT  # seeds 100-105, unplayed, may hold the 2 missing demos
+    ledger.report(100, 103, saved=1, attempted=3, failed=2)
+    assert ledger.verdict(106, True) == WAIT and ledger.verdict(106, False) == KEEP  # (a failure is counted)
+    ledger.report(100, 106, saved=1, attempted=6, failed=5, done=True)
+    assert ledger.verdict(106, True) == KEEP
+    ledger.report(106, 110, saved=1, attempted=4, failed=3, done=True)
+    assert ledger.verdict(121, False) == STOP and ledger.verdict(121, True) == STOP
+    assert ledger.take() is None, "5 demos kept: no new block"
+    stale = Ledger(path)
+    Ledger.begin(path, {}, target=5, writers=2, base_seed=100, base_saved=2, blocks=[])
+    stale.report(100, 110, saved=3, attempted=10, failed=7, done=True)  # a writer of a killed run reports late
+    assert Ledger(path).blocks() == [] and stale.take() is None
 
 
 def test_seed_book_stops_at_the_last_numpy_seed(tmp_path):
@@ -102,40 +186,43 @@ def test_a_shard_of_several_commits_merges_into_a_dataset_that_merges_and_resume
     root = tmp_path / "ds"
     main = DatasetStore(root, Recording(**CONFIG), commit_every=1)
 
-    def shard(name: str, n: int) -> Path:
-        store = DatasetStore(main.shards_dir / name, Recording(**CONFIG), commit_every=1, seed_book=main.seeds.path)
+    def shard(start: int, n: int) -> Path:
+        store = DatasetStore(main.shard(start), Recording(**CONFIG), commit_every=1, seeds_from=start)
         written.extend(_fill(store, n))
         store.close()
-        return main.shards_dir / name
+        return main.shard(start)
 
     written: list[int] = []
-    first = shard("a", 3)
+    first = shard(0, 3)
     assert len(list((first / "meta/episodes").glob("*/*.parquet"))) == 3
-    main.merge([first])
+    main.settle(10)
     main.close()
     for path in (root / "meta/episodes").glob("chunk-*/file-*.parquet"):
         meta = pd.read_parquet(path)
         assert (meta["meta/episodes/file_index"] == int(path.stem.split("-")[1])).all(), path
     main = DatasetStore(root, Recording(**CONFIG), commit_every=1)
-    main.merge([shard("b", 1), shard("c", 1)])
+    shard(3, 1), shard(4, 1)
+    main.settle(10)
     resumed = _fill(main, 1)  # and a single writer resumes it
     main.close()
     _check_dataset(root, written + resumed)
 
 
-def test_shards_merge_after_the_dataset_and_resume(tmp_path):
+def test_shards_merge_after_the_dataset_in_seed_order_and_resume(tmp_path):
+    """`settle` merges the shards that continue the dataset seed after seed, in seed order, up to the target;
+    a shard after a gap waits for the gap to be played, and one that would overshoot is dropped."""
     root = tmp_path / "ds"
     main = DatasetStore(root, Recording(**CONFIG), commit_every=2)
     own = _fill(main, 2)
-    shards = [main.shards_dir / "a", main.shards_dir / "b"]
-    written = []
-    for shard, n in zip(shards, (3, 2)):
-        store = DatasetStore(shard, Recording(**CONFIG), commit_every=2, seed_book=main.seeds.path)
-        written.append(_fill(store, n))
+    assert own == [0, 1] and main.played_to == 2
+    written = {}
+    for start, n in ((5, 2), (2, 3), (9, 1)):  # 9: after a gap (seeds 7 and 8 unplayed)
+        store = DatasetStore(main.shard(start), Recording(**CONFIG), commit_every=2, seeds_from=start)
+        written[start] = _fill(store, n)
         store.close()
-    assert not set(written[0]) & set(written[1]) and min(written[0]) > max(own)
-    assert main.unmerged_shards() == shards
-    counted = [read_recording_state(s)["counters"] for s in [root, *shards]]
+    assert written == {2: [2, 3, 4], 5: [5, 6], 9: [9]}
+    assert [(b.start, b.played_to, b.saved) for b in main.done_blocks()] == [(2, 5, 3), (5, 7, 2), (9, 10, 1)]
+    counted = [dict(main.counters)] + [read_recording_state(s)["counters"] for s in [main.shard(2), main.shard(5)]]
 
     # Killed before the swap: the dataset is as it was and the shards are merged by the next try.
     import vla_ladder.recording.store as store_module
@@ -148,40 +235,51 @@ def test_shards_merge_after_the_dataset_and_resume(tmp_path):
     store_module._exchange = killed
     try:
         with pytest.raises(KeyboardInterrupt):
-            main.merge(shards)
+            main.settle(10)
     finally:
         store_module._exchange = real_exchange
     _check_dataset(root, own)
-    assert main.unmerged_shards() == shards
-    main.saved = read_recording_state(root)["counters"]["saved"]
-    main.counters = dict(read_recording_state(root)["counters"])
-    main.merge(shards)
+    assert main.played_to == 2 and main.counters == counted[0] and len(main.done_blocks()) == 3
+    main.settle(10)
     main.close()
-    _check_dataset(root, own + written[0] + written[1])
-    counters = read_recording_state(root)["counters"]
+    _check_dataset(root, own + written[2] + written[5])
+    state = read_recording_state(root)
     for key in ("attempted", "failed", "saved"):
-        assert counters[key] == sum(c[key] for c in counted), key
-    assert not any(s.exists() for s in shards)
+        assert state["counters"][key] == sum(c[key] for c in counted), key
+    assert state["played_to"] == state["next_seed"] == 7
+    assert not main.shard(2).exists() and not main.shard(5).exists() and main.shard(9).exists()
 
     # A shard found again after its merge (killed between the swap and the clean-up) is not merged twice.
-    shutil.copytree(root, shards[0])
+    shutil.copytree(root, main.shard(2))
     store = DatasetStore(root, Recording(**CONFIG), commit_every=1)
-    assert not shards[0].exists() and store.unmerged_shards() == []
-    # A single writer resumes the merged dataset.
-    more = _fill(store, 1)
+    assert not main.shard(2).exists() and [b.start for b in store.done_blocks()] == [9]
+    # A single writer plays the gap; then the shard after it joins.
+    more = _fill(store, 2)
+    assert more == [7, 8]
+    store.settle(10)
     store.close()
-    assert more[0] > max(written[0] + written[1])
-    _check_dataset(root, own + written[0] + written[1] + more)
+    _check_dataset(root, own + written[2] + written[5] + more + written[9])
+
+    # A shard kept for a larger target than this run's would overshoot it: dropped, its seeds played again.
+    store = DatasetStore(root, Recording(**CONFIG), commit_every=1)
+    extra = DatasetStore(store.shard(10), Recording(**CONFIG), commit_every=1, seeds_from=10)
+    _fill(extra, 3)
+    extra.close()
+    store.settle(11)
+    assert not store.shard(10).exists() and store.saved == 10 and store.played_to == 10
+    store.close()
 
 
 @pytest.mark.slow
 def test_record_with_two_writers_killed_then_rerun(tmp_path):
     """`record --writers 2` (real servers, real writer processes) killed by SIGKILL once a shard committed: the
     writers commit and exit, nothing reaches the dataset half-merged; the same command merges what they left and
-    records the rest. Every episode is whole and every seed played once. In H.264 (`--vcodec h264`): the writers
-    are told the codec and LeRobot's merge concatenates their H.264 files."""
+    records the rest. The dataset is the one a single writer records in one go: the same seeds, frames and actions,
+    and the same attempts. In H.264 (`--vcodec h264`): the writers are told the codec and LeRobot's merge
+    concatenates their H.264 files."""
     import subprocess
 
+    import torch
     from test_recording import CONDITION, ENV, _alive, _cli, _kill_when, _load, _wait_for
 
     root = tmp_path / "grasp"
@@ -204,7 +302,7 @@ def test_record_with_two_writers_killed_then_rerun(tmp_path):
         for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
             with contextlib.suppress(OSError):
                 argv = cmdline.read_bytes().decode().split("\0")
-                if "--seed-book" in argv and any(a.startswith(str(shards)) for a in argv):
+                if "--ledger" in argv and any(a.startswith(str(shards)) for a in argv):
                     writers.append(argv)
         return True
 
@@ -220,7 +318,7 @@ def test_record_with_two_writers_killed_then_rerun(tmp_path):
 
     rerun = subprocess.run(cmd, env=ENV, capture_output=True, text=True)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
-    assert f"merging the {n_left} shards a stopped recording left" in rerun.stderr
+    assert n_left >= 1 and "merging the shards a stopped recording left" in rerun.stderr
     ds = _load(root)
     prov = read_provenance(root)
     assert ds.meta.total_episodes == 5 == len(prov) and read_recording_state(root)["counters"]["saved"] == 5
@@ -233,6 +331,25 @@ def test_record_with_two_writers_killed_then_rerun(tmp_path):
     assert {ds.meta.features[k]["info"]["video.codec"] for k in ds.meta.video_keys} == {"h264"}
     assert read_recording_state(root)["config"]["vcodec"] == "h264"
 
+    one = tmp_path / "one"
+    one_writer = [str(one) if a == str(root) else "1" if prev == "--writers" else a for prev, a in zip(["", *cmd], cmd)]
+    single = subprocess.run(one_writer, env=ENV, capture_output=True, text=True)
+    assert single.returncode == 0, single.stderr[-3000:]
+    assert "writers record" not in single.stderr  # (one writer: no shards)
+    alone = read_provenance(one)
+    assert prov["seed"].tolist() == alone["seed"].tolist()
+    assert (prov["instruction"] == alone["instruction"]).all()
+    frames, frames_alone = _load(root).hf_dataset.with_format("numpy"), _load(one).hf_dataset.with_format("numpy")
+    for key in ("observation.state", "action", "episode_index", "frame_index"):
+        assert np.array_equal(frames[key], frames_alone[key]), key
+    for i in (0, len(frames) - 1):  # the videos hold the same pictures (one encoder thread each: the same bytes)
+        for camera in ("observation.images.hand_camera", "observation.images.fixed_camera"):
+            assert torch.equal(_load(root)[i][camera], _load(one)[i][camera]), (i, camera)
+    state, state_alone = read_recording_state(root), read_recording_state(one)
+    for key in ("attempted", "failed", "saved"):
+        assert state["counters"][key] == state_alone["counters"][key], key
+    assert state["played_to"] == state_alone["played_to"] == alone["seed"].max() + 1
+
 
 def test_a_shard_of_another_recording_or_task_contract_cannot_join(tmp_path):
     """A shard recorded with other arguments, or under another task contract, is refused before LeRobot merges
@@ -244,21 +361,21 @@ def test_a_shard_of_another_recording_or_task_contract_cannot_join(tmp_path):
     root = tmp_path / "ds"
     main = DatasetStore(root, Recording(**CONFIG), commit_every=1)
     own = _fill(main, 1)
-    other = DatasetStore(main.shards_dir / "other", Recording(**{**CONFIG, "robot_mesh": "full"}), commit_every=1,
-                         seed_book=main.seeds.path)
+    other = DatasetStore(main.shard(1), Recording(**{**CONFIG, "robot_mesh": "full"}), commit_every=1, seeds_from=1)
     _fill(other, 1)
     other.close()
-    with pytest.raises(ValueError, match=r"shard .*other was recorded with robot_mesh='full' \(this command: 'lite'\); "
-                                         r"it cannot join"):
-        main.merge([main.shards_dir / "other"])
-    same = DatasetStore(main.shards_dir / "same", Recording(**CONFIG), commit_every=1, seed_book=main.seeds.path)
+    with pytest.raises(ValueError, match=r"shard .*0000000001 was recorded with robot_mesh='full' \(this command: "
+                                         r"'lite'\); it cannot join"):
+        main.settle(5)
+    shutil.rmtree(main.shard(1))
+    same = DatasetStore(main.shard(1), Recording(**CONFIG), commit_every=1, seeds_from=1)
     _fill(same, 1)
     same.close()
-    state = read_recording_state(main.shards_dir / "same")
-    write_json(main.shards_dir / "same" / RECORDING_FILE,
+    state = read_recording_state(main.shard(1))
+    write_json(main.shard(1) / RECORDING_FILE,
                {**state, "contract": {**state["contract"], "episode_steps": 2 * EPISODE_STEPS}})
-    with pytest.raises(ValueError, match=rf"shard .*same was recorded under another task contract \(episode_steps "
-                                         rf"was {2 * EPISODE_STEPS}, now {EPISODE_STEPS}\); it cannot join"):
-        main.merge([main.shards_dir / "same"])
+    with pytest.raises(ValueError, match=rf"shard .*0000000001 was recorded under another task contract \(episode_"
+                                         rf"steps was {2 * EPISODE_STEPS}, now {EPISODE_STEPS}\); it cannot join"):
+        main.settle(5)
     main.close()
     assert sorted(read_provenance(root)["seed"]) == sorted(own)

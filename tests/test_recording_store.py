@@ -210,13 +210,10 @@ def test_attempts_after_the_last_commit_are_counted(tmp_path):
     again.close()
 
 
-def test_writers_sharing_the_seed_book_start_after_the_datasets_seeds(tmp_path):
-    """The work directory (and the seed book in it) may be deleted between runs; parallel writers know only the
-    book, so the recorder's store puts the dataset's next seed there before any writer starts (they replayed seeds
-    from --first-seed, recording episodes twice)."""
+def test_parallel_writers_start_after_the_datasets_seeds(tmp_path):
+    """The work directory (and the ledger and seed book in it) may be deleted between runs: the ledger of parallel
+    writers starts from the dataset's own state (they replayed seeds from --first-seed, recording episodes twice)."""
     import shutil
-
-    from vla_ladder.recording.store import SeedBook
 
     root = tmp_path / "books"
     store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=1)
@@ -225,18 +222,15 @@ def test_writers_sharing_the_seed_book_start_after_the_datasets_seeds(tmp_path):
     store.close()
     shutil.rmtree(tmp_path / ".books.recording")
     again = DatasetStore(root, Recording(**CONFIG, video=False))
-    writer = SeedBook(again.seeds.path, Recording(**CONFIG, video=False), floor=CONFIG.get("first_seed", 0))
-    assert writer.reserve(2) == [2, 3] and again.next_seed == 4
+    ledger = again.begin_ledger(target=6, writers=2)
+    assert ledger.take() == (2, 4) and ledger.take() == (4, 6) and again.next_seed == 2
     again.close()
 
 
 def test_seeds_in_flight_when_a_recording_stops_are_handed_out_again(tmp_path):
     """Seeds reserved but never counted (in flight when the recorder stopped: its target reached, Ctrl-C, a server
-    error) go out again on resume, so a recording stopped and resumed, or extended, is the one made in one go;
-    committed or not, the dataset's state says where it goes on. A book shared with other writers gives nothing
-    back (they may hold those seeds)."""
-    from vla_ladder.recording.store import SeedBook
-
+    error, a kill) go out again on resume, so a recording stopped and resumed, or extended, is the one made in one
+    go; committed or not, the dataset's state says where it goes on."""
     root = tmp_path / "back"
     store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=10)
     assert store.reserve_seeds(4) == [0, 1, 2, 3]  # two servers' windows
@@ -255,21 +249,18 @@ def test_seeds_in_flight_when_a_recording_stops_are_handed_out_again(tmp_path):
     third.close(give_back=True)  # stopped before any episode arrived: both go out again
     fourth = DatasetStore(root, Recording(**CONFIG, video=False))
     assert fourth.reserve_seeds(1) == [3]
-    fourth.close(commit=False, give_back=True)  # dropped (an exception): the book keeps its reservation
+    fourth.close(commit=False, give_back=True)  # dropped (an exception, a kill): nothing of seed 3 was written
     fifth = DatasetStore(root, Recording(**CONFIG, video=False))
-    assert fifth.next_seed == 4
-    fifth.close()
+    assert fifth.next_seed == 3 and fifth.reserve_seeds(2) == [3, 4]
+    fifth.count(False, 3)
+    fifth.close(commit=False)  # killed with seed 3's failure uncounted in the dataset: seed 3 is played again
     sixth = DatasetStore(root, Recording(**CONFIG, video=False))
-    assert sixth.reserve_seeds(1) == [4]
-    sixth.count(True, 4)  # Ctrl-C after a success was counted, before add() wrote it: its seed goes out again
-    sixth.close(give_back=True)
-    assert read_recording_state(root)["next_seed"] == 4
-
-    shard = DatasetStore(tmp_path / "shard", Recording(**CONFIG, video=False), seed_book=tmp_path / "book.json")
-    other = SeedBook(tmp_path / "book.json", Recording(**CONFIG, video=False), floor=0)
-    assert shard.reserve_seeds(2) == [0, 1] and other.reserve(2) == [2, 3]
-    shard.close(give_back=True)
-    assert other.reserve(1) == [4]
+    assert sixth.reserve_seeds(1) == [3]
+    attempted = read_recording_state(root)["counters"]["attempted"]
+    sixth.count(True, 3)  # Ctrl-C after a success was counted, before add() wrote it: its seed goes out again,
+    sixth.close(give_back=True)  # and is not counted twice when played again
+    assert read_recording_state(root)["next_seed"] == 3
+    assert read_recording_state(root)["counters"]["attempted"] == attempted
 
 
 @pytest.fixture

@@ -273,6 +273,7 @@ class EpisodeSource:
         self.successes_needed, self.check_server = successes_needed, check_server
         self.retries, self.failed_frames = retries, failed_frames
         self.received = self.successes = 0
+        self.lost = 0  # seeds given up (never delivered)
         self.outstanding: dict[str, int] = {u: 0 for u in self.urls}
         self.welcomes: dict[str, dict] = {}
         # Held episodes are whole demos in memory (20 MB each): a few per server cover servers of unequal speed.
@@ -327,6 +328,7 @@ class EpisodeSource:
             results = await asyncio.gather(*(self._serve(u) for u in self.urls), return_exceptions=True)
         except asyncio.CancelledError:
             return
+        self.lost += len(self._retry)
         self._order.lose(self._retry)  # no server left to play them: what waited behind them goes out
         self._retry.clear()
         await self._hand_on()
@@ -423,6 +425,7 @@ class EpisodeSource:
                 self._retried.add(seed)
                 self._retry.append(seed)
             else:
+                self.lost += 1
                 self._order.lose([seed])
 
     async def _hand_on(self) -> None:

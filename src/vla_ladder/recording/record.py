@@ -12,7 +12,6 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
 from typing import Annotated
 
@@ -20,7 +19,7 @@ import tyro
 
 from vla_ladder.checks import SEED_LIMIT, check_ws_url
 from vla_ladder.conditions import Condition
-from vla_ladder.machine import auto_workers, auto_writers, check_workers, signal_on_parent_death
+from vla_ladder.machine import auto_workers, auto_writers, check_workers
 from vla_ladder.recording.card import missing_targets, target_counts
 from vla_ladder.recording.client import Episode, EpisodeClient, EpisodeSource, ServerError
 from vla_ladder.recording.serve import setup_logging
@@ -79,14 +78,15 @@ class RecordConfig:
     """stop when none of a run's first N episodes succeeded and the dataset holds none (0 of 200: a success rate
     under 1.9%, 95% Wilson bound): the expert cannot do this condition, or is no expert; 0: never"""
     writers: int = 0
-    """dataset writers, each a process of its own drawing from its share of the servers into a shard that is
-    merged into --out at the end (LeRobot's writer costs 0.9 CPU s a demo on 2 idle cores, 3.3 on 16); 0: one per
-    two servers"""
+    """dataset writers, each a process of its own drawing blocks of seeds from its share of the servers into shards
+    that are merged into --out, in seed order, at the end: the dataset one writer records (LeRobot's writer costs 0.9
+    CPU s a demo on 2 idle cores, 3.3 on 16); 0: one per two servers"""
     encoder_threads: int = 0
     """threads of each camera's video encoder (SVT-AV1's lp); 0: the encoder's choice (on 2 cores one thread was up
     to 17% faster with one writer, no faster with two; see docs/recording.md)"""
-    seed_book: Path | None = None
-    """seed reservation shared with other writers (set by `record --writers` for its writers)"""
+    ledger: Path | None = None
+    """the ledger shared with other writers (set by `record --writers` for the writer processes it starts, whose --out
+    is then its shards directory)"""
 
     def __post_init__(self):
         if self.token is None:
@@ -118,6 +118,8 @@ class RecordConfig:
             raise ValueError(f"--vcodec {self.vcodec} needs video; --no-video stores PNG images, no codec")
         if self.encoder_threads < 0:
             raise ValueError(f"--encoder-threads must be >= 0 (0: the encoder's choice), got {self.encoder_threads}")
+        if self.ledger is not None and not self.server:
+            raise ValueError("--ledger is for the writers `record --writers` starts: it needs their --server URLs")
         if self.server and len(self.server) < self.writers:
             raise ValueError(f"--writers {self.writers} needs at least {self.writers} --server URLs (each writer "
                              f"draws from its own), got {len(self.server)}")
@@ -178,18 +180,20 @@ async def _welcome(url: str, token: str | None) -> dict:
 
 
 def run(cfg: RecordConfig) -> int:
-    setup_logging(f"writer {cfg.out.name}" if cfg.seed_book else "record")
+    setup_logging(f"writer {os.getpid()}" if cfg.ledger else "record")
     os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its whole configuration per video otherwise
     try:
         recording = recording_of(cfg)
     except ServerError as e:
         raise ValueError(f"cannot reach the server: {e}") from None
+    if cfg.ledger:
+        from vla_ladder.recording.writers import write_blocks
+        return write_blocks(cfg, recording)
     store = DatasetStore(cfg.out, recording, commit_every=cfg.commit_every, commit_seconds=cfg.commit_seconds,
-                         seed_book=cfg.seed_book, encoder_threads=cfg.encoder_threads or None)
-    leftovers = store.unmerged_shards()
-    if leftovers:
-        log.info("merging the %d shards a stopped recording left", len(leftovers))
-        store.merge(leftovers)
+                         encoder_threads=cfg.encoder_threads or None)
+    if leftovers := store.done_blocks():
+        log.info("merging the shards a stopped recording left (%d blocks of seeds)", len(leftovers))
+        store.settle(cfg.episodes)
     if store.saved >= cfg.episodes:
         log.info("%s already holds %d episodes (asked for %d); nothing to do", cfg.out, store.saved, cfg.episodes)
         store.close()
@@ -214,7 +218,8 @@ def run(cfg: RecordConfig) -> int:
                      for _ in range(n)]
             urls = [s.wait_ready() for s in local]  # they start side by side
         writers = auto_writers(len(urls), cfg.writers)
-        if writers > 1:
+        if writers > 1 or store.done_blocks():  # (shards after a gap: writers play the gap)
+            from vla_ladder.recording.writers import write_shards
             return write_shards(cfg, store, urls, writers)
         source = EpisodeSource(urls, store.reserve_seeds, cfg.episodes - store.saved,
                                check_server=lambda url, info: check_server(recording, url, info),
@@ -260,51 +265,6 @@ def run(cfg: RecordConfig) -> int:
             source.stop()
         for server in local:
             server.stop()
-
-
-def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writers: int) -> int:
-    """`writers` writer processes (`record --seed-book`), each drawing from its share of `urls` into a shard
-    of its own, then one merge of every shard into the dataset. Interrupted, the writers commit what they
-    hold and it is merged all the same; killed, the shards wait for the next run to merge them."""
-    before = store.saved
-    needed = cfg.episodes - before
-    k = min(writers, needed)
-    stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
-    env = dict(os.environ, **({TOKEN_ENV: cfg.token} if cfg.token else {}))  # a token stays off command lines
-    started = time.monotonic()
-    procs = []
-    for i in range(k):
-        cmd = [sys.executable, "-m", "vla_ladder.cli", "record", "--out", str(store.shards_dir / f"{stamp}-{i:02d}"),
-               "--episodes", str(needed // k + (i < needed % k)), "--first-seed", str(cfg.first_seed),
-               "--commit-every", str(cfg.commit_every), "--commit-seconds", str(cfg.commit_seconds),
-               "--give-up-after", str(cfg.give_up_after),
-               "--seed-book", str(store.seeds.path), "--writers", "1", "--encoder-threads", str(cfg.encoder_threads),
-               "--vcodec", cfg.vcodec, *([] if cfg.video else ["--no-video"]),
-               "--server", *urls[i::k]]
-        # A writer gets SIGINT (commit, exit) when the recorder dies, even by kill -9.
-        procs.append(subprocess.Popen(cmd, env=env, preexec_fn=partial(signal_on_parent_death, signal.SIGINT)))
-    log.info("%d writers record %d episodes into shards of %s", k, needed, store.shards_dir)
-    try:
-        # The merge below runs LeRobot's aggregation, whose import (6 s on 2 cores) came after the last writer had
-        # finished: the merged dataset followed it by 8 s on 2 cores and 14 s on the H200 machine, of which the merge
-        # itself took 1 and 3.6 s. Imported here, it overlaps the writers.
-        import lerobot.datasets.aggregate  # noqa: F401
-        codes = [p.wait() for p in procs]
-    except KeyboardInterrupt:  # the writers commit what they hold, and that is merged below
-        for p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        codes = [p.wait() for p in procs] + [130]
-    store.merge(store.unmerged_shards())
-    elapsed = time.monotonic() - started
-    log.info("done: %d/%d saved in %s | %.3f demos/s saved by %d writers", store.saved, cfg.episodes, cfg.out,
-             (store.saved - before) / elapsed, k)
-    store.close()
-    report_targets(cfg.out)
-    if all(c == 0 for c in codes):
-        return 0
-    log.info("a writer stopped early (exit codes %s); rerun the same command to continue", codes)
-    return 130 if 130 in codes else 1
 
 
 def report_targets(root: Path) -> None:

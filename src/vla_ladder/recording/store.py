@@ -13,14 +13,16 @@ info.json/stats.json: a process killed half-way leaves files that do not load. S
 
 A reader therefore always sees either the previous or the next commit. Staging leftovers of a killed
 writer are deleted when the next writer starts. Seeds are reserved (and persisted) before any server sees
-them, so a seed is never played twice for one dataset, even across kill -9 and resumes.
+them, so a seed is never written twice; the recording state keeps the seed after the last one written or counted
+failed (`played_to`), where a resume plays on, so a recording resumed after a kill -9 is the one made in one go.
 
-Parallel writers (`record --writers N`) each record a *shard*, a DatasetStore of its own under the work
-directory sharing this dataset's seed book; `merge` then joins the shards to DATASET_DIR with LeRobot's
+Parallel writers (`record --writers N`) each record blocks of consecutive seeds, each block into a *shard*, a
+DatasetStore of its own under the work directory, and keep only demos that the ledger (ledger.py) says are among the
+dataset's; `settle` then joins the shards that continue the dataset, in seed order, to DATASET_DIR with LeRobot's
 aggregate_datasets and the same atomic swap.
 
 The work directory next to the dataset, `.<name>.recording/`, holds the lock, the staging copy, the seed
-reservation and the shards of parallel writers; it may be deleted whenever no recorder runs and no shard
+reservation, and the ledger and shards of parallel writers; it may be deleted whenever no recorder runs and no shard
 waits to be merged (a rerun of the same `record` command merges them).
 """
 
@@ -46,6 +48,7 @@ import pandas as pd
 from vla_ladder import files
 from vla_ladder.checks import SEED_LIMIT
 from vla_ladder.conditions import Condition
+from vla_ladder.recording.ledger import Block, Ledger
 from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, Recording, read_provenance,
                                    read_recording_state)
 from vla_ladder.contract import (ACTION_KEY, CAMERAS, CONTROL_HZ, EPISODE_STEPS, STATE_KEY, contract_changes,
@@ -62,7 +65,7 @@ class DatasetStore:
 
     def __init__(self, root: str | os.PathLike, config: Recording, commit_every: int = 50,
                  commit_seconds: float = 600.0, repo_id: str | None = None,
-                 seed_book: str | os.PathLike | None = None, encoder_threads: int | None = None):
+                 seeds_from: int = 0, encoder_threads: int | None = None):
         if commit_every < 1:
             raise ValueError(f"commit_every must be >= 1, got {commit_every}")
         self.root = Path(root).resolve()
@@ -93,9 +96,10 @@ class DatasetStore:
                                                                 "commits": 0}
         self._published = dict(self.counters)  # the counters DATASET_DIR's recording state holds
         self.object_set: str | None = state.get("object_set") if state else None
-        floor = max(config.first_seed, int(state["next_seed"]) if state else 0)
-        self.seeds = SeedBook(Path(seed_book) if seed_book else self.work / "seeds.json", config, floor)
-        self._shared_book = seed_book is not None  # other writers reserve from it too: nothing is given back
+        # A resume plays again from the seed after the last one committed (written or counted failed): those a kill
+        # left in flight were never written, and played again they make the dataset the one recorded in one go.
+        floor = max(config.first_seed, seeds_from, _played_to(state) if state else 0)
+        self.seeds = SeedBook(self.work / "seeds.json", config, floor)
         self._unused_from = floor  # after the last seed written or counted failed: none from there reached the dataset
         self.pending = 0
         # Shards of a merge that was killed after its swap are in the dataset already.
@@ -135,30 +139,87 @@ class DatasetStore:
     def next_seed(self) -> int:
         return self.seeds.next_seed
 
+    @property
+    def played_to(self) -> int:
+        """The seed after the last one written or counted failed (where a resume plays on)."""
+        return self._unused_from
+
     def reserve_seeds(self, n: int) -> list[int]:
         """n seeds never handed out before for this dataset; persisted before they are returned."""
         return self.seeds.reserve(n)
 
     @property
     def shards_dir(self) -> Path:
-        """Where parallel writers (`record --writers`) keep their shards until `merge`."""
+        """Where parallel writers (`record --writers`) keep their shards, one per block of seeds, until `settle`."""
         return self.work / "shards"
 
-    def unmerged_shards(self) -> list[Path]:
-        """Shards a killed sharded recording left behind, oldest first; `merge` makes them part of the dataset."""
+    @property
+    def ledger_path(self) -> Path:
+        return self.work / "ledger.json"
+
+    def shard(self, start: int) -> Path:
+        """The shard of the block of seeds that starts at `start`; shards sort by name as by seed."""
+        return self.shards_dir / f"{start:010d}"
+
+    def done_blocks(self) -> list[Block]:
+        """The blocks of seeds above the dataset's that parallel writers played and committed, by first seed: the
+        ledger's finished blocks, and the committed part of the others (a writer killed mid-block) from their shards.
+        Waits for writers a killed recorder left to commit first (they get SIGINT when it dies)."""
         if not self.shards_dir.is_dir():
             return []
-        return sorted((p for p in self.shards_dir.iterdir() if p.is_dir() and not p.name.startswith(".")),
-                      key=lambda p: p.name)
+        for work in self.shards_dir.glob(".*.recording"):
+            wait_for_writer(self.shards_dir / work.name[1:-len(".recording")])
+        found: dict[int, Block] = {}
+        if self.ledger_path.is_file():
+            ledger = json.loads(self.ledger_path.read_text())
+            if ledger.get("config") == self.config.to_dict():
+                for b in map(lambda b: Block(**b), ledger["blocks"]):
+                    if b.done and (b.saved == 0 or self.shard(b.start).is_dir()):
+                        found[b.start] = Block(b.start, b.played_to, b.played_to, b.saved, b.attempted, b.failed, True)
+        for shard in self.shards_dir.iterdir():
+            if not shard.name.isdigit() or int(shard.name) in found:
+                continue
+            state = read_recording_state(shard)
+            if state is not None:
+                c = state["counters"]
+                found[int(shard.name)] = Block(int(shard.name), _played_to(state), _played_to(state), c["saved"],
+                                               c["attempted"], c["failed"], True)
+        return [b for _, b in sorted(found.items()) if b.start >= self.played_to and b.played_to > b.start]
+
+    def begin_ledger(self, target: int, writers: int) -> Ledger:
+        """The ledger of a sharded recording of `target` demos by `writers` writers, from what is on disk."""
+        return Ledger.begin(self.ledger_path, self.config.to_dict(), target, writers, self.played_to, self.saved,
+                            self.done_blocks())
+
+    def settle(self, target: int) -> None:
+        """Merge into the dataset, in seed order, the blocks that continue it seed after seed, until it holds
+        `target` demos. A block that would overshoot the target (recorded for a larger --episodes) is deleted with the
+        ones after it: its first demos are played again. Blocks after a gap wait for a run to play the gap."""
+        take, cursor, saved = [], self.played_to, self.saved
+        for i, b in enumerate(blocks := self.done_blocks()):
+            if b.start != cursor or saved >= target:
+                break
+            if saved + b.saved > target:
+                log.info("dropping %d shards recorded for a larger --episodes: %d demos from seed %d on would "
+                         "overshoot %d", len(blocks) - i, b.saved, b.start, target)
+                for later in blocks[i:]:
+                    _remove_shard(self.shard(later.start))
+                break
+            take.append(b)
+            cursor, saved = b.played_to, saved + b.saved
+        if take:
+            self.merge(take)
 
     # ------------------------------------------------------------------ writing
     def count(self, success: bool, seed: int | None = None) -> None:
-        """Account for an attempted episode (written or not) in the recording state; `seed`, its seed, for
-        close(give_back=True): a failure's is used once counted, a success's once add() has written it (Ctrl-C
-        between the two would otherwise skip a demo that was never written)."""
+        """Account for an attempted episode in the recording state; `seed`, its seed, for where a resume plays on. A
+        failure counts (and uses its seed) here, a success once add() has written it: Ctrl-C between the two would
+        otherwise skip a demo never written, or count an attempt that the resume plays and counts again."""
+        if success:
+            return
         self.counters["attempted"] += 1
-        self.counters["failed"] += not success
-        if seed is not None and not success:
+        self.counters["failed"] += 1
+        if seed is not None:
             self._unused_from = max(self._unused_from, seed + 1)
 
     def add(self, episode) -> int:
@@ -186,6 +247,7 @@ class DatasetStore:
             index = self.saved + self.pending
             self._rows.append(_provenance_row(index, episode))
             self.pending += 1
+            self.counters["attempted"] += 1
             self._unused_from = max(self._unused_from, episode.seed + 1)
         if self.pending >= self.commit_every or time.monotonic() - self._batch_started >= self.commit_seconds:
             self.commit()
@@ -221,12 +283,12 @@ class DatasetStore:
         """Make every episode added so far part of DATASET_DIR, atomically."""
         if self.pending == 0:
             published = read_recording_state(self.root) if (self.root / RECORDING_FILE).is_file() else None
-            if published and (self.counters != self._published or published["next_seed"] != self.next_seed):
+            moved = {"next_seed": self.next_seed, "played_to": self.played_to}
+            if published and (self.counters != self._published or any(published.get(k) != v for k, v in moved.items())):
                 # Failed attempts since the last commit, or seeds given back: only the counters and the next seed
                 # change, in our own file, replaced atomically (a recorder that ends on failures would otherwise
                 # report too few attempts).
-                files.write_json(self.root / RECORDING_FILE, {**published, "counters": self.counters,
-                                                              "next_seed": self.next_seed})
+                files.write_json(self.root / RECORDING_FILE, {**published, "counters": self.counters, **moved})
                 self._published = dict(self.counters)
             return
         t0 = time.perf_counter()
@@ -245,9 +307,10 @@ class DatasetStore:
             self._rows = []
         log.info("committed: %d episodes in %s (%.2f s)", self.saved, self.root, time.perf_counter() - t0)
 
-    def merge(self, shards: list[Path]) -> None:
-        """Make the episodes of `shards` (recordings of this same Recording by parallel writers, each a
-        DatasetStore sharing this store's seed book) part of DATASET_DIR, after its own, in one atomic step.
+    def merge(self, blocks: list[Block]) -> None:
+        """Make the demos of `blocks` (the shards of parallel writers, consecutive blocks of seeds that continue the
+        dataset's) part of DATASET_DIR, after its own and in seed order, in one atomic step; the dataset then goes on
+        from the last block's end.
 
         LeRobot's aggregate_datasets writes the union into staging (a copy of DATASET_DIR's files, which is
         what a merge costs); each shard's provenance follows its episodes under their new indices. The shard
@@ -256,10 +319,17 @@ class DatasetStore:
         """
         if self.pending:
             self.commit()
-        for s in shards:
-            wait_for_writer(Path(s))
-        states = {s: read_recording_state(s) for s in map(Path, shards)}
-        full = [s for s, st in states.items() if st and st["counters"]["saved"] > 0]
+        counters, played_to = dict(self.counters), self._unused_from
+        try:
+            self._merge(blocks)
+        except BaseException:  # DATASET_DIR is as it was: so is this store
+            self.counters, self._unused_from = counters, played_to
+            self.seeds.start_at(played_to)
+            raise
+
+    def _merge(self, blocks: list[Block]) -> None:
+        full = [self.shard(b.start) for b in blocks if b.saved > 0]
+        states = {s: read_recording_state(s) for s in full}
         for s in full:
             if found := self._not_the_same(states[s]):
                 raise ValueError(f"shard {s} {found[1]}; it cannot join {self.root}")
@@ -267,9 +337,15 @@ class DatasetStore:
                 raise ValueError(f"shard {s} used object set {states[s]['object_set']!r} but {self.root} holds "
                                  f"{self.object_set!r}")
             self.object_set = states[s]["object_set"]
-        if not full:
-            for s in shards:
-                _remove_shard(Path(s))
+        for b in blocks:  # the blocks' attempts count, kept or not
+            self.counters["attempted"] += b.attempted
+            self.counters["failed"] += b.failed
+        self._unused_from = blocks[-1].played_to
+        self.seeds.start_at(self._unused_from)
+        if not full:  # failures only: the counters and the next seed change
+            self.commit()
+            for b in blocks:
+                _remove_shard(self.shard(b.start))
             return
         from lerobot.datasets.aggregate import aggregate_datasets
         from lerobot.utils.utils import SuppressProgressBars
@@ -300,13 +376,10 @@ class DatasetStore:
         self.counters["commits"] += 1
         files.write_parquet(provenance / f"commit-{self.counters['commits']:06d}.parquet",
                             pd.concat(rows, ignore_index=True))
-        for s in full:
-            for key in ("attempted", "failed"):
-                self.counters[key] += int(states[s]["counters"][key])
         self.counters["saved"] = offset
-        self._publish({**self._state(), "merged_shards": sorted(Path(s).name for s in shards)})
-        for s in shards:
-            _remove_shard(Path(s))
+        self._publish({**self._state(), "merged_shards": sorted(self.shard(b.start).name for b in blocks)})
+        for b in blocks:
+            _remove_shard(self.shard(b.start))
         log.info("merged %d shards: %d episodes in %s (%.2f s)", len(full), offset, self.root,
                  time.perf_counter() - t0)
         self.saved = offset
@@ -333,7 +406,7 @@ class DatasetStore:
 
     def _state(self) -> dict:
         return {"format": FORMAT_VERSION, "config": self.config.to_dict(), "next_seed": self.next_seed,
-                "counters": self.counters, "object_set": self.object_set,
+                "played_to": self.played_to, "counters": self.counters, "object_set": self.object_set,
                 "updated": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                 "provenance": files.provenance(self.object_set), "contract": fingerprint()}
 
@@ -341,15 +414,14 @@ class DatasetStore:
         """Commit what is pending (or drop it) and release the dataset. Episodes pending when an exception
         interrupted add() are dropped: LeRobot's files may then be out of step (Ctrl-C waits for add() to end).
         `give_back`: the seeds after the last one written or counted failed, reserved but in flight when the recording
-        stopped, go out again on resume, so that a recording stopped and resumed, or extended, is the one made in
-        one go; only where episodes are counted in seed order (`record`'s writer) and no other writer shares the
-        seed book."""
+        stopped, are the next seeds handed out (a resume plays on from there in any case); only where episodes are
+        counted in seed order (`record`'s writer)."""
         if commit and self._writing:
             log.warning("interrupted while writing an episode: dropping the %d pending episodes", self.pending)
             commit = False
         try:
             if commit:
-                if give_back and not self._shared_book:
+                if give_back:
                     self.seeds.give_back(self._unused_from)
                 self.commit()
             elif self._ds is not None:
@@ -363,18 +435,14 @@ class DatasetStore:
 
 
 class SeedBook:
-    """The seeds handed out for one dataset, in a JSON file next to it: `reserve` persists a block before
-    returning it, under a file lock, so that servers, threads and writer processes sharing the book never
-    get a seed twice, across kills and resumes. `floor` is the first seed the dataset may still use."""
+    """The seeds handed out for one dataset, in a JSON file in its work directory: `reserve` persists a block before
+    returning it, under a file lock, so that the threads of a writer never get a seed twice. `floor` is the first
+    seed the dataset may still use: the book starts there whatever it held (seeds a killed writer had in flight
+    were never written)."""
 
     def __init__(self, path: Path, config: Recording, floor: int):
         self.path, self.config, self.floor = Path(path), config, floor
-        # The floor goes into the book at once: writer processes sharing it (`record --writers`) know only the
-        # book and their own shards, not the dataset, whose committed next seed would be lost to them when the
-        # work directory (and the book in it) was deleted since; they replayed its seeds.
-        with self._locked():
-            if self._booked() < floor:
-                files.write_json(self.path, {"config": self.config.to_dict(), "next_seed": floor})
+        self.start_at(floor)
 
     @contextlib.contextmanager
     def _locked(self) -> Iterator[None]:
@@ -394,9 +462,15 @@ class SeedBook:
     def next_seed(self) -> int:
         return max(self.floor, self._booked())
 
+    def start_at(self, next_seed: int) -> None:
+        """Make next_seed the next seed handed out, and the floor."""
+        with self._locked():
+            self.floor = next_seed
+            files.write_json(self.path, {"config": self.config.to_dict(), "next_seed": next_seed})
+
     def give_back(self, next_seed: int) -> None:
         """Make next_seed the next seed handed out, when it is below it and not below the floor: the seeds from
-        there on were reserved but never reached the dataset. Only for a book one writer alone uses."""
+        there on were reserved but never reached the dataset."""
         with self._locked():
             if self.floor <= next_seed < self._booked():
                 files.write_json(self.path, {"config": self.config.to_dict(), "next_seed": next_seed})
@@ -480,6 +554,12 @@ def wait_for_writer(shard: Path, timeout_s: float = 300.0) -> None:
                     said = True
                 time.sleep(0.2)
         fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _played_to(state: dict) -> int:
+    """Where a committed recording plays on: the seed after the last one written or counted failed (formats before
+    it was kept: the next seed reserved, which skips the seeds a kill left in flight)."""
+    return int(state.get("played_to", state["next_seed"]))
 
 
 def _remove_shard(shard: Path) -> None:

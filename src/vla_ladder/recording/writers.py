@@ -1,0 +1,213 @@
+"""Parallel dataset writers (`record --writers K`): the recorder starts K writer processes, each drawing from its
+share of the servers, and merges their shards into the dataset in seed order at the end (`write_shards`); each
+writer takes blocks of seeds from the ledger and keeps a block's demos that are the dataset's in a shard of its own
+(`write_blocks`, `record --ledger`). The dataset is the one a single writer records (ledger.py)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from functools import partial
+
+from vla_ladder.checks import SEED_LIMIT
+from vla_ladder.machine import signal_on_parent_death
+from vla_ladder.recording.client import EpisodeSource, ServerError
+from vla_ladder.recording.ledger import STOP, WAIT, Ledger
+from vla_ladder.recording.record import RecordConfig, check_server, report_targets
+from vla_ladder.recording.server import TOKEN_ENV
+from vla_ladder.recording.store import DatasetStore
+from vla_ladder.recordings import Recording
+
+log = logging.getLogger(__name__)
+PROGRESS_EVERY_S = 10.0
+
+
+def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writers: int) -> int:
+    """`writers` writer processes (`record --ledger`), each drawing from its share of `urls`, then one merge of
+    their shards into the dataset. Interrupted, the writers commit what they hold and what continues the dataset is
+    merged; killed, the shards wait for the next run. A writer that fails stops the others (they could wait for
+    seeds it held): the command says to rerun."""
+    before = store.saved
+    ledger = store.begin_ledger(cfg.episodes, writers)
+    env = dict(os.environ, **({TOKEN_ENV: cfg.token} if cfg.token else {}))  # a token stays off command lines
+    started = time.monotonic()
+    procs = []
+    for i in range(writers):
+        cmd = [sys.executable, "-m", "vla_ladder.cli", "record", "--out", str(store.shards_dir),
+               "--episodes", str(cfg.episodes), "--first-seed", str(cfg.first_seed),
+               "--commit-every", str(cfg.commit_every), "--commit-seconds", str(cfg.commit_seconds),
+               "--ledger", str(ledger.path), "--writers", "1", "--encoder-threads", str(cfg.encoder_threads),
+               "--vcodec", cfg.vcodec, *([] if cfg.video else ["--no-video"]),
+               "--server", *urls[i::writers]]
+        # A writer gets SIGINT (commit, exit) when the recorder dies, even by kill -9.
+        procs.append(subprocess.Popen(cmd, env=env, preexec_fn=partial(signal_on_parent_death, signal.SIGINT)))
+    log.info("%d writers record %d episodes into shards of %s", writers, cfg.episodes - before, store.shards_dir)
+    codes: list[int | None] = [None] * writers
+    try:
+        # The merge below runs LeRobot's aggregation, whose import (6 s on 2 cores) came after the last writer had
+        # finished: the merged dataset followed it by 8 s on 2 cores and 14 s on the H200 machine, of which the merge
+        # itself took 1 and 3.6 s. Imported here, it overlaps the writers.
+        import lerobot.datasets.aggregate  # noqa: F401
+        last_report, stopping, gave_up = time.monotonic(), False, False
+        while any(c is None for c in codes):
+            codes = [p.poll() for p in procs]
+            if not stopping and any(c not in (None, 0) for c in codes):
+                log.error("a writer stopped (exit codes %s): stopping the others", [c for c in codes if c is not None])
+                _interrupt(procs)
+                stopping = True
+            if not stopping and cfg.give_up_after and not before:
+                kept, played, _ = ledger.tally()
+                if not kept and played >= cfg.give_up_after:
+                    log.error("%s succeeded in none of the first %d episodes of %s: nothing to record; check --policy "
+                              "and the condition (--give-up-after 0 never gives up)", store.config.policy, played,
+                              store.config.condition.key)
+                    _interrupt(procs)
+                    stopping = gave_up = True
+            if time.monotonic() - last_report >= PROGRESS_EVERY_S:
+                last_report = time.monotonic()
+                _report(ledger, cfg.episodes, before, started)
+            time.sleep(0.2)
+    except KeyboardInterrupt:  # the writers commit what they hold, and what continues the dataset is merged below
+        _interrupt(procs)
+        codes = [p.wait() for p in procs] + [130]
+    store.settle(cfg.episodes)
+    elapsed = time.monotonic() - started
+    log.info("done: %d/%d saved in %s | %.3f demos/s saved by %d writers", store.saved, cfg.episodes, cfg.out,
+             (store.saved - before) / elapsed, writers)
+    store.close()
+    if store.saved:
+        report_targets(cfg.out)
+    if gave_up:
+        return 1
+    if all(c == 0 for c in codes) and store.saved >= cfg.episodes:
+        return 0
+    log.info("the recording stopped early (writers' exit codes %s); rerun the same command to continue", codes)
+    return 130 if 130 in codes else 1
+
+
+def _interrupt(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+
+
+def _report(ledger: Ledger, target: int, before: int, started: float) -> None:
+    kept, played, blocks = ledger.tally()
+    rate = (kept - before) / max(time.monotonic() - started, 1e-9)
+    eta = time.strftime("%H:%M:%S", time.gmtime((target - kept) / rate)) if rate > 0 else "?"
+    log.info("progress: %d/%d saved | %d seeds played in %d blocks | %.3f demos/s saved | ETA %s", kept, target,
+             played, blocks, rate, eta)
+
+
+class _BlockSeeds:
+    """A writer's seeds: consecutive ones from the blocks it takes from the ledger, one block after another
+    (`reserve`, called from the episode source's thread)."""
+
+    def __init__(self, ledger: Ledger):
+        self.ledger = ledger
+        self.taken: list[tuple[int, int]] = []
+        self.issued = 0
+        self.spent = threading.Event()  # the ledger will hand out no block again
+        self._next = 0
+
+    def reserve(self, n: int) -> list[int]:
+        seeds: list[int] = []
+        while len(seeds) < n and not self.spent.is_set():
+            if not self.taken or self._next >= self.taken[-1][1]:
+                block = self.ledger.take()
+                if block is None:  # asked again when the source next wants seeds (every second while it has none)
+                    if self.ledger.done():
+                        self.spent.set()
+                    break
+                self.taken.append(block)
+                self._next = block[0]
+            k = min(n - len(seeds), self.taken[-1][1] - self._next)
+            seeds.extend(range(self._next, self._next + k))
+            self._next += k
+        self.issued += len(seeds)
+        return seeds
+
+    def block_of(self, seed: int) -> tuple[int, int]:
+        return next(b for b in reversed(self.taken) if b[0] <= seed < b[1])
+
+
+def write_blocks(cfg: RecordConfig, recording: Recording) -> int:
+    """A writer of `record --writers K` (`record --ledger`): take blocks of seeds from the ledger, play them on
+    --server, keep each block's demos that are the dataset's (`Ledger.verdict`) in a shard under --out (the
+    recorder's shards directory), and stop when the ledger has no block left or a seed lies beyond the dataset."""
+    ledger = Ledger(cfg.ledger)
+    seeds = _BlockSeeds(ledger)
+    source = EpisodeSource(list(cfg.server), seeds.reserve, SEED_LIMIT,
+                           check_server=lambda url, info: check_server(recording, url, info), token=cfg.token).start()
+    store: DatasetStore | None = None
+    block: tuple[int, int] | None = None
+    got = 0
+
+    def close_block(played_to: int | None = None) -> None:
+        """Commit the block's shard and tell the ledger it is done (played to `played_to`: by default the seed after
+        the last one written or counted; its end once a later block's episode came, all of its seeds resolved)."""
+        nonlocal store
+        if store is None:
+            return
+        store.close(give_back=True)
+        c = store.counters
+        played_to = store.played_to if played_to is None else played_to
+        ledger.report(block[0], played_to, c["saved"], c["attempted"], c["failed"], done=True)
+        if played_to > block[0]:
+            log.info("seeds %d-%d: kept %d of %d played", block[0], played_to - 1, c["saved"], c["attempted"])
+        else:
+            log.info("seeds from %d on: not needed (the dataset's demos all lie below)", block[0])
+        store = None
+
+    try:
+        while True:
+            try:
+                episode = source.get(timeout=0.5)
+            except queue.Empty:
+                if not seeds.spent.is_set() and ledger.done():  # (sooner than the source's next ask for seeds)
+                    seeds.spent.set()
+                if seeds.spent.is_set() and got + source.lost >= seeds.issued:
+                    close_block(block[1] if block else None)
+                    return 0
+                continue
+            got += 1
+            if block is None or not block[0] <= episode.seed < block[1]:
+                close_block(block[1] if block else None)
+                block = seeds.block_of(episode.seed)
+                store = DatasetStore(cfg.out / f"{block[0]:010d}", recording, commit_every=cfg.commit_every,
+                                     commit_seconds=cfg.commit_seconds, seeds_from=block[0],
+                                     encoder_threads=cfg.encoder_threads or None)
+            verdict = ledger.verdict(episode.seed, episode.success)
+            if verdict == WAIT:  # an earlier block still in play decides whether this demo is the dataset's
+                c = store.counters  # (seeds given up below this one count as played: the others may wait on us)
+                ledger.report(block[0], episode.seed, store.saved + store.pending, c["attempted"], c["failed"])
+                while (verdict := ledger.verdict(episode.seed, episode.success)) == WAIT:
+                    time.sleep(0.2)
+            if verdict == STOP:
+                close_block(episode.seed)
+                return 0
+            store.count(episode.success, episode.seed)
+            if episode.success and episode.has_frames:
+                store.add(episode)
+            c = store.counters
+            ledger.report(block[0], store.played_to, store.saved + store.pending, c["attempted"], c["failed"])
+    except KeyboardInterrupt:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the commit short
+        close_block()
+        return 130
+    except ServerError as e:
+        log.error("%s", e)
+        close_block()
+        return 1
+    except BaseException:
+        if store is not None:
+            store.close(commit=False)
+        raise
+    finally:
+        source.stop()
