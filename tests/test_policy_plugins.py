@@ -138,8 +138,8 @@ def test_record_takes_a_plugin_expert_and_gives_up_on_one_that_never_succeeds(si
     cli = [sys.executable, "-m", "vla_ladder.cli", "record", "--regime", "small_jitter", "--num-objects", "2",
            "--episodes", "1"]
     out = tmp_path / "demos"
-    done = subprocess.run(cli + ["--workers", "1", "--policy", "my-expert", "--out", str(out)], env=env, capture_output=True, text=True,
-                          timeout=600)
+    done = subprocess.run(cli + ["--workers", "1", "--policy", "my-expert", "--out", str(out)], env=env,
+                          capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert read_recording_state(out)["config"]["policy"] == "my-expert" and len(read_provenance(out)) == 1
 
