@@ -143,7 +143,8 @@ def _robot_mesh(prov: pd.DataFrame, state: dict) -> str:
 
 
 def _seeds(config: dict, state: dict, prov: pd.DataFrame) -> str:
-    played = f"seeds {config['first_seed']} to {int(state['next_seed']) - 1} were reserved, each played at most once"
+    end = int(state.get("played_to", state["next_seed"]))  # (recordings before played_to was kept: seeds reserved)
+    played = f"seeds {config['first_seed']} to {end - 1} were played, each episode recorded at most once"
     if not len(prov):
         return played + "."
     return (f"{played}; the recorded episodes have seeds {int(prov['seed'].min())} to "

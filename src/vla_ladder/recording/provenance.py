@@ -110,6 +110,7 @@ def _derived_state(states: list[dict], episodes: int, sources: list) -> dict:
     counters = {k: sum(int(s["counters"].get(k, 0)) for s in states) for k in ("attempted", "failed")}
     return {"format": FORMAT_VERSION, "config": first["config"],
             "next_seed": max(int(s["next_seed"]) for s in states),
+            "played_to": max(int(s.get("played_to", s["next_seed"])) for s in states),
             "counters": {"saved": episodes, **counters, "commits": 0},
             "object_set": first.get("object_set"),
             "updated": datetime.now(timezone.utc).isoformat(timespec="seconds"),
