@@ -117,6 +117,8 @@ def test_eval_plays_a_plugin_in_worker_processes(site, tmp_path):
     done = subprocess.run(cli + ["--policy", "constant:0,0,0.2,0,0,0,1", "--out", str(out)], env=env,
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
+    # The fixture's misnamed plugins are said once, by the command, not again by each worker.
+    assert done.stderr.count("policy plugin 'ppo' (failing_plugin:make) skipped") == 1, done.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["policy"] == {"name": "constant", "action": pytest.approx([0, 0, 0.2, 0, 0, 0, 1])}
     rows = pd.read_parquet(out / "episodes.parquet")

@@ -12,6 +12,7 @@ kinds of their own through the `vla_ladder.policies` entry-point group (`policy_
 from __future__ import annotations
 
 import functools
+import multiprocessing
 import sys
 from abc import ABC, abstractmethod
 from importlib.metadata import EntryPoint, entry_points
@@ -70,8 +71,9 @@ def policy_kinds() -> dict[str, str]:
     for ep in entry_points(group=PLUGIN_GROUP):
         if ep.name in kinds or not ep.name or any(c in ep.name for c in ":?/ "):
             why = "a built-in kind's" if ep.name in kinds else "not one a spec can hold (no ':', '?', '/', ' ')"
-            print(f"[vla-ladder] warning: policy plugin {ep.name!r} ({ep.value}) skipped: its name is {why}",
-                  file=sys.stderr)
+            if multiprocessing.parent_process() is None:  # said once, not again by each of --workers N
+                print(f"[vla-ladder] warning: policy plugin {ep.name!r} ({ep.value}) skipped: its name is {why}",
+                      file=sys.stderr)
         else:
             kinds[ep.name] = ep.value
     return kinds
