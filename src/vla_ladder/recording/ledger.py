@@ -29,7 +29,7 @@ from vla_ladder.checks import SEED_LIMIT
 
 KEEP, STOP, WAIT = "keep", "stop", "wait"
 # Blocks are sized so that the writers' blocks together should hold the demos still missing, at the success rate
-# seen so far, at most this many seeds: each block is a shard to merge at the end (hundreds merge in seconds).
+# seen so far, at most this many seeds: each block is a shard, one more source for the merge at the end.
 MAX_BLOCK = 1000
 
 
