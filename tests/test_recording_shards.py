@@ -124,6 +124,17 @@ def test_the_ledger_keeps_waits_and_stops(tmp_path):
     assert Ledger(path).blocks() == [] and stale.take() is None
 
 
+def test_the_ledger_hands_out_no_seed_past_the_last_numpy_seed(tmp_path):
+    """Writers near 2**32 get the seeds that are left, then the ledger is done (the recorder says no seeds are
+    left), never a seed >= 2**32."""
+    from vla_ladder.recording.ledger import Ledger
+
+    ledger = Ledger.begin(tmp_path / "ledger.json", {}, target=5, writers=2, base_seed=2**32 - 3, base_saved=0,
+                          blocks=[])
+    assert not ledger.done() and ledger.take() == (2**32 - 3, 2**32)
+    assert ledger.done() and ledger.take() is None
+
+
 def test_seed_book_stops_at_the_last_numpy_seed(tmp_path):
     """Failed attempts use seeds too, so a recording that starts near 2**32 can run out: the book hands out the
     seeds that are left, then refuses in a line that says what to do, never a seed >= 2**32."""

@@ -85,8 +85,13 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writer
         report_targets(cfg.out)
     if gave_up:
         return 1
-    if all(c == 0 for c in codes) and store.saved >= cfg.episodes:
-        return 0
+    if all(c == 0 for c in codes):
+        if store.saved >= cfg.episodes:
+            return 0
+        # (the writers end with the target short only when the ledger ran out of seeds)
+        log.error("no seeds left: the recording has used every seed from --first-seed %d to 2**32 - 1; record the "
+                  "missing demos into another --out with a lower --first-seed", cfg.first_seed)
+        return 1
     log.info("the recording stopped early (writers' exit codes %s); rerun the same command to continue", codes)
     return 130 if 130 in codes else 1
 
