@@ -29,7 +29,8 @@ from vla_ladder.checks import SEED_LIMIT
 
 KEEP, STOP, WAIT = "keep", "stop", "wait"
 # Blocks are sized so that the writers' blocks together should hold the demos still missing, at the success rate
-# seen so far, at most this many seeds: each block is a shard, one more source for the merge at the end.
+# seen so far, at most this many seeds: each block is a shard, one more source for the merge at the end (0.32-0.37 s
+# a shard on 2 cores, benchmarks/results/merge_speed_cpu.json).
 MAX_BLOCK = 1000
 
 
@@ -100,9 +101,12 @@ class Ledger:
             played = sum(b.played_to - b.start for b in blocks)
             rate = (sum(b.saved for b in blocks) + 1) / (played + 1)  # (with one success and one seed assumed)
             in_play = sum(b.end - b.played_to for b in blocks if not b.done)
-            if saved + rate * in_play >= led["target"]:
+            short = led["target"] - saved - rate * in_play  # demos the seeds in play are not expected to hold
+            if short <= 0:
                 return None
-            size = max(1, min(MAX_BLOCK, math.ceil((led["target"] - saved) / rate / led["writers"])))
+            # a writer's share of what is missing, and near the end no more than the shortfall
+            size = max(1, min(MAX_BLOCK, math.ceil((led["target"] - saved) / rate / led["writers"]),
+                              math.ceil(short / rate)))
             start, end = self._first_unplayed(base_seed, blocks, led["next_seed"], size)
             if start >= SEED_LIMIT:
                 return None
