@@ -61,8 +61,8 @@ def demo(seed: int):
               "metrics": {"success": True, "grasp_any": True, "reach": True, "lifted": True, "held": layout.target,
                           "reach_dist": 0.0}}
     frames = np.repeat(image[None], EPISODE_STEPS, axis=0)
-    return Episode(seed, header, {"hand_camera": frames, "fixed_camera": frames},
-                   np.full((EPISODE_STEPS, 15), seed, np.float32), np.zeros((EPISODE_STEPS, 7), np.float32), "synthetic")
+    state, action = np.full((EPISODE_STEPS, 15), seed, np.float32), np.zeros((EPISODE_STEPS, 7), np.float32)
+    return Episode(seed, header, {"hand_camera": frames, "fixed_camera": frames}, state, action, "synthetic")
 
 
 def merge(work: Path, n_shards: int, per_shard: int) -> dict:

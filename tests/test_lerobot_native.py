@@ -100,8 +100,9 @@ def test_card_says_what_was_recorded(recorded):
     root, first_card = recorded
     card = (root / "README.md").read_text()
     assert card.startswith("---\n") and "- robotics" in card and "data_files: data/*/*.parquet" in card
-    for fact in ("`small_jitter/canonical/2`", "`scripted`", "`standin`", "robot mesh `lite`", "seeds 0 to 3 were played",
-                 "**Episodes**: 4 (80 frames)", "vla-ladder 0.1.0", "lerobot 0.6.1", "mani-skill 3.0.1"):
+    for fact in ("`small_jitter/canonical/2`", "`scripted`", "`standin`", "robot mesh `lite`",
+                 "seeds 0 to 3 were played", "**Episodes**: 4 (80 frames)", "vla-ladder 0.1.0", "lerobot 0.6.1",
+                 "mani-skill 3.0.1"):
         assert fact in card, fact
     # What third-party card checks look for (lerobot-quality-gates): robot, sensors, tasks, limitations, synthetic.
     for word in ("Robot", "Sensors", "Tasks", "Limitations", "Synthetic"):
