@@ -89,3 +89,9 @@ def read_provenance(root: str | os.PathLike) -> pd.DataFrame:
 def read_recording_state(root: str | os.PathLike) -> dict | None:
     path = Path(root) / RECORDING_FILE
     return json.loads(path.read_text()) if path.exists() else None
+
+
+def played_to(state: dict) -> int:
+    """Where a recording whose state this is plays on: the seed after the last one written or counted failed
+    (recordings before it was kept: the next seed reserved, which skips the seeds a kill left in flight)."""
+    return int(state.get("played_to", state["next_seed"]))

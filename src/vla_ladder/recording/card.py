@@ -22,7 +22,8 @@ from vla_ladder import files
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import (ACTION_NAMES, CAMERAS, CONTROL_HZ, CONTROL_MODE, EPISODE_STEPS, METRICS, ROBOT,
                                  STATE_NAMES)
-from vla_ladder.recordings import DEFAULT_VCODEC, PROVENANCE_DIR, RECORDING_FILE, read_provenance, read_recording_state
+from vla_ladder.recordings import (DEFAULT_VCODEC, PROVENANCE_DIR, RECORDING_FILE, played_to, read_provenance,
+                                   read_recording_state)
 from vla_ladder.task.objects import OBJECTS
 
 CARD_FILE = "README.md"
@@ -143,8 +144,7 @@ def _robot_mesh(prov: pd.DataFrame, state: dict) -> str:
 
 
 def _seeds(config: dict, state: dict, prov: pd.DataFrame) -> str:
-    end = int(state.get("played_to", state["next_seed"]))  # (recordings before played_to was kept: seeds reserved)
-    played = f"seeds {config['first_seed']} to {end - 1} were played, each episode recorded at most once"
+    played = f"seeds {config['first_seed']} to {played_to(state) - 1} were played, each episode recorded at most once"
     if not len(prov):
         return played + "."
     return (f"{played}; the recorded episodes have seeds {int(prov['seed'].min())} to "

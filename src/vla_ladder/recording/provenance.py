@@ -24,7 +24,7 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.contract import ACTION_KEY, STATE_KEY
-from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, read_provenance,
+from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, played_to, read_provenance,
                                    read_recording_state)
 
 REBUILT_SHARD = "rebuilt.parquet"
@@ -110,7 +110,7 @@ def _derived_state(states: list[dict], episodes: int, sources: list) -> dict:
     counters = {k: sum(int(s["counters"].get(k, 0)) for s in states) for k in ("attempted", "failed")}
     return {"format": FORMAT_VERSION, "config": first["config"],
             "next_seed": max(int(s["next_seed"]) for s in states),
-            "played_to": max(int(s.get("played_to", s["next_seed"])) for s in states),
+            "played_to": max(map(played_to, states)),
             "counters": {"saved": episodes, **counters, "commits": 0},
             "object_set": first.get("object_set"),
             "updated": datetime.now(timezone.utc).isoformat(timespec="seconds"),

@@ -49,8 +49,8 @@ from vla_ladder import files
 from vla_ladder.checks import SEED_LIMIT
 from vla_ladder.conditions import Condition
 from vla_ladder.recording.ledger import Block, Ledger
-from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, Recording, read_provenance,
-                                   read_recording_state)
+from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, Recording, played_to,
+                                   read_provenance, read_recording_state)
 from vla_ladder.contract import (ACTION_KEY, CAMERAS, CONTROL_HZ, EPISODE_STEPS, STATE_KEY, contract_changes,
                                   dataset_features, fingerprint)
 
@@ -98,7 +98,7 @@ class DatasetStore:
         self.object_set: str | None = state.get("object_set") if state else None
         # A resume plays again from the seed after the last one committed (written or counted failed): those a kill
         # left in flight were never written, and played again they make the dataset the one recorded in one go.
-        floor = max(config.first_seed, seeds_from, _played_to(state) if state else 0)
+        floor = max(config.first_seed, seeds_from, played_to(state) if state else 0)
         self.seeds = SeedBook(self.work / "seeds.json", config, floor)
         self._unused_from = floor  # after the last seed written or counted failed: none from there reached the dataset
         self.pending = 0
@@ -182,7 +182,7 @@ class DatasetStore:
             state = read_recording_state(shard)
             if state is not None:
                 c = state["counters"]
-                found[int(shard.name)] = Block(int(shard.name), _played_to(state), _played_to(state), c["saved"],
+                found[int(shard.name)] = Block(int(shard.name), played_to(state), played_to(state), c["saved"],
                                                c["attempted"], c["failed"], True)
         return [b for _, b in sorted(found.items()) if b.start >= self.played_to and b.played_to > b.start]
 
@@ -319,12 +319,12 @@ class DatasetStore:
         """
         if self.pending:
             self.commit()
-        counters, played_to = dict(self.counters), self._unused_from
+        counters, unused_from = dict(self.counters), self._unused_from
         try:
             self._merge(blocks)
         except BaseException:  # DATASET_DIR is as it was: so is this store
-            self.counters, self._unused_from = counters, played_to
-            self.seeds.start_at(played_to)
+            self.counters, self._unused_from = counters, unused_from
+            self.seeds.start_at(unused_from)
             raise
 
     def _merge(self, blocks: list[Block]) -> None:
@@ -554,12 +554,6 @@ def wait_for_writer(shard: Path, timeout_s: float = 300.0) -> None:
                     said = True
                 time.sleep(0.2)
         fcntl.flock(f, fcntl.LOCK_UN)
-
-
-def _played_to(state: dict) -> int:
-    """Where a committed recording plays on: the seed after the last one written or counted failed (formats before
-    it was kept: the next seed reserved, which skips the seeds a kill left in flight)."""
-    return int(state.get("played_to", state["next_seed"]))
 
 
 def _remove_shard(shard: Path) -> None:
