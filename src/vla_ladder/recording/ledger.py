@@ -77,27 +77,30 @@ class Ledger:
     def _read(self) -> dict:
         return json.loads(self.path.read_text())
 
+    def _state(self) -> tuple[dict, list[Block], int]:
+        """The ledger (read under the caller's lock), its blocks, and the demos kept in all, the dataset's and
+        theirs."""
+        led = self._read()
+        blocks = [Block(**b) for b in led["blocks"]]
+        return led, blocks, led["base"][1] + sum(b.saved for b in blocks)
+
     def blocks(self) -> list[Block]:
         with self._locked():
-            return [Block(**b) for b in self._read()["blocks"]]
+            return self._state()[1]
 
     def tally(self) -> tuple[int, int, int]:
         """(demos kept in all, seeds played this run, blocks taken)."""
         with self._locked():
-            led = self._read()
-        blocks = [Block(**b) for b in led["blocks"]]
-        return led["base"][1] + sum(b.saved for b in blocks), sum(b.played_to - b.start for b in blocks), len(blocks)
+            _, blocks, saved = self._state()
+        return saved, sum(b.played_to - b.start for b in blocks), len(blocks)
 
     def take(self) -> tuple[int, int] | None:
         """A block of seeds for a writer, the lowest unplayed first; None while the seeds in play are expected to
         hold the demos still missing (at the success rate so far, as one writer asks for seeds), and once `done`."""
         with self._locked():
-            led = self._read()
+            led, blocks, saved = self._state()
             if led["run"] != self.run:
                 return None
-            blocks = [Block(**b) for b in led["blocks"]]
-            base_seed, base_saved = led["base"]
-            saved = base_saved + sum(b.saved for b in blocks)
             played = sum(b.played_to - b.start for b in blocks)
             rate = (sum(b.saved for b in blocks) + 1) / (played + 1)  # (with one success and one seed assumed)
             in_play = sum(b.end - b.played_to for b in blocks if not b.done)
@@ -107,7 +110,7 @@ class Ledger:
             # a writer's share of what is missing, and near the end no more than the shortfall
             size = max(1, min(MAX_BLOCK, math.ceil((led["target"] - saved) / rate / led["writers"]),
                               math.ceil(short / rate)))
-            start, end = self._first_unplayed(base_seed, blocks, led["next_seed"], size)
+            start, end = self._first_unplayed(led["base"][0], blocks, led["next_seed"], size)
             if start >= SEED_LIMIT:
                 return None
             led["next_seed"] = max(led["next_seed"], end)
@@ -130,9 +133,7 @@ class Ledger:
         """Whether the demos kept reached the target (or the seeds below 2**32 ran out): no block will be handed
         out again in this run."""
         with self._locked():
-            led = self._read()
-        blocks = [Block(**b) for b in led["blocks"]]
-        saved = led["base"][1] + sum(b.saved for b in blocks)
+            led, blocks, saved = self._state()
         return (led["run"] != self.run or saved >= led["target"]
                 or self._first_unplayed(led["base"][0], blocks, led["next_seed"], 1)[0] >= SEED_LIMIT)
 
