@@ -210,6 +210,27 @@ def test_attempts_after_the_last_commit_are_counted(tmp_path):
     again.close()
 
 
+def test_closing_a_closed_store_changes_nothing(tmp_path):
+    """A Ctrl-C while the recorder reports, after it closed the store, closes it again: nothing may be written then,
+    since the dataset may already be another recorder's (it raised on the closed lock file and ended the recorder in
+    a traceback instead of its exit code)."""
+    root = tmp_path / "twice"
+    store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=10)
+    for seed in store.reserve_seeds(3):
+        store.count(True, seed)
+        store.add(synthetic_episode(seed))
+    store.close(give_back=True)
+    other = DatasetStore(root, Recording(**CONFIG, video=False))  # the lock was released: the next recorder
+    (seed,) = other.reserve_seeds(1)
+    other.count(False, seed)
+    state = read_recording_state(root)
+    store.close(give_back=True)
+    store.close(commit=False)
+    assert read_recording_state(root) == state and state["counters"]["saved"] == 3
+    other.close(give_back=True)
+    assert read_recording_state(root)["counters"]["attempted"] == 4 and read_recording_state(root)["next_seed"] == 4
+
+
 def test_parallel_writers_start_after_the_datasets_seeds(tmp_path):
     """The work directory (and the ledger and seed book in it) may be deleted between runs: the ledger of parallel
     writers starts from the dataset's own state (they replayed seeds from --first-seed, recording episodes twice)."""

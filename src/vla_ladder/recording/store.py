@@ -415,7 +415,10 @@ class DatasetStore:
         interrupted add() are dropped: LeRobot's files may then be out of step (Ctrl-C waits for add() to end).
         `give_back`: the seeds after the last one written or counted failed, reserved but in flight when the recording
         stopped, are the next seeds handed out (a resume plays on from there in any case); only where episodes are
-        counted in seed order (`record`'s writer)."""
+        counted in seed order (`record`'s writer). Closing a closed store does nothing: a Ctrl-C after the recorder
+        closed it (while it reports) closes it again, when the lock may be another recorder's."""
+        if self._lock_file.closed:
+            return
         if commit and self._writing:
             log.warning("interrupted while writing an episode: dropping the %d pending episodes", self.pending)
             commit = False
