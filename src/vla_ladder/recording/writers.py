@@ -154,9 +154,10 @@ def write_blocks(cfg: RecordConfig, recording: Recording) -> int:
     block: tuple[int, int] | None = None
     got = 0
 
-    def close_block(played_to: int | None = None) -> None:
+    def close_block(played_to: int | None = None, stopped: bool = False) -> None:
         """Commit the block's shard and tell the ledger it is done (played to `played_to`: by default the seed after
-        the last one written or counted; its end once a later block's episode came, all of its seeds resolved)."""
+        the last one written or counted; its end once a later block's episode came, all of its seeds resolved);
+        `stopped`: the ledger said the dataset's demos all lie below `played_to`."""
         nonlocal store
         if store is None:
             return
@@ -166,8 +167,10 @@ def write_blocks(cfg: RecordConfig, recording: Recording) -> int:
         ledger.report(block[0], played_to, c["saved"], c["attempted"], c["failed"], done=True)
         if played_to > block[0]:
             log.info("seeds %d-%d: kept %d of %d played", block[0], played_to - 1, c["saved"], c["attempted"])
-        else:
+        elif stopped:
             log.info("seeds from %d on: not needed (the dataset's demos all lie below)", block[0])
+        else:  # (interrupted before its first episode came: a rerun plays them)
+            log.info("seeds from %d on: none played", block[0])
         store = None
 
     try:
@@ -195,7 +198,7 @@ def write_blocks(cfg: RecordConfig, recording: Recording) -> int:
                 while (verdict := ledger.verdict(episode.seed, episode.success)) == WAIT:
                     time.sleep(0.2)
             if verdict == STOP:
-                close_block(episode.seed)
+                close_block(episode.seed, stopped=True)
                 return 0
             store.count(episode.success, episode.seed)
             if episode.success and episode.has_frames:
