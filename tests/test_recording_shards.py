@@ -362,6 +362,47 @@ def test_record_with_two_writers_killed_then_rerun(tmp_path):
     assert state["played_to"] == state_alone["played_to"] == alone["seed"].max() + 1
 
 
+def test_record_with_two_writers_stopped_by_ctrl_c_then_rerun(tmp_path):
+    """A Ctrl-C at the terminal (SIGINT to the recorder's process group: the recorder and its writers) once a writer
+    committed: the writers commit what they hold, the recorder merges what continues the dataset and exits with 130,
+    saying to rerun; the rerun records the rest. Every seed from --first-seed to where the dataset ends was played
+    once, and its successes are the dataset's, in seed order."""
+    import os
+    import signal
+    import subprocess
+
+    from test_recording import CONDITION, ENV, _alive, _children, _cli, _wait_for
+
+    root, log = tmp_path / "grasp", tmp_path / "record.log"
+    first = 500
+    cmd = _cli("record", *CONDITION, "--episodes", "6", "--out", str(root), "--first-seed", str(first),
+               "--workers", "2", "--writers", "2", "--commit-every", "1")
+    with open(log, "w") as out:
+        proc = subprocess.Popen(cmd, env=ENV, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            _wait_for(lambda: "committed: 1 episodes" in log.read_text(), 900, "a writer's first commit", proc)
+            children = _children(proc.pid)
+            os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does to its foreground group
+            assert proc.wait(timeout=300) == 130, log.read_text()[-3000:]
+        finally:
+            proc.kill()
+    text = log.read_text()
+    assert "the recording stopped early (interrupted); rerun the same command" in text, text[-3000:]
+    assert "Traceback" not in text, text[-3000:]
+    _wait_for(lambda: not any(_alive(p) for p in children), 60, "the recorder's children to exit")
+    if root.exists():  # what continued the dataset from --first-seed was merged, in seed order
+        seeds = read_provenance(root)["seed"].tolist()
+        assert seeds == sorted(seeds) and seeds[0] == first
+
+    rerun = subprocess.run(cmd, env=ENV, capture_output=True, text=True)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    prov, state = read_provenance(root), read_recording_state(root)
+    assert len(prov) == 6 == state["counters"]["saved"] and prov["seed"].tolist() == sorted(prov["seed"])
+    c = state["counters"]
+    assert state["played_to"] == prov["seed"].max() + 1
+    assert c["attempted"] == state["played_to"] - first == c["saved"] + c["failed"], "a seed unplayed or played twice"
+
+
 def test_a_shard_of_another_recording_or_task_contract_cannot_join(tmp_path):
     """A shard recorded with other arguments, or under another task contract, is refused before LeRobot merges
     anything, the difference named; the dataset stays as it was."""

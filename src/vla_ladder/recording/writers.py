@@ -49,6 +49,7 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writer
         procs.append(subprocess.Popen(cmd, env=env, preexec_fn=partial(signal_on_parent_death, signal.SIGINT)))
     log.info("%d writers record %d episodes into shards of %s", writers, cfg.episodes - before, store.shards_dir)
     codes: list[int | None] = [None] * writers
+    interrupted = False
     try:
         # The merge below runs LeRobot's aggregation, whose import (6 s on 2 cores) came after the last writer had
         # finished: the merged dataset followed it by 8 s on 2 cores and 14 s on the H200 machine, of which the merge
@@ -75,25 +76,26 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writer
             time.sleep(0.2)
     except KeyboardInterrupt:  # the writers commit what they hold, and what continues the dataset is merged below
         _interrupt(procs)
-        codes = [p.wait() for p in procs] + [130]
+        codes, interrupted = [p.wait() for p in procs], True
     store.settle(cfg.episodes)
     elapsed = time.monotonic() - started
-    log.info("done: %d/%d saved in %s | %.3f demos/s saved by %d writers", store.saved, cfg.episodes, cfg.out,
+    log.info("%s %d/%d saved in %s | %.3f demos/s saved by %d writers",
+             "done:" if store.saved >= cfg.episodes else "stopped:", store.saved, cfg.episodes, cfg.out,
              (store.saved - before) / elapsed, writers)
     store.close()
     if store.saved:
         report_targets(cfg.out)
     if gave_up:
         return 1
-    if all(c == 0 for c in codes):
-        if store.saved >= cfg.episodes:
-            return 0
-        # (the writers end with the target short only when the ledger ran out of seeds)
+    if store.saved >= cfg.episodes:
+        return 0
+    if not interrupted and all(c == 0 for c in codes):  # (the writers end short only when the seeds ran out)
         log.error("no seeds left: the recording has used every seed from --first-seed %d to 2**32 - 1; record the "
                   "missing demos into another --out with a lower --first-seed", cfg.first_seed)
         return 1
-    log.info("the recording stopped early (writers' exit codes %s); rerun the same command to continue", codes)
-    return 130 if 130 in codes else 1
+    log.info("the recording stopped early (%s); rerun the same command to continue",
+             "interrupted" if interrupted else f"writers' exit codes {codes}")
+    return 130 if interrupted or 130 in codes else 1
 
 
 def _interrupt(procs: list[subprocess.Popen]) -> None:
