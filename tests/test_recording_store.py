@@ -231,6 +231,54 @@ def test_closing_a_closed_store_changes_nothing(tmp_path):
     assert read_recording_state(root)["counters"]["attempted"] == 4 and read_recording_state(root)["next_seed"] == 4
 
 
+def test_a_growing_datasets_quantiles_are_refreshed_by_a_tenth_and_exact_when_it_stops(tmp_path):
+    """Each computation of stats.json's quantiles reads every frame, so a commit keeps the last ones until the
+    dataset has grown by more than a tenth: at every commit they are exactly those of the first `quantile_frames`
+    frames (the recording state), at least 1/1.1 of them, and the card says so; a recorder that stops leaves them
+    over all frames. The card, written from the provenance the store keeps between commits, is the one written
+    from the files on disk."""
+    import json
+
+    from vla_ladder.contract import ACTION_KEY, STATE_KEY
+    from vla_ladder.recording import card, stats
+
+    def check(root: Path) -> tuple[int, int]:
+        over = read_recording_state(root)["quantile_frames"]
+        total = json.loads((root / "meta/info.json").read_text())["total_frames"]
+        assert total <= over * (1 + stats.REFRESH_GROWTH)
+        values = stats.frames(root, [STATE_KEY, ACTION_KEY])
+        written = json.loads((root / stats.STATS_FILE).read_text())
+        for key in (STATE_KEY, ACTION_KEY):
+            for q in ("q01", "q10", "q50", "q90", "q99"):
+                np.testing.assert_allclose(written[key][q], np.quantile(values[key][:over], int(q[1:]) / 100, axis=0),
+                                           atol=1e-6, err_msg=f"{key} {q} over {over} of {total} frames")
+        text = (root / "README.md").read_text()
+        assert text == card.render(root), "the card written from the kept provenance differs"
+        assert ("computed over all frames" in text) == (over == total)
+        assert (f"the first {over} of the {total} frames" in text) == (over < total)
+        return over, total
+
+    root = tmp_path / "growing"
+    store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=1)
+    kept = 0
+    for seed in store.reserve_seeds(14):
+        store.count(True, seed)
+        store.add(synthetic_episode(seed))  # a commit each
+        over, total = check(root)
+        kept += over < total
+    assert kept >= 2, "no commit kept the quantiles: the test tests nothing"
+    store.close(give_back=True)
+    over, total = check(root)
+    assert over == total == 14 * FRAMES
+    again = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=1)  # resumed: the card from disk first
+    (seed,) = again.reserve_seeds(1)
+    again.count(True, seed)
+    again.add(synthetic_episode(seed))
+    assert check(root) == (14 * FRAMES, 15 * FRAMES)
+    again.close()
+    assert check(root) == (15 * FRAMES, 15 * FRAMES)
+
+
 def test_parallel_writers_start_after_the_datasets_seeds(tmp_path):
     """The work directory (and the ledger and seed book in it) may be deleted between runs: the ledger of parallel
     writers starts from the dataset's own state (they replayed seeds from --first-seed, recording episodes twice)."""
@@ -328,9 +376,9 @@ def test_ctrl_c_during_a_commit_waits_for_its_end(tmp_path, monkeypatch, python_
 
     real = card.write_card
 
-    def write_card(root):
+    def write_card(root, *args, **kwargs):
         os.kill(os.getpid(), signal.SIGINT)
-        return real(root)
+        return real(root, *args, **kwargs)
 
     monkeypatch.setattr(card, "write_card", write_card)
     root = tmp_path / "mid-commit"

@@ -39,17 +39,20 @@ _OBJECT_SETS = {
 }
 
 _CODEC_NAMES = {"libsvtav1": "AV1 (SVT-AV1)", "h264": "H.264"}
+COLUMNS = ("seed", "target", "instruction", "expert", "robot_mesh", "replayable")
+"""The provenance columns the card reads."""
 
 
-def description(root: str | Path) -> str:
-    """The card's body (Markdown) for the recording at `root`."""
+def description(root: str | Path, prov: pd.DataFrame | None = None) -> str:
+    """The card's body (Markdown) for the recording at `root`; `prov`: its provenance (at least COLUMNS), if the
+    caller has it (the recorder keeps it between commits: reading it is reading a file per commit)."""
     root = Path(root)
     info = json.loads((root / "meta/info.json").read_text())
     state = read_recording_state(root)
     if state is None:
         raise ValueError(f"{root} has no {RECORDING_FILE}: not a vla-ladder recording")
     config, counters, versions = state["config"], state["counters"], state.get("provenance", {})
-    prov = read_provenance(root)
+    prov = read_provenance(root) if prov is None else prov
     condition = Condition.parse(config["condition"])
     object_set = state.get("object_set") or "unknown"
     expert = json.loads(prov["expert"].iloc[0]) if len(prov) else {"spec": config["policy"]}
@@ -94,8 +97,8 @@ def description(root: str | Path) -> str:
         f"({', '.join(METRICS)}, lifted, held, reach_dist). vla-ladder reads these to train and evaluate by "
         "condition; LeRobot's editing tools (`lerobot-edit-dataset`) do not carry them: see vla-ladder's "
         "docs/datasets.md.",
-        "- `meta/stats.json`: the quantiles (q01...q99) of numeric features are computed over all frames, not "
-        "averaged over episodes as LeRobot does.",
+        "- `meta/stats.json`: the quantiles (q01...q99) of numeric features are computed over "
+        + _quantile_frames(state, info) + ", not averaged over episodes as LeRobot does.",
         "",
         "## Limitations",
         "",
@@ -107,6 +110,14 @@ def description(root: str | Path) -> str:
     if object_set == "standin":
         lines.append("- Stand-in objects, not the YCB meshes: a policy trained here sees simple shapes.")
     return "\n".join(lines) + "\n"
+
+
+def _quantile_frames(state: dict, info: dict) -> str:
+    over, total = state.get("quantile_frames"), info["total_frames"]
+    if over is None or over == total:
+        return "all frames"
+    return (f"the first {over} of the {total} frames (computed again over all frames when the recording stops, and "
+            "whenever the dataset has grown by a tenth)")
 
 
 def target_counts(prov: pd.DataFrame) -> dict[str, int]:
@@ -121,20 +132,21 @@ def missing_targets(counts: dict[str, int], at_least: int = 30) -> list[str]:
     return [name for name, n in counts.items() if n == 0] if sum(counts.values()) >= at_least else []
 
 
-def render(root: str | Path) -> str:
+def render(root: str | Path, prov: pd.DataFrame | None = None, name: str | None = None) -> str:
     """The whole README.md: the YAML header LeRobot's own cards carry (so the hub files it under robotics and
-    its viewer finds data/*/*.parquet), then `description`."""
+    its viewer finds data/*/*.parquet), then `description`. `name`: the dataset's, the title (default: root's; the
+    recorder writes the card into a staging copy, whose name it is not)."""
     from huggingface_hub import DatasetCardData
 
     header = DatasetCardData(license="apache-2.0", task_categories=["robotics"],
                              tags=["LeRobot", "vla-ladder", "GraspObject-v1", "ManiSkill3", "simulation", "synthetic"],
                              configs=[{"config_name": "default", "data_files": "data/*/*.parquet"}])
-    return f"---\n{header.to_yaml()}\n---\n\n# {Path(root).name}\n\n{description(root)}"
+    return f"---\n{header.to_yaml()}\n---\n\n# {name or Path(root).name}\n\n{description(root, prov)}"
 
 
-def write_card(root: str | Path) -> Path:
-    """(Re)write README.md in the dataset root, atomically."""
-    return files.write_text(Path(root) / CARD_FILE, render(root))
+def write_card(root: str | Path, prov: pd.DataFrame | None = None, name: str | None = None) -> Path:
+    """(Re)write README.md in the dataset root, atomically (`prov`: as in `description`; `name`: as in `render`)."""
+    return files.write_text(Path(root) / CARD_FILE, render(root, prov, name))
 
 
 def _robot_mesh(prov: pd.DataFrame, state: dict) -> str:

@@ -6,10 +6,11 @@ GraspObject-v1 recordings the gripper action is -1 (closed) for most of every ep
 so every episode's q10 sits at one of the two values and their average lands in between; it was off by up to
 0.73 from the quantile over all frames. pi0.5 normalises state and action with q01/q99 (its QUANTILES
 normalisation), so those numbers decide what the model sees. The recorder therefore rewrites the quantiles of
-every numeric feature at each commit from all frames in data/ (exact, numpy's linear interpolation);
+every numeric feature from all frames in data/ (exact, numpy's linear interpolation);
 min/max/mean/std/count are exact in LeRobot's aggregation and left as they are. Camera features keep the
 per-episode image statistics LeRobot's writer computes over every frame (recording/image_stats.py), aggregated by
-LeRobot (policies use mean/std or nothing for images, never quantiles).
+LeRobot (policies use mean/std or nothing for images, never quantiles). On a large dataset a commit keeps the last
+quantiles until the dataset has grown by a tenth (REFRESH_GROWTH).
 """
 
 from __future__ import annotations
@@ -19,11 +20,15 @@ import re
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from vla_ladder import files
 
 STATS_FILE = "meta/stats.json"
+# The recorder computes the quantiles again at a commit once the dataset holds this much more than when they were
+# last computed, and over all frames when it stops: each computation reads every frame (about 10 s for 100k demos),
+# so at every commit a recording toward 100k demos spent hours on them; between two, the quantiles are those of the
+# first frames, at least 1 / (1 + REFRESH_GROWTH) of them (the recording state's quantile_frames says how many).
+REFRESH_GROWTH = 0.1
 _QUANTILE = re.compile(r"^q(\d{2})$")
 _NOT_NUMERIC = ("image", "video", "string", "language")
 
@@ -40,14 +45,23 @@ def numeric_features(info: dict) -> list[str]:
 
 def frames(root: str | Path, keys: list[str]) -> dict[str, np.ndarray]:
     """Every frame's value of each key, as (frames, dim) float64 arrays, read from the dataset's Parquet files."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     paths = sorted(Path(root, "data").glob("*/*.parquet"))
     if not paths:
         raise ValueError(f"{root}: no data/*/*.parquet files; is it a LeRobotDataset v3?")
-    table = pd.concat([pd.read_parquet(p, columns=keys) for p in paths], ignore_index=True)
+    table = pa.concat_tables([pq.read_table(p, columns=keys) for p in paths])
     out = {}
     for k in keys:
-        col = table[k].to_numpy()
-        out[k] = (np.stack(col) if col.dtype == object else col[:, None]).astype(np.float64)
+        col = table[k].combine_chunks()
+        if pa.types.is_list(col.type) or pa.types.is_fixed_size_list(col.type):
+            # A vector per frame, all of one length: its values flat, without a numpy object per frame (stacking
+            # those took longer than the quantiles themselves).
+            flat = col.flatten().to_numpy(zero_copy_only=False)
+            out[k] = flat.reshape(len(col), -1).astype(np.float64)
+        else:
+            out[k] = col.to_numpy(zero_copy_only=False)[:, None].astype(np.float64)
     return out
 
 
@@ -68,6 +82,18 @@ def exact_quantiles(root: str | Path) -> dict[str, dict[str, list[float]]]:
                                  f"gives {v.shape}")
         out[k] = {q: v.tolist() for q, v in zip(qkeys, qs)}
     return out
+
+
+def copy_quantiles(src: str | Path, dst: str | Path) -> None:
+    """Put src's stats.json quantiles in dst's (atomically): a commit that adds a few demos to a large dataset keeps
+    the quantiles it had, which LeRobot's finalize replaced by its average (see REFRESH_GROWTH)."""
+    theirs = json.loads(Path(src, STATS_FILE).read_text())
+    stats = json.loads(Path(dst, STATS_FILE).read_text())
+    for k, feature in stats.items():
+        for q in quantile_keys(feature):
+            if q in theirs.get(k, {}):
+                feature[q] = theirs[k][q]
+    files.write_json(Path(dst, STATS_FILE), dict(sorted(stats.items())))
 
 
 def write_exact_quantiles(root: str | Path) -> dict[str, dict[str, list[float]]]:

@@ -96,6 +96,10 @@ class DatasetStore:
                                                                 "commits": 0}
         self._published = dict(self.counters)  # the counters DATASET_DIR's recording state holds
         self.object_set: str | None = state.get("object_set") if state else None
+        # The frames stats.json's quantiles are over (None: not known, computed again at the next commit), and the
+        # provenance columns the card reads, kept from commit to commit: both read the whole dataset otherwise.
+        self._quantile_frames: int | None = state.get("quantile_frames") if state else None
+        self._card_rows: pd.DataFrame | None = None
         # A resume plays again from the seed after the last one committed (written or counted failed): those a kill
         # left in flight were never written, and played again they make the dataset the one recorded in one go.
         floor = max(config.first_seed, seeds_from, played_to(state) if state else 0)
@@ -299,9 +303,10 @@ class DatasetStore:
             self._ds = None
             self.counters["commits"] += 1
             self.counters["saved"] = self.saved + self.pending
+            rows = pd.DataFrame(self._rows)
             files.write_parquet(self.staging / PROVENANCE_DIR / f"commit-{self.counters['commits']:06d}.parquet",
-                                pd.DataFrame(self._rows))
-            self._publish(self._state())
+                                rows)
+            self._publish(self._state(), rows)
             self.saved += self.pending
             self.pending = 0
             self._rows = []
@@ -377,21 +382,39 @@ class DatasetStore:
         files.write_parquet(provenance / f"commit-{self.counters['commits']:06d}.parquet",
                             pd.concat(rows, ignore_index=True))
         self.counters["saved"] = offset
-        self._publish({**self._state(), "merged_shards": sorted(self.shard(b.start).name for b in blocks)})
+        self._card_rows = None  # (the shards' rows: read with the dataset's)
+        self._publish({**self._state(), "merged_shards": sorted(self.shard(b.start).name for b in blocks)},
+                      exact=True)
         for b in blocks:
             _remove_shard(self.shard(b.start))
         log.info("merged %d shards: %d episodes in %s (%.2f s)", len(full), offset, self.root,
                  time.perf_counter() - t0)
         self.saved = offset
 
-    def _publish(self, state: dict) -> None:
-        """Write the recording state, quantiles over all frames and the card into staging, flush it, and swap
-        it with DATASET_DIR in one atomic step."""
+    def _publish(self, state: dict, rows: pd.DataFrame | None = None, exact: bool = False) -> None:
+        """Write the quantiles over the frames, the recording state and the card into staging, flush it, and swap
+        it with DATASET_DIR in one atomic step. `rows`: the provenance rows staging adds to DATASET_DIR's. The
+        quantiles are computed again over all frames when `exact`, or when the dataset has grown
+        by more than stats.REFRESH_GROWTH since they last were; otherwise DATASET_DIR's are kept (each computation
+        reads every frame: 10 s for 100k demos, benchmarks/commit_scaling.py)."""
+        from vla_ladder.recording import card, stats
+
+        frames = json.loads((self.staging / "meta/info.json").read_text())["total_frames"]
+        over = self._quantile_frames
+        if exact or over is None or frames > over * (1 + stats.REFRESH_GROWTH) or not self.root.exists():
+            stats.write_exact_quantiles(self.staging)
+            over = frames
+        else:
+            stats.copy_quantiles(self.root, self.staging)
+        state = {**state, "quantile_frames": over}
         files.write_json(self.staging / RECORDING_FILE, state)
         self._published = dict(state["counters"])
-        from vla_ladder.recording import card, stats  # quantiles over all frames, and the dataset card
-        stats.write_exact_quantiles(self.staging)
-        card.write_card(self.staging)
+        if self._card_rows is None:  # (once a process, and after a merge)
+            card_rows = read_provenance(self.staging)
+        else:
+            card_rows = pd.concat([self._card_rows, rows], ignore_index=True) if rows is not None else self._card_rows
+        card_rows = card_rows[[c for c in card.COLUMNS if c in card_rows]]
+        card.write_card(self.staging, card_rows, name=self.root.name)
         _fsync_tree(self.staging)
         if self.root.exists():
             if not any(self.root.iterdir()):
@@ -401,8 +424,22 @@ class DatasetStore:
         else:
             os.rename(self.staging, self.root)
         _fsync_dir(self.root.parent)
+        self._quantile_frames, self._card_rows = over, card_rows
         shutil.rmtree(self.staging, ignore_errors=True)  # the previous version, after an exchange
         shutil.rmtree(self.work / "hf-cache", ignore_errors=True)
+
+    def _exact_quantiles(self) -> None:
+        """Publish stats.json's quantiles over all frames where the last commits kept those over fewer (_publish):
+        a recording that stops leaves them exact."""
+        state = read_recording_state(self.root) if (self.root / RECORDING_FILE).is_file() else None
+        if state is None or state.get("quantile_frames") is None:  # (absent: written when every commit was exact)
+            return
+        if state["quantile_frames"] == json.loads((self.root / "meta/info.json").read_text())["total_frames"]:
+            return
+        with _sigint_held():
+            shutil.rmtree(self.staging, ignore_errors=True)
+            _link_copy(self.root, self.staging)
+            self._publish(self._state(), exact=True)
 
     def _state(self) -> dict:
         return {"format": FORMAT_VERSION, "config": self.config.to_dict(), "next_seed": self.next_seed,
@@ -427,6 +464,7 @@ class DatasetStore:
                 if give_back:
                     self.seeds.give_back(self._unused_from)
                 self.commit()
+                self._exact_quantiles()
             elif self._ds is not None:
                 with contextlib.suppress(Exception):  # staging is discarded: only release threads and files
                     self._ds.finalize()
