@@ -219,6 +219,31 @@ def test_a_shard_of_several_commits_merges_into_a_dataset_that_merges_and_resume
     _check_dataset(root, written + resumed)
 
 
+def test_a_merged_dataset_resumed_past_max_meta_files_joins_the_merges_and_the_writers_metadata(tmp_path):
+    """A merge writes the episodes' metadata with fixed-size lists, LeRobot's writer with lists; a single writer
+    resuming the merged dataset one commit at a time joins both kinds into one file past MAX_META_FILES, and every
+    episode's frames and video still belong to its seed."""
+    from vla_ladder.recording.store import MAX_META_FILES
+
+    root = tmp_path / "ds"
+    main = DatasetStore(root, Recording(**CONFIG), commit_every=1)
+    written = []
+    for start, n in ((0, 3), (3, 2)):
+        store = DatasetStore(main.shard(start), Recording(**CONFIG), commit_every=1, seeds_from=start)
+        written += _fill(store, n)
+        store.close()
+    main.settle(20)
+    counts = []
+    for seed in main.reserve_seeds(MAX_META_FILES + 2):
+        main.count(True)
+        main.add(synthetic_episode(seed, FRAMES))
+        written.append(seed)
+        counts.append(len(list((root / "meta/episodes").glob("*/*.parquet"))))
+    main.close()
+    assert max(counts) == MAX_META_FILES + 1 and counts[-1] < max(counts), counts
+    _check_dataset(root, written)
+
+
 def test_shards_merge_after_the_dataset_in_seed_order_and_resume(tmp_path):
     """`settle` merges the shards that continue the dataset seed after seed, in seed order, up to the target;
     a shard after a gap waits for the gap to be played, and one that would overshoot is dropped."""

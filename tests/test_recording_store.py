@@ -279,6 +279,39 @@ def test_a_growing_datasets_quantiles_are_refreshed_by_a_tenth_and_exact_when_it
     assert check(root) == (15 * FRAMES, 15 * FRAMES)
 
 
+def test_a_long_recordings_episode_metadata_is_joined_into_one_file(tmp_path):
+    """LeRobot's resume reads every meta/episodes file, and each commit adds one: past MAX_META_FILES a batch joins
+    them into one. The dataset still loads with LeRobot, every episode whole and in order (each frame's state is its
+    seed), every metadata row names the file that holds it, and the recording resumes across it."""
+    import pyarrow.parquet as pq
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from vla_ladder.recording.store import MAX_META_FILES
+
+    root = tmp_path / "long"
+    n = MAX_META_FILES + 4
+    counts = []
+    for part in (n - 2, n):  # a resume in between
+        store = DatasetStore(root, Recording(**CONFIG), commit_every=1)
+        for seed in store.reserve_seeds(part - store.saved):
+            store.count(True, seed)
+            store.add(synthetic_episode(seed))  # a commit each
+            counts.append(len(list((root / "meta/episodes").glob("*/*.parquet"))))
+        store.close()
+    assert max(counts) == MAX_META_FILES + 1 and counts[-1] < len(counts), counts
+    seeds = _check(root, n, set())
+    assert sorted(seeds) == list(range(n))
+    for path in (root / "meta/episodes").glob("chunk-*/file-*.parquet"):
+        rows = pq.read_table(path, columns=["meta/episodes/chunk_index", "meta/episodes/file_index"]).to_pydict()
+        assert set(rows["meta/episodes/chunk_index"]) == {int(path.parent.name[6:])}
+        assert set(rows["meta/episodes/file_index"]) == {int(path.stem[5:])}
+    ds = LeRobotDataset("vla-ladder/store", root=root)
+    prov = read_provenance(root)
+    for ep in range(n):
+        first = ds[ep * FRAMES]
+        assert first["episode_index"].item() == ep and first["observation.state"][0].item() == prov["seed"][ep]
+
+
 def test_parallel_writers_start_after_the_datasets_seeds(tmp_path):
     """The work directory (and the ledger and seed book in it) may be deleted between runs: the ledger of parallel
     writers starts from the dataset's own state (they replayed seeds from --first-seed, recording episodes twice)."""

@@ -51,18 +51,18 @@ def frames(root: str | Path, keys: list[str]) -> dict[str, np.ndarray]:
     paths = sorted(Path(root, "data").glob("*/*.parquet"))
     if not paths:
         raise ValueError(f"{root}: no data/*/*.parquet files; is it a LeRobotDataset v3?")
-    table = pa.concat_tables([pq.read_table(p, columns=keys) for p in paths])
-    out = {}
-    for k in keys:
-        col = table[k].combine_chunks()
-        if pa.types.is_list(col.type) or pa.types.is_fixed_size_list(col.type):
-            # A vector per frame, all of one length: its values flat, without a numpy object per frame (stacking
-            # those took longer than the quantiles themselves).
-            flat = col.flatten().to_numpy(zero_copy_only=False)
-            out[k] = flat.reshape(len(col), -1).astype(np.float64)
-        else:
-            out[k] = col.to_numpy(zero_copy_only=False)[:, None].astype(np.float64)
-    return out
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+    for path in paths:  # (one file at a time: LeRobot writes vectors as list or, after a merge, fixed-size list)
+        table = pq.read_table(path, columns=keys)
+        for k in keys:
+            col = table[k].combine_chunks()
+            if pa.types.is_list(col.type) or pa.types.is_fixed_size_list(col.type):
+                # A vector per frame, all of one length: its values flat, without a numpy object per frame (stacking
+                # those took longer than the quantiles themselves).
+                parts[k].append(col.flatten().to_numpy(zero_copy_only=False).reshape(len(col), -1))
+            else:
+                parts[k].append(col.to_numpy(zero_copy_only=False)[:, None])
+    return {k: np.concatenate(v).astype(np.float64) for k, v in parts.items()}
 
 
 def exact_quantiles(root: str | Path) -> dict[str, dict[str, list[float]]]:

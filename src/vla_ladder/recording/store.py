@@ -58,6 +58,10 @@ log = logging.getLogger(__name__)
 
 # Directories whose files LeRobot never modifies after writing them (resume opens new chunk files).
 IMMUTABLE_DIRS = ("data", "videos", "meta/episodes", PROVENANCE_DIR)
+# LeRobot's resume reads every meta/episodes file through `datasets` (each commit adds one), about 18 ms a file on 2
+# cores: 1.2 s to open a batch of a 2000-demo recording, a minute at 100k demos (benchmarks/commit_scaling.py). A
+# batch's staging copy joins them into one file when there are more than this many (_join_meta_files).
+MAX_META_FILES = 8
 
 
 class DatasetStore:
@@ -279,6 +283,7 @@ class DatasetStore:
                                              **opts)
         else:
             _link_copy(self.root, self.staging)
+            _join_meta_files(self.staging)
             with _private_datasets_cache(self.work / "hf-cache"):
                 self._ds = LeRobotDataset.resume(self.repo_id, root=self.staging, **opts)
         return self._ds
@@ -549,6 +554,31 @@ def _sigint_held() -> Iterator[None]:
         previous(signal.SIGINT, None)  # Python's own handler raises KeyboardInterrupt
     elif held and previous == signal.SIG_DFL:
         raise KeyboardInterrupt
+
+
+def _join_meta_files(root: Path) -> None:
+    """Rewrite the episodes' metadata of `root` (a staging copy, whose files are links to DATASET_DIR's) as one file,
+    meta/episodes/chunk-000/file-000.parquet, when it is spread over more than MAX_META_FILES files; LeRobot's resume
+    then writes the next batch's into file-001. Every row says which file holds it, as LeRobot reads it."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    paths = sorted((root / "meta/episodes").glob("chunk-*/file-*.parquet"))
+    if len(paths) <= MAX_META_FILES:
+        return
+    # (a merge writes vectors as fixed-size lists, LeRobot's writer as lists: one list type for all)
+    table = pa.concat_tables([pq.read_table(p) for p in paths], promote_options="permissive").sort_by("episode_index")
+    for key in ("meta/episodes/chunk_index", "meta/episodes/file_index"):
+        field = table.schema.field(key)
+        table = table.set_column(table.schema.get_field_index(key), field, pa.array([0] * len(table), field.type))
+    for path in paths:  # (links: DATASET_DIR keeps its files)
+        path.unlink()
+    joined = root / "meta/episodes/chunk-000/file-000.parquet"
+    joined.parent.mkdir(parents=True, exist_ok=True)
+    pq.write_table(table, joined)
+    for chunk in (root / "meta/episodes").glob("chunk-*"):
+        if not any(chunk.iterdir()):
+            chunk.rmdir()
 
 
 def _own_meta_indices(root: Path) -> None:
