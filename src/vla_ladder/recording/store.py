@@ -401,7 +401,7 @@ class DatasetStore:
         it with DATASET_DIR in one atomic step. `rows`: the provenance rows staging adds to DATASET_DIR's. The
         quantiles are computed again over all frames when `exact`, or when the dataset has grown
         by more than stats.REFRESH_GROWTH since they last were; otherwise DATASET_DIR's are kept (each computation
-        reads every frame: 10 s for 100k demos, benchmarks/commit_scaling.py)."""
+        reads every frame: 9 s for 100k demos, benchmarks/commit_scaling.py)."""
         from vla_ladder.recording import card, stats
 
         frames = json.loads((self.staging / "meta/info.json").read_text())["total_frames"]
