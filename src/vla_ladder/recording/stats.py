@@ -93,7 +93,7 @@ def copy_quantiles(src: str | Path, dst: str | Path) -> None:
         for q in quantile_keys(feature):
             if q in theirs.get(k, {}):
                 feature[q] = theirs[k][q]
-    files.write_json(Path(dst, STATS_FILE), dict(sorted(stats.items())))
+    _write_stats(dst, stats)
 
 
 def write_exact_quantiles(root: str | Path) -> dict[str, dict[str, list[float]]]:
@@ -103,7 +103,11 @@ def write_exact_quantiles(root: str | Path) -> dict[str, dict[str, list[float]]]
     exact = exact_quantiles(root)
     for k, qs in exact.items():
         stats[k].update(qs)
+    _write_stats(root, stats)
+    return exact
+
+
+def _write_stats(root: str | Path, stats: dict) -> None:
     # LeRobot aggregates over a set of feature names, whose order follows the process's hash seed: sorted, two
     # recordings of the same episodes write the same file.
-    files.write_json(root / STATS_FILE, dict(sorted(stats.items())))
-    return exact
+    files.write_json(Path(root, STATS_FILE), dict(sorted(stats.items())))

@@ -436,10 +436,9 @@ class DatasetStore:
     def _exact_quantiles(self) -> None:
         """Publish stats.json's quantiles over all frames where the last commits kept those over fewer (_publish):
         a recording that stops leaves them exact."""
-        state = read_recording_state(self.root) if (self.root / RECORDING_FILE).is_file() else None
-        if state is None or state.get("quantile_frames") is None:  # (absent: written when every commit was exact)
+        if self._quantile_frames is None:  # nothing published, or by a version whose every commit was exact
             return
-        if state["quantile_frames"] == json.loads((self.root / "meta/info.json").read_text())["total_frames"]:
+        if self._quantile_frames == json.loads((self.root / "meta/info.json").read_text())["total_frames"]:
             return
         with _sigint_held():
             shutil.rmtree(self.staging, ignore_errors=True)
@@ -568,9 +567,7 @@ def _join_meta_files(root: Path) -> None:
         return
     # (a merge writes vectors as fixed-size lists, LeRobot's writer as lists: one list type for all)
     table = pa.concat_tables([pq.read_table(p) for p in paths], promote_options="permissive").sort_by("episode_index")
-    for key in ("meta/episodes/chunk_index", "meta/episodes/file_index"):
-        field = table.schema.field(key)
-        table = table.set_column(table.schema.get_field_index(key), field, pa.array([0] * len(table), field.type))
+    table = _in_meta_file(table, 0, 0)
     for path in paths:  # (links: DATASET_DIR keeps its files)
         path.unlink()
     joined = root / "meta/episodes/chunk-000/file-000.parquet"
@@ -586,21 +583,29 @@ def _own_meta_indices(root: Path) -> None:
     offsets a source's meta/episodes indices but may append its rows to the current file, so a shard committed in
     several batches (one meta file each) left its episodes pointing at meta files the merge never wrote; the next
     merge or resume of the dataset then failed on the missing file (tests/test_recording_shards.py)."""
-    import pyarrow as pa
     import pyarrow.compute as pc
     import pyarrow.parquet as pq
 
     for path in sorted((root / "meta/episodes").glob("chunk-*/file-*.parquet")):
         table = pq.read_table(path)
-        own = {"meta/episodes/chunk_index": int(path.parent.name.split("-")[1]),
-               "meta/episodes/file_index": int(path.stem.split("-")[1])}
-        if all(pc.all(pc.equal(table[k], v)).as_py() for k, v in own.items()):
+        chunk, file = int(path.parent.name.split("-")[1]), int(path.stem.split("-")[1])
+        if all(pc.all(pc.equal(table[k], v)).as_py() for k, v in zip(_META_FILE_KEYS, (chunk, file))):
             continue
-        for k, v in own.items():
-            table = table.set_column(table.schema.get_field_index(k), table.schema.field(k),
-                                     pa.array([v] * len(table), type=table.schema.field(k).type))
         with files.atomic_path(path) as tmp:
-            pq.write_table(table, tmp)
+            pq.write_table(_in_meta_file(table, chunk, file), tmp)
+
+
+_META_FILE_KEYS = ("meta/episodes/chunk_index", "meta/episodes/file_index")
+
+
+def _in_meta_file(table, chunk: int, file: int):
+    """The episodes' metadata `table` with every row saying it is in meta/episodes/chunk-<chunk>/file-<file>."""
+    import pyarrow as pa
+
+    for key, value in zip(_META_FILE_KEYS, (chunk, file)):
+        field = table.schema.field(key)
+        table = table.set_column(table.schema.get_field_index(key), field, pa.array([value] * len(table), field.type))
+    return table
 
 
 def wait_for_writer(shard: Path, timeout_s: float = 300.0) -> None:
