@@ -188,7 +188,7 @@ def _check_dataset(root: Path, expect_seeds: list[int]) -> None:
 
 
 @pytest.mark.slow
-def test_a_shard_of_several_commits_merges_into_a_dataset_that_merges_and_resumes_again(tmp_path):
+def test_a_shard_of_several_commits_merges_into_a_dataset_that_merges_and_resumes_again(tmp_path, capfd):
     """A shard committed in three batches has three meta/episodes files; merged into an empty dataset they become
     one, whose rows must name that file (LeRobot's aggregate kept the shard's file indices 1 and 2, and the next
     merge failed on meta/episodes/chunk-000/file-001.parquet, as a killed two-writer recording did in CI)."""
@@ -206,8 +206,14 @@ def test_a_shard_of_several_commits_merges_into_a_dataset_that_merges_and_resume
     written: list[int] = []
     first = shard(0, 3)
     assert len(list((first / "meta/episodes").glob("*/*.parquet"))) == 3
+    capfd.readouterr()
     main.settle(10)
     main.close()
+    merge_output = capfd.readouterr()
+    assert "it/s]" not in merge_output.err + merge_output.out, "LeRobot's aggregate drew its progress bars"
+    import tqdm
+    from lerobot.datasets import aggregate
+    assert aggregate.tqdm is tqdm, "the merge left LeRobot's aggregate module changed"
     for path in (root / "meta/episodes").glob("chunk-*/file-*.parquet"):
         meta = pd.read_parquet(path)
         assert (meta["meta/episodes/file_index"] == int(path.stem.split("-")[1])).all(), path

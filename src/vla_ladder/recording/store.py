@@ -365,7 +365,7 @@ class DatasetStore:
         t0 = time.perf_counter()
         shutil.rmtree(self.staging, ignore_errors=True)
         sources = ([self.root] if self.saved else []) + full
-        with _private_datasets_cache(self.work / "hf-cache"), SuppressProgressBars():
+        with _private_datasets_cache(self.work / "hf-cache"), SuppressProgressBars(), _aggregate_without_bars():
             aggregate_datasets([f"{self.repo_id}-part{i}" for i in range(len(sources))], self.repo_id,
                                roots=sources, aggr_root=self.staging)
         _own_meta_indices(self.staging)
@@ -680,6 +680,25 @@ def _quiet_ffmpeg() -> None:
     import av
 
     av.logging.set_libav_level(av.logging.WARNING)
+
+
+@contextlib.contextmanager
+def _aggregate_without_bars() -> Iterator[None]:
+    """No tqdm bars from LeRobot's aggregate_datasets, which drew two per merge ("Validate all meta data", "Copy data
+    and videos") between the recorder's own lines: it calls `tqdm.tqdm`, which SuppressProgressBars (`datasets`'
+    bars) does not reach, and tqdm reads $TQDM_DISABLE only when imported. Only that module's name is replaced."""
+    import functools
+    import types
+
+    import tqdm
+    from lerobot.datasets import aggregate
+
+    saved = aggregate.tqdm
+    aggregate.tqdm = types.SimpleNamespace(tqdm=functools.partial(tqdm.tqdm, disable=True))
+    try:
+        yield
+    finally:
+        aggregate.tqdm = saved
 
 
 def _fsync_tree(root: Path) -> None:
