@@ -8,7 +8,7 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 
 import pytest
@@ -71,6 +71,8 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         'evaluation.regimes: expected a list of strings, got "all"': _micro(**{"evaluation.regimes": "all"}),
         'evaluation.num_objects[1]: expected an integer, got "2"': _micro(**{"evaluation.num_objects": [1, "2"]}),
         "policies[0].steps: expected an integer, got true": _micro(**{"policies.0.steps": True}),
+        "policies[0].train_seed: expected an integer or null, got \"7\"": _micro(**{"policies.0.train_seed": "7"}),
+        "policies[0]: train_seed must be >= 0 and < 2**32": _micro(**{"policies.0.train_seed": 2**32}),
         # A value twice trained the same model twice under one unit id, or showed a reference twice.
         "batch_sizes: 4 given twice": _micro(**{"grid.batch_sizes": [4, 4]}),
         "reference_policies: nearest given twice": _micro(**{"evaluation.reference_policies": ["nearest"] * 2}),
@@ -128,7 +130,11 @@ def test_experts_and_pretrained_checkpoints_are_read_before_the_first_unit(tmp_p
         mark_done(out, unit, {}, 1.0)
     with pytest.raises(ValueError, match=r"^policies\[SmolVLA-tiny\]\.pretrained"):
         study.check_sources()  # the expert is not read; the checkpoint that a train unit will load is
-    (out / "units" / "train-SmolVLA-tiny-sj-b4c4.json").write_text("{}")
+    (train,) = study.train_units()
+    mark_done(out, replace(train, config={**train.config, "steps": train.config["steps"] + 1}), {}, 1.0)
+    with pytest.raises(ValueError, match=r"^policies\[SmolVLA-tiny\]\.pretrained"):
+        study.check_sources()  # done with other steps: the unit trains again and loads the checkpoint
+    mark_done(out, train, {}, 1.0)
     study.check_sources()
 
 
@@ -170,6 +176,22 @@ def test_a_finished_study_resumes_with_probes_added_and_refuses_any_other_change
                     dict(episodes=51)):
         with pytest.raises(ValueError, match="holds another study"):
             StudyCommand(config(**changed), out=tmp_path / "s")
+
+
+def test_a_replicate_trains_with_its_own_seed_and_the_others_as_before(tmp_path):
+    """train_seed reaches `train`'s --train-seed (lerobot-train's --seed); a policy without one trains with its default
+    under a unit config without the key, so that units marked done before the field existed stay done."""
+    from vla_ladder.experiments.study import Study, StudyCommand
+    from vla_ladder.training.train import TrainConfig
+
+    replicate = {**_micro()["policies"][0], "name": "SmolVLA-tiny-s2", "train_seed": 2}
+    path = tmp_path / "study.json"
+    path.write_text(json.dumps({**_micro(), "policies": [_micro()["policies"][0], replicate]}))
+    study = Study(StudyCommand(config=str(path), out=tmp_path / "s"))
+    first, second = study.train_units()
+    assert "train_seed" not in first.config and second.config["train_seed"] == 2
+    assert first.id != second.id and first.config["out"] != second.config["out"]
+    assert set(second.config) <= {f.name for f in fields(TrainConfig)}  # train_unit: TrainConfig(**config)
 
 
 def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):

@@ -27,7 +27,7 @@ from vla_ladder import files
 from vla_ladder.checks import check_ray_address
 from vla_ladder.conditions import parse_regimes
 from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig
-from vla_ladder.experiments.units import Unit, is_done, marker, run_units, run_units_on_ray
+from vla_ladder.experiments.units import Unit, is_done, run_units, run_units_on_ray
 from vla_ladder.machine import check_workers, cores
 
 RANK_BY = ("success", "grasp_any", "reach")
@@ -148,13 +148,23 @@ class Study:
         return self.root / "data" / d.name
 
     # -- train
+    def vlm_dir(self, p: PolicySpec) -> Path:
+        return self.root / "assets" / f"vlm-{p.vlm}"
+
     def lerobot_args(self, p: PolicySpec) -> list[str]:
         args = list(p.lerobot_args)
         if p.vlm is not None:
-            from vla_ladder.training.tiny import SIZES, build_vlm_dir, scratch_smolvla_args
-            vlm = build_vlm_dir(self.root / "assets" / f"vlm-{p.vlm}", p.vlm)
-            args = [*scratch_smolvla_args(vlm, p.image_size or SIZES[p.vlm].image_size), *args]
+            from vla_ladder.training.tiny import SIZES, scratch_smolvla_args
+            args = [*scratch_smolvla_args(self.vlm_dir(p), p.image_size or SIZES[p.vlm].image_size), *args]
         return args
+
+    def build_vlms(self) -> None:
+        """The from-scratch VLM directories (config and tokenizer, no weights) the train units name; written here,
+        before the train phase, so that listing the units writes nothing (check_sources lists them first)."""
+        from vla_ladder.training.tiny import build_vlm_dir
+        for p in self.cfg.policies:
+            if p.vlm is not None:
+                build_vlm_dir(self.vlm_dir(p), p.vlm)
 
     def train_units(self) -> list[Unit]:
         units = []
@@ -170,6 +180,8 @@ class Study:
                           "save_freq": save_freq, "log_freq": max(p.steps // 20, 1),
                           "num_workers": self.cfg.num_workers, "device": self.cfg.device,
                           "lerobot_args": args}
+                if p.train_seed is not None:  # (only when given: a unit marked done before the field is still done)
+                    config["train_seed"] = p.train_seed
                 units.append(Unit(f"train-{mid}", "train", "vla_ladder.experiments.units:train_unit",
                                   config, cpus=2, after=[f"record-{d.name}"]))
         return units
@@ -322,9 +334,9 @@ class Study:
                     check_spec(d.expert)
                 except ValueError as e:
                     raise ValueError(f"datasets[{d.name}].expert: {e}") from None
+        train_units = iter(self.train_units())  # one per (batch, chunk) of each model, in models()' order
         for p, d, bcs in self.models():
-            trained = all(marker(self.root, Unit(f"train-{model_id(p, d, b, c)}", "train", "", {})).is_file()
-                          for b, c in bcs)
+            trained = all([is_done(self.root, next(train_units)) for _ in bcs])  # (a list: every unit is taken)
             if p.pretrained not in NO_PRETRAINED and not trained:
                 try:
                     pretrained_config(p.pretrained, p.type)
@@ -342,6 +354,7 @@ class Study:
         files.write_json(root / "study.json", asdict(self.cfg))
         self.run_phase(self.record_units())
         self.make_blind_copies()
+        self.build_vlms()
         self.run_phase(self.train_units())
         selected = self.run_phase(self.select_units())
         chosen = self.best(selected)

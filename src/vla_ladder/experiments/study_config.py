@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
 
-from vla_ladder.checks import SEED_LIMIT, check_count
+from vla_ladder.checks import SEED_LIMIT, check_count, check_seed
 from vla_ladder.conditions import Condition, ConditionGrid
 
 PRESETS_PACKAGE = "vla_ladder.configs.study"
@@ -87,6 +87,11 @@ class PolicySpec:
     blind: bool = False
     """train and evaluate without the instruction (every episode's instruction is contract.BLIND_INSTRUCTION):
     the instruction-blind control of the same architecture, which scores what the layout alone allows"""
+    train_seed: int | None = None
+    """lerobot-train's --seed for every model of this policy (initialisation, data order, augmentation); null:
+    `vla-ladder train`'s default (1000). The same policy listed again under another name with another train_seed
+    trains a replicate, which shows how much a number owes to the training run (`vla-ladder compare` pairs their
+    episodes)"""
 
     def __post_init__(self):
         _check_name(self.name)
@@ -102,6 +107,8 @@ class PolicySpec:
                                             or not isinstance(self.image_size, int) or self.image_size < 1):
             raise ValueError(f"image_size must be a positive integer, for a policy with a vlm (it sizes that VLM's "
                              f"images), got {self.image_size!r}" + ("" if self.vlm else " without vlm"))
+        if self.train_seed is not None:
+            check_seed(self.train_seed, "train_seed")
         if self.vlm is not None and self.type != "smolvla":
             raise ValueError(f"vlm: only smolvla has a VLM backbone, not {self.type!r}")
         if not all(isinstance(a, str) and a.startswith("--") for a in self.lerobot_args):
@@ -111,7 +118,7 @@ class PolicySpec:
             if flag in STUDY_FLAGS or flag.startswith("--dataset."):
                 raise ValueError(f"lerobot_args: {flag} is the study's to set (where each unit writes and what it "
                                  f"trains on: {', '.join(STUDY_FLAGS)}, --dataset.*); use the study's own fields "
-                                 "(steps, the grid's batch and chunk sizes)")
+                                 "(steps, train_seed, the grid's batch and chunk sizes)")
 
 
 @dataclass

@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from vla_ladder import files
-from vla_ladder.checks import TORCH_DEVICE, check_output_dir
+from vla_ladder.checks import TORCH_DEVICE, check_output_dir, check_seed
 from vla_ladder.contract import CAMERA_KEYS, TRAINED_CONTRACT_FILE
 from vla_ladder.training.dataset import check_features, dataset_condition, dataset_contract, read_info
 
@@ -142,8 +142,7 @@ class TrainConfig:
         if self.n_action_steps is not None and self.n_action_steps > self.chunk_size:
             raise ValueError(f"--n-action-steps ({self.n_action_steps}) cannot exceed --chunk-size "
                              f"({self.chunk_size})")
-        if self.train_seed < 0:
-            raise ValueError(f"--train-seed must be >= 0, got {self.train_seed}")
+        check_seed(self.train_seed, "--train-seed")  # lerobot-train seeds numpy with it too
         if self.device is not None and not TORCH_DEVICE.fullmatch(self.device):
             raise ValueError(f"--device {self.device!r}: allowed: cpu, cuda, cuda:N, mps")
         if (self.device or "").startswith("cuda"):
