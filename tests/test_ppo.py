@@ -46,12 +46,12 @@ def test_clipped_loss_matches_hand_computation():
                            returns=torch.tensor([0.0, 4.0, 0.0, 0.0]), entropy=torch.tensor([1.0, 3.0, 0.0, 0.0]),
                            clip_coef=0.2, vf_coef=0.5, ent_coef=0.1, norm_adv=False)
     # pessimistic terms max(-A r, -A clip(r)): -1.2 (clipped), 0.8 (clipped), -2.2, 1.5 (unclipped)
-    assert stats["pg_loss"] == pytest.approx(-1.1 / 4)
-    assert stats["v_loss"] == pytest.approx(0.5 * (1 + 4) / 4)
-    assert stats["entropy"] == pytest.approx(1.0)
-    assert stats["clipfrac"] == pytest.approx(0.75)
+    assert float(stats["pg_loss"]) == pytest.approx(-1.1 / 4)
+    assert float(stats["v_loss"]) == pytest.approx(0.5 * (1 + 4) / 4)
+    assert float(stats["entropy"]) == pytest.approx(1.0)
+    assert float(stats["clipfrac"]) == pytest.approx(0.75)
     kl = sum((r - 1) - math.log(r) for r in ratios.tolist()) / 4
-    assert stats["approx_kl"] == pytest.approx(kl, rel=1e-5)
+    assert float(stats["approx_kl"]) == pytest.approx(kl, rel=1e-5)
     assert loss.item() == pytest.approx(-1.1 / 4 - 0.1 * 1.0 + 0.5 * 0.625)
     loss.backward()
     # Clipped samples pass no gradient; the others pass -A r / n.

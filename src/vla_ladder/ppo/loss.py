@@ -25,7 +25,7 @@ def compute_gae(rewards: torch.Tensor, values: torch.Tensor, next_values: torch.
 def ppo_loss(newlogprob: torch.Tensor, oldlogprob: torch.Tensor, advantages: torch.Tensor,
              newvalue: torch.Tensor, returns: torch.Tensor, entropy: torch.Tensor, clip_coef: float,
              vf_coef: float, ent_coef: float, norm_adv: bool = True) -> tuple[torch.Tensor, dict]:
-    """The clipped PPO objective (to minimise) and its parts, for one minibatch."""
+    """The clipped PPO objective (to minimise) and its parts, for one minibatch (0-d tensors on its device)."""
     logratio = newlogprob - oldlogprob
     ratio = logratio.exp()
     if norm_adv:
@@ -34,8 +34,10 @@ def ppo_loss(newlogprob: torch.Tensor, oldlogprob: torch.Tensor, advantages: tor
     v_loss = 0.5 * ((newvalue - returns) ** 2).mean()
     entropy_loss = entropy.mean()
     loss = pg_loss - ent_coef * entropy_loss + vf_coef * v_loss
+    # Tensors, not floats: reading one on the host (.item()) waits for the GPU, and five a minibatch did so hundreds
+    # of times an update; train.py reads them together once an update.
     with torch.no_grad():  # http://joschu.net/blog/kl-approx.html
-        stats = dict(pg_loss=pg_loss.item(), v_loss=v_loss.item(), entropy=entropy_loss.item(),
-                     approx_kl=((ratio - 1) - logratio).mean().item(),
-                     clipfrac=((ratio - 1.0).abs() > clip_coef).float().mean().item())
+        stats = dict(pg_loss=pg_loss.detach(), v_loss=v_loss.detach(), entropy=entropy_loss.detach(),
+                     approx_kl=((ratio - 1) - logratio).mean(),
+                     clipfrac=((ratio - 1.0).abs() > clip_coef).float().mean())
     return loss, stats

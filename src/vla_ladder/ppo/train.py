@@ -192,7 +192,7 @@ def train(args: Args) -> dict:
 
             b_obs, b_actions = obs.reshape(-1, envs.obs_dim), actions.reshape(-1, envs.act_dim)
             b_logprobs, b_adv, b_returns = logprobs.reshape(-1), advantages.reshape(-1), returns.reshape(-1)
-            stats: dict[str, list[float]] = {}
+            stats: dict[str, list[torch.Tensor]] = {}
             for _ in range(args.update_epochs):
                 perm = torch.randperm(args.batch_size, device=device)
                 for start in range(0, args.batch_size - args.minibatch_size + 1, args.minibatch_size):
@@ -206,7 +206,7 @@ def train(args: Args) -> dict:
                     optimizer.step()
                     for k, v in s.items():
                         stats.setdefault(k, []).append(v)
-                if args.target_kl and stats["approx_kl"][-1] > args.target_kl:
+                if args.target_kl and stats["approx_kl"][-1].item() > args.target_kl:  # (a sync an epoch)
                     break
 
             dt = time.perf_counter() - t0
@@ -215,8 +215,9 @@ def train(args: Args) -> dict:
             state["wall_s"] += dt
             sps = args.batch_size / dt
             gs = state["global_step"]
-            for k, v in stats.items():
-                writer.add_scalar(f"losses/{k}", float(np.mean(v)), gs)
+            means = torch.stack([torch.stack(v).mean() for v in stats.values()]).tolist()  # one sync
+            for k, mean in zip(stats, means):
+                writer.add_scalar(f"losses/{k}", mean, gs)
             y = b_returns.var()
             writer.add_scalar("losses/explained_variance",
                               float("nan") if y == 0 else (1 - (b_returns - values.reshape(-1)).var() / y).item(), gs)
