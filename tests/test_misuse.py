@@ -206,6 +206,29 @@ def test_consistent_runs_still_compare(tmp_path, capsys):
     assert "McNemar" in capsys.readouterr().out
 
 
+# ------------------------------------------------------------------------------- two writers of one output
+def test_a_second_study_or_evaluation_writing_the_same_directory_is_refused_at_once(tmp_path, capsys):
+    """A study or evaluation started again while the first still ran wrote the same files (two studies ran the same
+    units at once). Now the second says so in one line before it plays or writes anything, and runs once the first
+    has let go (training: tests/test_training.py)."""
+    from importlib import resources
+
+    from vla_ladder import files
+
+    study = tmp_path / "study.json"
+    study.write_text(resources.files("vla_ladder.configs.study").joinpath("micro.json").read_text())
+    cases = {"evaluation": ["eval", "--policy", "scripted", "--regimes", "small_jitter", "--num-objects", "1",
+                            "--episodes", "1", "--out", str(tmp_path / "ev")],
+             "vla-ladder study": ["study", str(study), "--out", str(tmp_path / "st")]}
+    for what, argv in cases.items():
+        out = tmp_path / argv[-1]
+        with files.writing(out, "test"):
+            _one_line_error(capsys, main(argv), f"another {what} is writing {out}", str(files.lock_path(out)))
+        assert not out.exists()
+    assert main(cases["evaluation"]) == 0
+    assert pd.read_parquet(tmp_path / "ev" / "episodes.parquet")["seed"].tolist() == [0]
+
+
 # -------------------------------------------------------------------------------------------- the disk
 def _no_space(monkeypatch, name: str) -> None:
     """Every write of a file called `name` (or a temporary file for it) fails as on a full disk."""

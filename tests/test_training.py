@@ -179,6 +179,23 @@ def test_pi05_gets_the_paper_settings_and_a_clear_offline_error(data, tmp_path):
 
 
 @pytest.mark.slow
+def test_a_second_training_run_into_the_same_directory_is_refused(data, tmp_path, capsys):
+    """Started again while the first still trains, a run into the same --out removed the first's directory when it
+    had not saved a checkpoint yet, or trained beside it; now one line, and the first's files stay."""
+    from vla_ladder import files
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "first.txt").write_text("the first run's")
+    with files.writing(out, "training run"):
+        assert main(["train", "--policy-type", "act", "--dataset", str(data), "--out", str(out), "--steps", "1",
+                     "--pretrained", "none"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(f"another training run is writing {out} (it holds {files.lock_path(out)}); let it finish "
+                        "or stop it, then run this again") and len(err.splitlines()) == 1, err
+    assert [p.name for p in out.iterdir()] == ["first.txt"]
+
+
 def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     base = ["train", "--dataset", str(data), "--out", str(tmp_path / "run"), "--pretrained", "none"]
     assert main(base + ["--policy-type", "nope"]) == 2

@@ -74,6 +74,31 @@ def remove_dir(path: str | os.PathLike) -> None:
     shutil.rmtree(aside)
 
 
+def lock_path(directory: str | os.PathLike) -> Path:
+    """The lock file of an output directory: beside it, so that nothing a run removes or lists inside takes it."""
+    directory = Path(directory).resolve()  # (one lock whichever path or link names the directory)
+    return directory.parent / f".{directory.name}.lock"
+
+
+@contextmanager
+def writing(directory: str | os.PathLike, what: str) -> Iterator[None]:
+    """Hold `directory`'s lock (lock_path) while the block runs; ValueError at once when another process holds it.
+    A study, training run or evaluation started again while the first still runs (in another terminal, or after
+    the first only seemed to have died) would otherwise write the same files, or remove a run that had not saved
+    its first checkpoint yet. The kernel releases the lock when its holder dies, kill -9 included."""
+    import fcntl
+
+    path = lock_path(directory)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"another {what} is writing {directory} (it holds {path}); let it finish or stop it, "
+                             "then run this again") from None
+        yield
+
+
 @contextmanager
 def own_tempdir() -> Iterator[Path]:
     """Point `tempfile`'s default directory at a fresh one for the block, and remove it with whatever was left.

@@ -296,9 +296,8 @@ def selection_overlap(cfg: EvalConfig) -> int:
 
 def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool = True) -> dict:
     """Evaluate cfg.policy (or `policy`, an instance labelled cfg.policy, played in this process) on every
-    condition and return the summary dict; with cfg.out, also write (or resume) the run directory."""
-    from tqdm.auto import tqdm
-
+    condition and return the summary dict; with cfg.out, also write (or resume) the run directory, holding its
+    lock (files.writing)."""
     started = time.monotonic()
     if policy is None:
         if not cfg.policy:
@@ -310,6 +309,16 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
     spec = cfg.policy or policy.name
     overlap = selection_overlap(cfg) if policy is None else 0
     weights = weights_identity(cfg.policy) if policy is None and cfg.out is not None else None
+    if cfg.out is None:
+        return _evaluate(cfg, policy, spec, overlap, weights, progress, started)
+    with files.writing(cfg.out, "evaluation"):
+        return _evaluate(cfg, policy, spec, overlap, weights, progress, started)
+
+
+def _evaluate(cfg: EvalConfig, policy: Policy | None, spec: str, overlap: int, weights: dict | None,
+              progress: bool, started: float) -> dict:
+    from tqdm.auto import tqdm
+
     rows = open_run_dir(cfg, weights) if cfg.out is not None else []
     done = {(r["regime"], r["split"], r["num_objects"], r["episode"]) for r in rows}
     jobs = [j for j in cfg.jobs() if (j.condition.regime, j.condition.split, j.condition.num_objects, j.episode)

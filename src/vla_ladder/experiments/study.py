@@ -344,12 +344,17 @@ class Study:
                     raise ValueError(f"policies[{p.name}].pretrained: {e}") from None
 
     def run(self) -> Path:
+        if not self.cmd.report_only:
+            self.check_sources()
+        with files.writing(self.root, "vla-ladder study"):  # a second study here would run the same units at once
+            return self._run()
+
+    def _run(self) -> Path:
         from vla_ladder.experiments.study_results import write_report, write_results
 
         root = self.root
         if self.cmd.report_only:
             return write_report(root, json.loads((root / "summary.json").read_text()))
-        self.check_sources()
         root.mkdir(parents=True, exist_ok=True)
         files.write_json(root / "study.json", asdict(self.cfg))
         self.run_phase(self.record_units())

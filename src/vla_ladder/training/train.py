@@ -355,52 +355,55 @@ def resuming_from(checkpoint: Path):
 def train(req: TrainConfig) -> Path:
     """Run LeRobot training for `req`; returns the final checkpoint's pretrained_model directory. A re-run of a
     killed run (the same request, the same `out`) resumes from its last checkpoint (`resume_point`), with LeRobot's
-    own resume: weights, optimizer, scheduler, step and the data order; a finished one does nothing."""
+    own resume: weights, optimizer, scheduler, step and the data order; a finished one does nothing. Another
+    training run writing the same `out` meanwhile is refused (files.writing)."""
     from lerobot.scripts.lerobot_train import train as lerobot_train
 
     if req.out is None:
         raise ValueError("a training run needs an output directory (out)")
     check_output_dir(req.out, "--out")  # now, not when the first checkpoint is saved
-    resume = resume_point(req)
-    if resume is not None and (req.out / RUN_FILE).is_file():
-        log.info("%s is a finished run of this request: nothing to do", req.out)
-        return checkpoint_dir(req.out)
     cfg = req.build_config()
     check_offline_assets(cfg.policy)
     cpu_threads(req)
-    if resume is None and req.out.exists():
-        # Empty, or this request's run killed before a whole checkpoint (resume_point): nothing to keep, and LeRobot
-        # refuses to start a run in an existing directory.
-        files.remove_dir(req.out)
-    if resume is not None:
-        cfg.resume = True
-        # LeRobot sets the optimizer and scheduler presets only for new runs; a resumed one loads their state into
-        # the same ones (what the first run used: the policy's presets).
-        cfg.optimizer, cfg.scheduler = cfg.policy.get_optimizer_preset(), cfg.policy.get_scheduler_preset()
-        log.info("resuming %s from %s", req.out, resume)
-    log.info("training %s on %s for %d steps (batch %d, chunk %d): %s", req.policy_type, req.dataset,
-             req.steps, req.batch_size, req.chunk_size, shlex.join(req.lerobot_command()))
-    start = time.time()
-    try:
-        with stamp_checkpoints(req.contract, req.out, _request(req)), \
-                (resuming_from(resume) if resume is not None else contextlib.nullcontext()):
-            lerobot_train(cfg)
-    except URLError as e:  # a download without network (ACT's ImageNet backbone, a tokenizer, a hub checkpoint)
-        raise ValueError(f"lerobot-train tried to download something and could not ({e.reason}); on a machine "
-                         "without network export HF_HUB_OFFLINE=1, so that ACT's backbone trains from scratch and "
-                         "tokenizers and checkpoints are looked up locally") from None
-    if int(os.environ.get("RANK", "0")) == 0:
-        files.write_json(req.out / RUN_FILE, {
-            "request": asdict(req),
-            "lerobot_train_command": shlex.join(req.lerobot_command()),
-            "dataset": {"root": str(req.dataset), "condition": req.condition and req.condition.key,
-                        "episodes": req.info.get("total_episodes"), "frames": req.info.get("total_frames"),
-                        "contract": req.contract},
-            "checkpoint": str(checkpoint_dir(req.out)),
-            "wall_s": round(time.time() - start, 1),
-            "provenance": files.provenance(),
-        })
-    return checkpoint_dir(req.out)
+    main_process = int(os.environ.get("RANK", "0")) == 0  # accelerate's other processes leave the lock to rank 0
+    with files.writing(req.out, "training run") if main_process else contextlib.nullcontext():
+        resume = resume_point(req)  # (read under the lock: another run may have saved or finished meanwhile)
+        if resume is not None and (req.out / RUN_FILE).is_file():
+            log.info("%s is a finished run of this request: nothing to do", req.out)
+            return checkpoint_dir(req.out)
+        if resume is None and req.out.exists():
+            # Empty, or this request's run killed before a whole checkpoint (resume_point): nothing to keep, and
+            # LeRobot refuses to start a run in an existing directory.
+            files.remove_dir(req.out)
+        if resume is not None:
+            cfg.resume = True
+            # LeRobot sets the optimizer and scheduler presets only for new runs; a resumed one loads their state
+            # into the same ones (what the first run used: the policy's presets).
+            cfg.optimizer, cfg.scheduler = cfg.policy.get_optimizer_preset(), cfg.policy.get_scheduler_preset()
+            log.info("resuming %s from %s", req.out, resume)
+        log.info("training %s on %s for %d steps (batch %d, chunk %d): %s", req.policy_type, req.dataset,
+                 req.steps, req.batch_size, req.chunk_size, shlex.join(req.lerobot_command()))
+        start = time.time()
+        try:
+            with stamp_checkpoints(req.contract, req.out, _request(req)), \
+                    (resuming_from(resume) if resume is not None else contextlib.nullcontext()):
+                lerobot_train(cfg)
+        except URLError as e:  # a download without network (ACT's ImageNet backbone, a tokenizer, a hub checkpoint)
+            raise ValueError(f"lerobot-train tried to download something and could not ({e.reason}); on a machine "
+                             "without network export HF_HUB_OFFLINE=1, so that ACT's backbone trains from scratch "
+                             "and tokenizers and checkpoints are looked up locally") from None
+        if main_process:
+            files.write_json(req.out / RUN_FILE, {
+                "request": asdict(req),
+                "lerobot_train_command": shlex.join(req.lerobot_command()),
+                "dataset": {"root": str(req.dataset), "condition": req.condition and req.condition.key,
+                            "episodes": req.info.get("total_episodes"), "frames": req.info.get("total_frames"),
+                            "contract": req.contract},
+                "checkpoint": str(checkpoint_dir(req.out)),
+                "wall_s": round(time.time() - start, 1),
+                "provenance": files.provenance(),
+            })
+        return checkpoint_dir(req.out)
 
 
 @contextlib.contextmanager
