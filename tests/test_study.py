@@ -194,6 +194,39 @@ def test_a_replicate_trains_with_its_own_seed_and_the_others_as_before(tmp_path)
     assert set(second.config) <= {f.name for f in fields(TrainConfig)}  # train_unit: TrainConfig(**config)
 
 
+def test_replicates_are_grouped_by_recipe_and_their_episodes_paired():
+    """Policies alike but for name and train_seed are one group; per dataset and condition the table gives each
+    one's successes and, pair by pair, the episodes whose success agrees (seeds pair up; rows are not in order)."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from vla_ladder.experiments.study_results import replicate_cells, replicate_groups
+    from vla_ladder.report.study import replicates_markdown
+
+    base = _micro()["policies"][0]
+    policies = [base, {**base, "name": "s2", "train_seed": 2}, {**base, "name": "other", "steps": 7},
+                {**base, "name": "s3", "train_seed": 3}]
+    groups = replicate_groups(policies)
+    assert groups == {base["name"]: [base["name"], "s2", "s3"]}
+
+    def run(success: list[int]):
+        rows = [dict(regime=r, split="canonical", num_objects=5, seed=seed, success=bool(s))
+                for r, outcomes in (("small_jitter", success[:4]), ("full_random", success[4:]))
+                for seed, s in enumerate(outcomes)]
+        return SimpleNamespace(episodes=pd.DataFrame(rows[::-1])), ("sj", "small_jitter/canonical/5")
+
+    runs = {f"{base['name']} (sj)": run([1, 1, 0, 0, 1, 0, 0, 0]), "s2 (sj)": run([1, 0, 1, 0, 0, 0, 0, 0]),
+            "s3 (sj)": run([1, 1, 0, 0, 0, 0, 0, 1]), "other (sj)": run([0] * 8)}
+    cells = replicate_cells(groups, runs)
+    assert [(c["eval_condition"], c["n"]) for c in cells] == [("full_random/canonical/5", 4),
+                                                              ("small_jitter/canonical/5", 4)]
+    sj = cells[1]
+    assert sj["success_count"] == {base["name"]: 2, "s2": 2, "s3": 2}
+    assert list(sj["episodes_alike"].values()) == [2, 4, 2]  # seeds 1 and 2 differ between the first and s2
+    assert "| 50 / 50 / 50 | 0 | 2 of 4, 4 of 4, 2 of 4 |" in replicates_markdown(cells)
+
+
 def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):
     """cpu-mini's blind control is trained on sj only: no unit of it on pid or fr, every other model planned."""
     from vla_ladder.experiments.study import Study, StudyCommand

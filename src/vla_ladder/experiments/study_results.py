@@ -61,6 +61,43 @@ def displacement_curves(runs: dict[str, tuple]) -> dict[str, dict]:
     return out
 
 
+def replicate_groups(policies: list[dict]) -> dict[str, list[str]]:
+    """Training replicates among a study's policies (study.json's): those that differ only in name and train_seed,
+    as {first name: every name} for each group of two or more (docs/study.md, "Training replicates")."""
+    groups: dict[str, list[str]] = {}
+    for p in policies:
+        recipe = json.dumps({k: v for k, v in p.items() if k not in ("name", "train_seed")}, sort_keys=True)
+        groups.setdefault(recipe, []).append(p["name"])
+    return {names[0]: names for names in groups.values() if len(names) > 1}
+
+
+def replicate_cells(groups: dict[str, list[str]], runs: dict[str, tuple]) -> list[dict]:
+    """For each group of replicates, dataset they all trained on and evaluation condition: each replicate's
+    successes, and for each pair of them the episodes whose success agrees (same seeds, so outcomes pair up).
+    `runs`: study_runs' labels, "NAME (DATASET)" -> (Run, train)."""
+    cells = []
+    for names in groups.values():
+        datasets = dict.fromkeys(train[0] for label, (_, train) in runs.items()
+                                 if train is not None and label == f"{names[0]} ({train[0]})")
+        for d in datasets:
+            episodes = {n: runs[f"{n} ({d})"][0].episodes for n in names if f"{n} ({d})" in runs}
+            if len(episodes) < 2:
+                continue
+            key = ["regime", "split", "num_objects", "seed"]
+            outcome = None
+            for n, e in episodes.items():
+                e = e[key + ["success"]].rename(columns={"success": n})
+                outcome = e if outcome is None else outcome.merge(e, on=key)
+            for (regime, split, k), g in outcome.groupby(["regime", "split", "num_objects"], sort=False):
+                members = list(episodes)
+                cells.append({
+                    "replicates": members, "train_dataset": d, "eval_condition": f"{regime}/{split}/{k}",
+                    "n": len(g), "success_count": {n: int(g[n].sum()) for n in members},
+                    "episodes_alike": {f"{a} | {b}": int((g[a] == g[b]).sum())
+                                       for i, a in enumerate(members) for b in members[i + 1:]}})
+    return cells
+
+
 def write_results(study, chosen: dict, results: dict) -> Path:
     """Gather a finished study's cells, selection and learning curves, then write_report."""
     root, cfg = study.root, study.cfg
@@ -113,7 +150,9 @@ def write_report(root: Path, summary: dict) -> Path:
         if uid.startswith("probe-"):
             data = rescore_probe(root / "probes" / uid.removeprefix("probe-"))
             probes[uid.removeprefix("probe-")] = {"probe": data["probe"], "conditions": data["conditions"]}
-    summary = {**summary, "probes": probes, "displacement": displacement,
+    groups = replicate_groups(json.loads((root / "study.json").read_text())["policies"])
+    replicates = {"groups": groups, "cells": replicate_cells(groups, runs)}
+    summary = {**summary, "probes": probes, "displacement": displacement, "replicates": replicates,
                "units": {**summary["units"], **{f"probe-{name}": r for name, r in probes.items()}},
                "provenance": files.provenance()}
     files.write_json(root / "summary.json", summary)
@@ -126,6 +165,10 @@ def write_report(root: Path, summary: dict) -> Path:
     if probes:
         files.write_text(tables / "probes.md", present.probes_markdown(probes))
         sections.append(("Study: grounding probes", present.probes_html(probes)))
+    if replicates["cells"]:
+        files.write_text(tables / "replicates.md", present.replicates_markdown(replicates["cells"]))
+        sections.append(("Study: training replicates (the same recipe, other training seeds)",
+                         present.replicates_html(replicates["cells"])))
     pairings = present.pairings_html(cells)
     if pairings:
         sections.append(("Study: held-out object-region pairings", pairings))

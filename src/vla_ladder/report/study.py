@@ -138,6 +138,36 @@ def pairings_html(cells: list[dict]) -> str:
     return f"<table><tr><th>policy</th><th>trained on</th><th>split</th><th>n</th>{head}</tr>{body}</table>"
 
 
+REPLICATE_COLUMNS = ("replicates", "trained on", "eval condition", "n", "success per replicate (%)",
+                     "range (points)", "episodes alike, pair by pair")
+
+
+def replicate_rows(cells: list[dict]) -> list[list[str]]:
+    """One row per replicate_cells cell: the rates side by side, their spread, and how many episodes each pair of
+    models agrees on (a rate can hold while the episodes it is made of change with the training run)."""
+    rows = []
+    for c in cells:
+        rates = [100 * c["success_count"][n] / c["n"] for n in c["replicates"]]
+        rows.append([", ".join(c["replicates"]), c["train_dataset"], c["eval_condition"], str(c["n"]),
+                     " / ".join(f"{r:.0f}" for r in rates), f"{max(rates) - min(rates):.0f}",
+                     ", ".join(f"{k} of {c['n']}" for k in c["episodes_alike"].values())])
+    return rows
+
+
+def replicates_markdown(cells: list[dict]) -> str:
+    lines = ["| " + " | ".join(REPLICATE_COLUMNS) + " |", "|" + "---|" * len(REPLICATE_COLUMNS)]
+    lines += ["| " + " | ".join(row) + " |" for row in replicate_rows(cells)]
+    pairs = ", ".join(dict.fromkeys(p for c in cells for p in c["episodes_alike"]))
+    return "\n".join(lines) + f"\n\nPairs, in order: {pairs}.\n"
+
+
+def replicates_html(cells: list[dict]) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in REPLICATE_COLUMNS)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in row) + "</tr>"
+                   for row in replicate_rows(cells))
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
 def plot_curves(curves: dict[str, list[dict]], path: str | Path, xlabel: str = "training step",
                 ylabel: str = "% of validation episodes") -> Path:
     """curves: model -> [{step, success, grasp_any, reach, ci95}] on validation episodes; one panel per model."""
