@@ -188,6 +188,19 @@ def test_compare_rejects_mismatched_runs_and_non_run_dirs(tmp_path, capsys):
         compare_runs(load_run(a), load_run(other))
     with pytest.raises(ValueError, match="different episodes"):
         compare_runs(load_run(a), load_run(shorter))
+    # A ladder run against one of small jitter only: refused, or with --conditions-in-both the shared condition.
+    ladder = make_run(tmp_path / "l", "scripted", [FR, SJ], ["success", "miss", "success", "success"])
+    with pytest.raises(ValueError, match="only in .*: \\['full_random/canonical/5'\\]; .*--conditions-in-both"):
+        compare_runs(load_run(ladder), load_run(a))
+    with pytest.raises(ValueError, match="they share none"):
+        compare_runs(load_run(a), load_run(other), in_both=True)
+    assert main(["compare", str(ladder), str(a), "--conditions-in-both"]) == 0
+    out = capsys.readouterr().out
+    assert "small_jitter/canonical/5" in out.split("left out")[0] and "full_random/canonical/5     success" not in out
+    assert "left out, played by one run only: A full_random/canonical/5; B none" in out
+    result = compare_runs(load_run(ladder), load_run(a), in_both=True)
+    assert {r["condition"] for r in result["rows"]} == {"small_jitter/canonical/5"}
+    assert result["rows"][0]["rate_a"] == 0.75 and result["rows"][0]["only_a"] == 0
 
     (tmp_path / "empty").mkdir()
     (tmp_path / "half").mkdir()

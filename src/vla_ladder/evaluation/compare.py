@@ -46,14 +46,22 @@ def two_proportion_z(k1: int, n1: int, k2: int, n2: int) -> tuple[float, float]:
     return float(z), float(p)
 
 
-def pair_episodes(a: Run, b: Run) -> pd.DataFrame:
-    """Episodes of both runs joined on condition and episode index; ValueError if they do not match."""
+def conditions(run: Run) -> list[str]:
+    """The condition keys a run played, in its order."""
+    return [condition_key(*k) for k in run.episodes[list(CONDITION_KEYS)].drop_duplicates().itertuples(index=False)]
+
+
+def pair_episodes(a: Run, b: Run, in_both: bool = False) -> pd.DataFrame:
+    """Episodes of both runs joined on condition and episode index; ValueError if they do not match. With
+    `in_both`, only the conditions both runs played are joined (at least one)."""
     ea, eb = a.episodes, b.episodes
-    ka = {condition_key(*k) for k in ea[list(CONDITION_KEYS)].drop_duplicates().itertuples(index=False)}
-    kb = {condition_key(*k) for k in eb[list(CONDITION_KEYS)].drop_duplicates().itertuples(index=False)}
-    if ka != kb:
+    ka, kb = set(conditions(a)), set(conditions(b))
+    if ka != kb and not (in_both and ka & kb):
+        hint = ("they share none" if in_both else "compare the conditions both played with --conditions-in-both")
         raise ValueError(f"the runs evaluated different conditions: only in {a.path}: "
-                         f"{sorted(ka - kb) or 'none'}; only in {b.path}: {sorted(kb - ka) or 'none'}")
+                         f"{sorted(ka - kb) or 'none'}; only in {b.path}: {sorted(kb - ka) or 'none'}; {hint}")
+    if ka != kb:
+        ea, eb = _in(ea, ka & kb), _in(eb, ka & kb)
     merged = ea.merge(eb, on=list(EPISODE_KEY), how="outer", suffixes=("_a", "_b"), indicator=True)
     unpaired = merged[merged["_merge"] != "both"]
     if len(unpaired):
@@ -63,18 +71,24 @@ def pair_episodes(a: Run, b: Run) -> pd.DataFrame:
     return merged.drop(columns="_merge")
 
 
+def _in(episodes: pd.DataFrame, keys: set[str]) -> pd.DataFrame:
+    return episodes[[condition_key(*k) in keys for k in episodes[list(CONDITION_KEYS)].itertuples(index=False)]]
+
+
 def _describe(row) -> str:
     return f"{condition_key(row['regime'], row['split'], row['num_objects'])} episode {row['episode']}"
 
 
-def compare_runs(a: Run, b: Run, alpha: float = 0.05) -> dict:
+def compare_runs(a: Run, b: Run, alpha: float = 0.05, in_both: bool = False) -> dict:
     """Per condition and metric: both rates with Wilson intervals, their paired difference B - A with Newcombe's
     paired interval, McNemar's exact test, the z-test (its z of B - A), and the difference these n scenes would
-    find with probability DETECT_POWER (stats.detectable_difference)."""
-    merged = pair_episodes(a, b)
-    # Conditions in run A's order (the outer join sorts its keys alphabetically).
-    order = [tuple(k) for k in a.episodes[list(CONDITION_KEYS)].drop_duplicates().itertuples(index=False)]
+    find with probability DETECT_POWER (stats.detectable_difference). With `in_both`, the conditions both runs
+    played (the others under "left_out")."""
+    merged = pair_episodes(a, b, in_both)
     groups = dict(list(merged.groupby(list(CONDITION_KEYS), sort=False)))
+    # Conditions in run A's order (the outer join sorts its keys alphabetically).
+    order = [tuple(k) for k in a.episodes[list(CONDITION_KEYS)].drop_duplicates().itertuples(index=False)
+             if tuple(k) in groups]
     rows = []
     for key in order:
         df = groups[key]
@@ -100,7 +114,9 @@ def compare_runs(a: Run, b: Run, alpha: float = 0.05) -> dict:
                       "detectable_diff": f"the difference around the pooled rate that McNemar's test at alpha={alpha} "
                                          f"finds with probability {DETECT_POWER} when outcomes are independent "
                                          "draws (stats.detectable_difference)"},
-            "rows": rows}
+            "rows": rows,
+            "left_out": {"only_a": [c for c in conditions(a) if c not in conditions(b)],
+                         "only_b": [c for c in conditions(b) if c not in conditions(a)]}}
 
 
 def format_table(result: dict, alpha: float = 0.05) -> str:
@@ -116,6 +132,10 @@ def format_table(result: dict, alpha: float = 0.05) -> str:
         lines.append(f"{r['condition']:<28} {r['metric']:<9} {r['n']:>4} {100 * r['rate_a']:5.0f} "
                      f"{100 * r['rate_b']:5.0f} {100 * r['diff']:+6.0f} {ci:>11} {r['only_a']:>6} {r['only_b']:>6} "
                      f"{r['mcnemar_p']:10.4f} {z:>6} {r['z_p']:9.4f} {100 * r['detectable_diff']:5.0f}{star}")
+    left = result.get("left_out", {})
+    if left.get("only_a") or left.get("only_b"):
+        lines += ["", f"left out, played by one run only: A {', '.join(left['only_a']) or 'none'}; "
+                      f"B {', '.join(left['only_b']) or 'none'}"]
     lines += ["", f"* paired difference significant at {alpha} (McNemar exact), row by row: with many rows, expect "
               "some stars by chance (no correction for multiple comparisons)",
               "95% CI: of B-A, Newcombe's interval for paired rates; z: pooled two-proportion z of B-A, unpaired",
@@ -139,6 +159,9 @@ class CompareConfig:
     """also write the comparison as JSON here"""
     alpha: float = 0.05
     """significance level for the * marks"""
+    conditions_in_both: bool = False
+    """compare the conditions both runs played (e.g. a ladder run against one of small jitter only) and list the
+    others, instead of refusing runs of different conditions"""
 
     def __post_init__(self):
         if not 0 < self.alpha < 1:
@@ -150,7 +173,7 @@ class CompareConfig:
 
 
 def run(cfg: CompareConfig) -> int:
-    result = compare_runs(load_run(cfg.run_a), load_run(cfg.run_b), cfg.alpha)
+    result = compare_runs(load_run(cfg.run_a), load_run(cfg.run_b), cfg.alpha, cfg.conditions_in_both)
     print(format_table(result, cfg.alpha))
     if cfg.json:
         write_json(cfg.json, result)
