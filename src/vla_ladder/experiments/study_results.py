@@ -75,21 +75,21 @@ def replicate_cells(groups: dict[str, list[str]], runs: dict[str, tuple]) -> lis
     """For each group of replicates, dataset they all trained on and evaluation condition: each replicate's
     successes, and for each pair of them the episodes whose success agrees (same seeds, so outcomes pair up).
     `runs`: study_runs' labels, "NAME (DATASET)" -> (Run, train)."""
+    key = ["regime", "split", "num_objects", "seed"]
     cells = []
     for names in groups.values():
         datasets = dict.fromkeys(train[0] for label, (_, train) in runs.items()
                                  if train is not None and label == f"{names[0]} ({train[0]})")
         for d in datasets:
             episodes = {n: runs[f"{n} ({d})"][0].episodes for n in names if f"{n} ({d})" in runs}
-            if len(episodes) < 2:
+            members = list(episodes)
+            if len(members) < 2:
                 continue
-            key = ["regime", "split", "num_objects", "seed"]
-            outcome = None
+            outcome = None  # one success column per replicate, rows paired by condition and seed
             for n, e in episodes.items():
                 e = e[key + ["success"]].rename(columns={"success": n})
                 outcome = e if outcome is None else outcome.merge(e, on=key)
             for (regime, split, k), g in outcome.groupby(["regime", "split", "num_objects"], sort=False):
-                members = list(episodes)
                 cells.append({
                     "replicates": members, "train_dataset": d, "eval_condition": f"{regime}/{split}/{k}",
                     "n": len(g), "success_count": {n: int(g[n].sum()) for n in members},
