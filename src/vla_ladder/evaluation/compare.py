@@ -85,6 +85,7 @@ def compare_runs(a: Run, b: Run, alpha: float = 0.05, in_both: bool = False) -> 
     find with probability DETECT_POWER (stats.detectable_difference). With `in_both`, the conditions both runs
     played (the others under "left_out")."""
     merged = pair_episodes(a, b, in_both)
+    played_a, played_b = conditions(a), conditions(b)
     groups = dict(list(merged.groupby(list(CONDITION_KEYS), sort=False)))
     # Conditions in run A's order (the outer join sorts its keys alphabetically).
     order = [tuple(k) for k in a.episodes[list(CONDITION_KEYS)].drop_duplicates().itertuples(index=False)
@@ -115,8 +116,8 @@ def compare_runs(a: Run, b: Run, alpha: float = 0.05, in_both: bool = False) -> 
                                          f"finds with probability {DETECT_POWER} when outcomes are independent "
                                          "draws (stats.detectable_difference)"},
             "rows": rows,
-            "left_out": {"only_a": [c for c in conditions(a) if c not in conditions(b)],
-                         "only_b": [c for c in conditions(b) if c not in conditions(a)]}}
+            "left_out": {"only_a": [c for c in played_a if c not in played_b],
+                         "only_b": [c for c in played_b if c not in played_a]}}
 
 
 def format_table(result: dict, alpha: float = 0.05) -> str:

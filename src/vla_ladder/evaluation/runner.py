@@ -11,6 +11,7 @@ missing episodes are played); a different request into the same directory is ref
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from collections import Counter
@@ -309,9 +310,7 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
     spec = cfg.policy or policy.name
     overlap = selection_overlap(cfg) if policy is None else 0
     weights = weights_identity(cfg.policy) if policy is None and cfg.out is not None else None
-    if cfg.out is None:
-        return _evaluate(cfg, policy, spec, overlap, weights, progress, started)
-    with files.writing(cfg.out, "evaluation"):
+    with files.writing(cfg.out, "evaluation") if cfg.out is not None else contextlib.nullcontext():
         return _evaluate(cfg, policy, spec, overlap, weights, progress, started)
 
 

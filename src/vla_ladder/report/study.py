@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import html
 from pathlib import Path
+from typing import Sequence
 
 from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.contract import METRICS
@@ -155,17 +156,21 @@ def replicate_rows(cells: list[dict]) -> list[list[str]]:
 
 
 def replicates_markdown(cells: list[dict]) -> str:
-    lines = ["| " + " | ".join(REPLICATE_COLUMNS) + " |", "|" + "---|" * len(REPLICATE_COLUMNS)]
-    lines += ["| " + " | ".join(row) + " |" for row in replicate_rows(cells)]
     pairs = ", ".join(dict.fromkeys(p for c in cells for p in c["episodes_alike"]))
-    return "\n".join(lines) + f"\n\nPairs, in order: {pairs}.\n"
+    return "\n".join(_markdown_table(REPLICATE_COLUMNS, replicate_rows(cells))) + f"\n\nPairs, in order: {pairs}.\n"
 
 
 def replicates_html(cells: list[dict]) -> str:
-    head = "".join(f"<th>{html.escape(h)}</th>" for h in REPLICATE_COLUMNS)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in row) + "</tr>"
-                   for row in replicate_rows(cells))
-    return f"<table><tr>{head}</tr>{body}</table>"
+    return _html_table(REPLICATE_COLUMNS, replicate_rows(cells))
+
+
+def _markdown_table(head: Sequence[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *("| " + " | ".join(r) + " |" for r in rows)]
+
+
+def _html_table(head: Sequence[str], rows: list[list[str]]) -> str:
+    return ("<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>"
+            + "".join("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in r) + "</tr>" for r in rows) + "</table>")
 
 
 def plot_curves(curves: dict[str, list[dict]], path: str | Path, xlabel: str = "training step",
@@ -248,14 +253,12 @@ PROBE_TABLE_NOTE = ("Rates and their changes in %, with 95% intervals and, for a
 def probes_markdown(probes: dict[str, dict]) -> str:
     head = ["Model", "Probe", "Condition", "Metric", "Value [95% CI]", "n"]
     lines = ["**Grounding probes of the learned policies (docs/probes.md says how to read them).**", "",
-             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    lines += ["| " + " | ".join(r) + " |" for r in probe_rows(probes)]
+             *_markdown_table(head, probe_rows(probes))]
     return "\n".join(lines) + "\n\n" + PROBE_TABLE_NOTE + "\n"
 
 
 def probes_html(probes: dict[str, dict]) -> str:
-    rows = "".join("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in r) + "</tr>" for r in probe_rows(probes))
+    head = ["model", "probe", "condition", "metric", "value [95% CI]", "n"]
     kinds = [k for k in VIEWS if any(d["probe"] == k for d in probes.values())]
     notes = "".join(f"<p class=note><b>{k}</b>. {VIEWS[k].explain}</p>" for k in kinds)
-    return ("<table><tr><th>model</th><th>probe</th><th>condition</th><th>metric</th><th>value [95% CI]</th>"
-            f"<th>n</th></tr>{rows}</table><p class=note>{PROBE_TABLE_NOTE}</p>{notes}")
+    return _html_table(head, probe_rows(probes)) + f"<p class=note>{PROBE_TABLE_NOTE}</p>{notes}"
