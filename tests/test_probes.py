@@ -149,6 +149,19 @@ def test_incomplete_scenes_are_left_out():
     assert metrics(df)["scenes"] == 11
 
 
+def test_a_condition_without_one_complete_scene_scores_nothing_instead_of_failing():
+    """The confusion table of no plays (pandas' crosstab of empty categoricals repeated its columns) made every
+    metric of the probe fail where each scene of a condition lacked a variant."""
+    df = plays(lambda lay, r, j: lay.target, k=2, scenes=3)
+    res = metrics(df[df["instruct"] == 0], "small_jitter/canonical/2")
+    assert res["scenes"] == 0 and np.isnan(res["instruction_sensitivity"]["value"])
+    assert np.array(res["matrix"]["counts"]).shape == (5, 6) and not np.array(res["matrix"]["counts"]).any()
+    ordinary = df[df["instruct"] == 0].assign(absent=np.nan, tcp_x=0.0, tcp_y=0.0)
+    absent = ordinary.assign(absent=0, target="mug")  # 2 objects: three absent ones a scene, one played
+    res = grounding.absent_object(ordinary, absent)["small_jitter/canonical/2"]
+    assert res["scenes"] == 0 and np.isnan(res["grasp_absent"]["value"])
+
+
 def test_instruction_swap_plays_of_other_scenes_are_refused():
     """Its plays pair on the episode index, as every paired probe's do: variants of other seeds (directories of
     two requests put together) were scored as scenes, 3 of them 'sensitive'; every other probe refused them."""

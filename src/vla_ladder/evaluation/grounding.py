@@ -97,8 +97,9 @@ def pooled_rate(num: np.ndarray, den: np.ndarray) -> dict:
     scene decides all its plays) and the number of plays (they are independent). Where every play counts (or none does),
     or only one scene has plays, there is no variance to measure, and each contributing scene counts as one trial (49 of
     49 grasps in 19 scenes: [83, 100]). With one play a scene this is the Wilson interval of the plays. Measured
-    coverage of the nominal 95% on beta-binomial scenes (10 to 50 scenes of 2 to 5 plays, rates 0.1 to 0.95): 92-98%,
-    where a percentile bootstrap over scenes gave 89-93% at 10-20 scenes (docs/probes.md)."""
+    coverage of the nominal 95% on beta-binomial scenes (10 to 50 scenes of 2 to 5 plays, rates 0.1 to 0.95,
+    intra-scene correlation 0.05 to 0.8; benchmarks/pooled_rate_coverage.py): 90-98%, the lowest at rates near 0.1 and
+    0.95 with correlated plays; a percentile bootstrap over scenes gave 89-93% at 10-20 scenes (docs/probes.md)."""
     num, den = np.asarray(num, dtype=float), np.asarray(den, dtype=float)
     k, total = float(num.sum()), float(den.sum())
     if not total:

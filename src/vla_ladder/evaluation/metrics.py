@@ -48,8 +48,9 @@ def outcomes(episodes: pd.DataFrame) -> pd.Series:
 
 def confusion(episodes: pd.DataFrame) -> pd.DataFrame:
     """Counts of instructed object (rows) x object held at the final step (columns, plus "none")."""
-    table = pd.crosstab(pd.Categorical(episodes["target"], categories=OBJECT_NAMES),
-                        pd.Categorical(episodes["held"], categories=HELD_COLUMNS), dropna=False)
+    # Plain columns, then reindex: crosstab of empty Categoricals with dropna=False repeats its columns (pandas 2.3),
+    # and a condition whose scenes all lack a probe variant has no episodes.
+    table = pd.crosstab(episodes["target"].astype(object), episodes["held"].astype(object))
     table.index.name, table.columns.name = "instructed", "held"
     return table.reindex(index=list(OBJECT_NAMES), columns=list(HELD_COLUMNS), fill_value=0).astype(int)
 
