@@ -462,3 +462,61 @@ def test_a_shard_of_another_recording_or_task_contract_cannot_join(tmp_path):
         main.settle(5)
     main.close()
     assert sorted(read_provenance(root)["seed"]) == sorted(own)
+
+
+class _SyntheticSimulator:
+    """The server's simulator without physics: every seed a successful episode of a seed-coloured picture, but the
+    seeds in `fail`, whose simulation raises (the server closes the connection with 1011, simulation failed)."""
+
+    object_set = "standin"
+
+    def __init__(self, fail: set[int]):
+        self.fail = fail
+
+    def run(self, seeds: list[int]):
+        from vla_ladder.contract import EPISODE_STEPS
+        from vla_ladder.recording.server import EpisodeResult
+
+        out = []
+        for seed in seeds:
+            if seed in self.fail:
+                raise RuntimeError(f"the simulation of seed {seed} failed")
+            episode = synthetic_episode(seed, EPISODE_STEPS)
+            header = {**episode.header, "type": "episode", "sim_seconds": 0.0, "sim_backend": "physx_cpu",
+                      "replayable": True}
+            arrays = {**{f"images.{c}": episode.images[c] for c in ("hand_camera", "fixed_camera")},
+                      "state": episode.state, "action": episode.action}
+            out.append(EpisodeResult(seed, header, arrays))
+        return out
+
+    def close(self) -> None:
+        pass
+
+
+def test_writers_finish_when_a_block_ends_in_a_seed_the_servers_failed(tmp_path):
+    """Seed 3's simulation fails on every server: one writer gives it up and records seeds 0, 1, 2 and 4; so do two
+    writers, where seed 3 ends the block [2, 4). That block was never played to its end, so the ledger counted on a
+    demo from seed 3 and handed out no other block: both writers waited for ever ('3/4 saved')."""
+    import subprocess
+
+    from test_reconnect import LoopThread
+    from test_recording import ENV, _cli
+
+    from vla_ladder.conditions import Condition
+    from vla_ladder.recording.server import EpisodeServer, ServeConfig
+
+    def server() -> EpisodeServer:
+        s = EpisodeServer(ServeConfig(condition=Condition("small_jitter", "canonical", 2), port=0))
+        s._build = lambda: setattr(s, "_sim", _SyntheticSimulator(fail={3}))
+        return s
+
+    servers = [server() for _ in range(4)]
+    with contextlib.ExitStack() as stack:
+        urls = [stack.enter_context(LoopThread(s.serve)).url for s in servers]
+        for writers, out in (("2", tmp_path / "two"), ("1", tmp_path / "one")):
+            r = subprocess.run(_cli("record", "--episodes", "4", "--writers", writers, "--encoder-threads", "1",
+                                    "--out", str(out), "--server", *urls), env=ENV, capture_output=True, text=True,
+                               timeout=300)
+            assert r.returncode == 0, r.stderr[-3000:]
+            assert read_provenance(out)["seed"].tolist() == [0, 1, 2, 4], writers
+            assert read_recording_state(out)["counters"]["saved"] == 4

@@ -172,10 +172,23 @@ def test_a_finished_study_resumes_with_probes_added_and_refuses_any_other_change
     probes = list(base.evaluation.probes)
     StudyCommand(config(probes=[*probes, "distractor-removal"]), out=tmp_path / "s")  # resumes
     StudyCommand(config(probes=probes[::-1]), out=tmp_path / "s")  # the same probes in another order
-    for changed in (dict(probes=probes[1:]), dict(probes=[*probes, "paraphrase"], probe_episodes=11),
-                    dict(episodes=51)):
-        with pytest.raises(ValueError, match="holds another study"):
+    for changed, field in ((dict(probes=probes[1:]), "evaluation.probes"),
+                           (dict(probes=[*probes, "paraphrase"], probe_episodes=11), "evaluation.probe_episodes"),
+                           (dict(episodes=51), "evaluation.episodes")):
+        with pytest.raises(ValueError, match=f"holds another study .*its {field}"):
             StudyCommand(config(**changed), out=tmp_path / "s")
+    # A study.json written before a field existed (policies' train_seed, 2026-11-28) reads it as its default, as
+    # the committed studies' do: they resume and report again.
+    saved = asdict(base)
+    for policy in saved["policies"]:
+        del policy["train_seed"]
+    files.write_json(tmp_path / "s" / "study.json", saved)
+    StudyCommand(config(), out=tmp_path / "s")
+    replicate = asdict(base)
+    replicate["policies"][1]["train_seed"] = 7
+    (tmp_path / "r.json").write_text(json.dumps(replicate))
+    with pytest.raises(ValueError, match=r"its policies\[1\].train_seed differs"):
+        StudyCommand(str(tmp_path / "r.json"), out=tmp_path / "s")
 
 
 def test_a_replicate_trains_with_its_own_seed_and_the_others_as_before(tmp_path):

@@ -26,7 +26,7 @@ import tyro
 from vla_ladder import files
 from vla_ladder.checks import check_ray_address
 from vla_ladder.conditions import parse_regimes
-from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig
+from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig, from_dict
 from vla_ladder.experiments.units import Unit, is_done, run_units, run_units_on_ray
 from vla_ladder.machine import check_workers, cores
 
@@ -69,9 +69,11 @@ class StudyCommand:
         if self.out.exists() and not self.out.is_dir():
             raise ValueError(f"--out {str(self.out)!r} is a file; give a directory")
         saved = self.out / "study.json"
-        if saved.is_file() and not _resumes(json.loads(saved.read_text()), asdict(self.study)):
-            raise ValueError(f"{self.out} holds another study ({saved}); use a new --out (a study resumes with the "
-                             "same config, reworded, or with grounding probes added to evaluation.probes)")
+        differs = saved.is_file() and _what_differs(_as_now(json.loads(saved.read_text())), asdict(self.study))
+        if differs:
+            raise ValueError(f"{self.out} holds another study ({saved}: its {differs} differs); use a new --out (a "
+                             "study resumes with the same config, reworded, or with grounding probes added to "
+                             "evaluation.probes)")
         if self.out.is_dir() and any(self.out.iterdir()) and not saved.is_file():
             raise ValueError(f"{self.out} is not empty and holds no study; use a new --out")
         if self.report_only and not (self.out / "summary.json").is_file():
@@ -98,9 +100,19 @@ def _what_it_runs(study: dict) -> dict:
     return {k: v for k, v in files.plain(study).items() if k != "description"}
 
 
-def _resumes(saved: dict, now: dict) -> bool:
-    """Whether a study directory that ran `saved` goes on under `now`: the same request, or the same with grounding
-    probes added (its done units stay done, the new probes run, the summary and report are written again)."""
+def _as_now(saved: dict) -> dict:
+    """A saved study.json read as this version reads a config: fields added since it was written (a policy's
+    train_seed) take their defaults, as its units do. One this version cannot read is compared as it is."""
+    try:
+        return asdict(from_dict(StudyConfig, saved, ""))
+    except ValueError:
+        return saved
+
+
+def _what_differs(saved: dict, now: dict) -> str:
+    """Why a study directory that ran `saved` does not go on under `now` (the first field that differs, "" if it
+    does): it goes on under the same request, or the same with grounding probes added (its done units stay done, the
+    new probes run, the summary and report are written again)."""
     def without_probes(study: dict) -> tuple[dict, set]:
         request = _what_it_runs(study)
         evaluation = request.get("evaluation", {})
@@ -108,7 +120,23 @@ def _resumes(saved: dict, now: dict) -> bool:
         return request, set(evaluation.get("probes", []))
 
     (before, old_probes), (after, new_probes) = without_probes(saved), without_probes(now)
-    return before == after and old_probes <= new_probes
+    if not old_probes <= new_probes:
+        return "evaluation.probes (a probe was dropped)"
+    return _first_difference(before, after)
+
+
+def _first_difference(a, b, where: str = "") -> str:
+    """The path of the first field where two JSON values differ ("policies[1].train_seed"), "" where they are equal."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for key in sorted(set(a) | set(b)):
+            found = _first_difference(a.get(key), b.get(key), f"{where}.{key}" if where else key)
+            if found:
+                return found
+        return ""
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        found = (_first_difference(x, y, f"{where}[{i}]") for i, (x, y) in enumerate(zip(a, b)))
+        return next((f for f in found if f), "")
+    return "" if a == b else (where or "config")
 
 
 # ---------------------------------------------------------------------- planning

@@ -121,9 +121,20 @@ class _BlockSeeds:
         self.taken: list[tuple[int, int]] = []
         self.issued = 0
         self.spent = threading.Event()  # the ledger will hand out no block again
+        self.lock = threading.Lock()  # (the writer reads taken and issued while the source's thread reserves)
         self._next = 0
 
     def reserve(self, n: int) -> list[int]:
+        with self.lock:
+            return self._reserve(n)
+
+    def handed_out(self) -> tuple[int, list[tuple[int, int]]]:
+        """(seeds handed out, the blocks whose every seed was), read together."""
+        with self.lock:
+            whole = self.taken if self.taken and self._next >= self.taken[-1][1] else self.taken[:-1]
+            return self.issued, list(whole)
+
+    def _reserve(self, n: int) -> list[int]:
         seeds: list[int] = []
         while len(seeds) < n and not self.spent.is_set():
             if not self.taken or self._next >= self.taken[-1][1]:
@@ -154,6 +165,7 @@ def write_blocks(cfg: RecordConfig, recording: Recording) -> int:
                            check_server=lambda url, info: check_server(recording, url, info), token=cfg.token).start()
     store: DatasetStore | None = None
     block: tuple[int, int] | None = None
+    closed: set[tuple[int, int]] = set()  # blocks reported done to the ledger
     got = 0
 
     def close_block(played_to: int | None = None, stopped: bool = False) -> None:
@@ -163,6 +175,7 @@ def write_blocks(cfg: RecordConfig, recording: Recording) -> int:
         nonlocal store
         if store is None:
             return
+        closed.add(block)
         store.close(give_back=True)
         c = store.counters
         played_to = store.played_to if played_to is None else played_to
@@ -182,9 +195,22 @@ def write_blocks(cfg: RecordConfig, recording: Recording) -> int:
             except queue.Empty:
                 if not seeds.spent.is_set() and ledger.done():  # (sooner than the source's next ask for seeds)
                     seeds.spent.set()
-                if seeds.spent.is_set() and got + source.lost >= seeds.issued:
+                issued, whole = seeds.handed_out()
+                if got + source.lost < issued:
+                    continue
+                if seeds.spent.is_set():
                     close_block(block[1] if block else None)
                     return 0
+                # Every seed handed out is resolved, the last ones given up (the servers failed them twice): their
+                # blocks are played to their ends, or the ledger would go on counting on their demos, hand out no
+                # other block, and every writer would wait for ever.
+                for b in whole:
+                    if b == block:
+                        close_block(b[1])
+                        block = None
+                    elif b not in closed:  # (not one of its seeds was delivered: no shard)
+                        ledger.report(b[0], b[1], 0, 0, 0, done=True)
+                        closed.add(b)
                 continue
             got += 1
             if block is None or not block[0] <= episode.seed < block[1]:
