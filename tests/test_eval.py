@@ -181,6 +181,12 @@ def test_a_killed_run_resumes_and_another_request_is_refused(tmp_path, capsys):
         assert main(argv) == 2
         assert f"small_jitter/canonical/2 episode {odd['episode'].item()}); its files were edited" in \
             capsys.readouterr().err
+    # Episodes of the other object set ("auto" resolved on a machine with YCB's meshes) are not resumed with these.
+    full.iloc[:1].assign(object_set="ycb").to_parquet(out / "episodes.parquet", index=False)
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "played with the ycb objects, and object_set='auto' plays the standin objects here" in err
     full.to_parquet(out / "episodes.parquet", index=False)
     # The same request with another worker count, or played as a batch, is the same run; another policy is
     # refused, or replaces it.

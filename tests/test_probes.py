@@ -218,6 +218,8 @@ def test_probe_and_eval_configs_reject_bad_input_before_any_work(tmp_path, refus
          "unknown instruction set 'poetic'; allowed: canonical, paraphrase-train, paraphrase-heldout"),
         (["eval", "--policy", "nearest", "--out", str(tmp_path / "e"), "--appearance", "neon"],
          "unknown appearance 'neon'; allowed: original, swap"),
+        (["probe", "position-swap", "--policy", "scripted", "--out", str(tmp_path / "p"), "--object-set", "ycb"],
+         "object_set='ycb' but ManiSkill's YCB models are incomplete"),  # (none here; before any directory is made)
     ]
     refused(cases, tmp_path / "p", tmp_path / "e")
 
@@ -413,3 +415,5 @@ def test_paired_variants_refuse_scenes_played_in_one_only():
                                          r"small_jitter/canonical/5 episode 0\)"):
         grounding.paired(df, df[df["episode"] > 0])
     assert grounding.paired(df, df)["small_jitter/canonical/5"]["n"] == len(df) * 5
+    with pytest.raises(ValueError, match="the variants played different object sets"):  # resumed on another machine
+        grounding.paired(df.assign(object_set="standin"), df.assign(object_set="ycb"))

@@ -317,8 +317,18 @@ def test_grid_2x2_keeps_every_run_and_picks_the_best(data, tmp_path_factory, tmp
     stamp = (out / "runs" / "b2_c4" / "eval_h2" / "summary.json").stat().st_mtime_ns
     assert main(argv) == 0
     assert (out / "runs" / "b2_c4" / "eval_h2" / "summary.json").stat().st_mtime_ns == stamp
-    # Other settings in the same directory are refused.
+    # So does one evaluating with other workers (the same episodes), also where grid_settings.json holds the
+    # evaluation's whole config, as grids before 2026-11-28 wrote it.
+    settings = out / "grid_settings.json"
+    saved = json.loads(settings.read_text())
+    saved["eval"] = {**saved["eval"], "workers": 0, "num_envs": 1, "overwrite": False, "out": None}
+    for key in ("alone", "switch_at"):  # (fields added since: their absence meant the default)
+        del saved["eval"][key]
+    settings.write_text(json.dumps(saved))
+    assert main([*argv[:argv.index("--")], "--eval.workers", "1", *argv[argv.index("--"):]]) == 0
+    assert "workers" not in json.loads(settings.read_text())["eval"]
+    # Other settings in the same directory are refused, naming the one that differs.
     other = list(argv)
     other[other.index("--train.steps") + 1] = "2"
     assert main(other) == 2
-    assert "other settings" in capsys.readouterr().err
+    assert "other settings" in (err := capsys.readouterr().err) and "its train.steps differs" in err

@@ -174,6 +174,21 @@ def plain(data):
     return json.loads(json.dumps(data, default=json_default))
 
 
+def first_difference(a, b, where: str = "") -> str:
+    """The path of the first field where two JSON values differ ("policies[1].train_seed"), "" where they are equal:
+    what a refusal to resume names."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for key in sorted(set(a) | set(b)):
+            found = first_difference(a.get(key), b.get(key), f"{where}.{key}" if where else key)
+            if found:
+                return found
+        return ""
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        found = (first_difference(x, y, f"{where}[{i}]") for i, (x, y) in enumerate(zip(a, b)))
+        return next((f for f in found if f), "")
+    return "" if a == b else (where or "the whole")
+
+
 def _checkout_version() -> str | None:
     """The version in the checkout's pyproject.toml, for a run from src/ on the path without installing (the GPU
     kit does that), so its results still say which vla-ladder made them."""

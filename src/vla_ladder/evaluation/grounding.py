@@ -260,6 +260,9 @@ def same_scenes(a: pd.DataFrame, b: pd.DataFrame, suffixes: tuple[str, str], sam
             same_target and (merged[f"target{first}"] != merged[f"target{second}"]).any()):
         raise ValueError(f"the variants played different seeds{' or instructions' if same_target else ''}; a probe "
                          "compares the same scenes")
+    if f"object_set{first}" in merged and (merged[f"object_set{first}"] != merged[f"object_set{second}"]).any():
+        raise ValueError("the variants played different object sets (ycb and standin: resumed on another machine?); "
+                         "a probe compares the same scenes")
     return merged
 
 

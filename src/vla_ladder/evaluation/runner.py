@@ -127,6 +127,9 @@ class EvalConfig:
             check_physx_cuda("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")
         if self.object_set not in OBJECT_SETS:
             raise ValueError(f"unknown object_set {self.object_set!r}; allowed: {', '.join(OBJECT_SETS)}")
+        if self.object_set == "ycb":  # its meshes must be on disk: said here, not once the run directory is written
+            from vla_ladder.task.assets import resolve_object_set
+            resolve_object_set("ycb")
         check_robot_mesh(self.robot_mesh)
         from vla_ladder.task.appearance import check_appearance
         from vla_ladder.task.instructions import check_instruction_set
@@ -222,6 +225,13 @@ def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     if not path.is_file():
         return []
     rows = read_episodes(path).to_dict("records")
+    from vla_ladder.task.assets import resolve_object_set
+    played_with, here = {r["object_set"] for r in rows}, resolve_object_set(cfg.object_set)
+    if played_with and played_with != {here}:  # "auto" resolves per machine: a resume elsewhere may not match
+        raise ValueError(f"{path} holds episodes played with the {'/'.join(sorted(played_with))} objects, and "
+                         f"object_set={cfg.object_set!r} plays the {here} objects here; resume where its episodes were "
+                         f"played (or with $VLA_LADDER_OBJECT_SET={next(iter(played_with))}), or evaluate into a new "
+                         "--out")
     # What this request plays, each once: anything else (an edited or mixed file) would be counted in its summary.
     played = Counter((r["regime"], r["split"], r["num_objects"], r["episode"]) for r in rows)
     planned = {(j.condition.regime, j.condition.split, j.condition.num_objects, j.episode) for j in cfg.jobs()}

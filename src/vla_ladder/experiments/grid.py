@@ -27,7 +27,7 @@ import pandas as pd
 from vla_ladder import files
 from vla_ladder.checks import check_ray_address
 from vla_ladder.contract import METRICS
-from vla_ladder.evaluation.runner import EvalConfig
+from vla_ladder.evaluation.runner import NOT_THE_REQUEST, PRESENTATION, EvalConfig
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
 from vla_ladder.training.train import TrainConfig, check_offline_assets, checkpoint_dir
 
@@ -76,7 +76,14 @@ class GridConfig:
     def settings(self) -> dict:
         """What a rerun must repeat to resume this grid (not how much work is left)."""
         return {"batch_sizes": list(self.batch_sizes), "chunk_sizes": list(self.chunk_sizes),
-                "horizons": list(self.horizons), "train": asdict(self.train), "eval": asdict(self.eval)}
+                "horizons": list(self.horizons), "train": asdict(self.train), "eval": self.eval.request()}
+
+
+def settings_as_now(saved: dict) -> dict:
+    """grid_settings.json as this version writes it: the evaluation's request, which leaves out how it runs (workers,
+    batching: the same episodes) and holds the fields added since at the value their absence meant."""
+    evaluation = {**PRESENTATION, **saved.get("eval", {})}
+    return {**saved, "eval": {k: v for k, v in evaluation.items() if k not in NOT_THE_REQUEST}}
 
 
 def overall(summary: dict) -> dict:
@@ -165,8 +172,10 @@ def run(cfg: GridConfig) -> int:
     check_offline_assets(probe.build_config().policy)
     grid = cfg.settings()
     path = out / "grid_settings.json"
-    if path.is_file() and json.loads(path.read_text()) != files.plain(grid):
-        raise ValueError(f"{out} holds a grid run with other settings ({path}); use a new --out")
+    if path.is_file() and (differs := files.first_difference(settings_as_now(json.loads(path.read_text())),
+                                                               files.plain(grid))):
+        raise ValueError(f"{out} holds a grid run with other settings ({path}: its {differs} differs); use a new "
+                         "--out")
     files.write_json(path, grid)
     log.info("grid over %s", grid)
     df = run_grid(cfg)

@@ -122,21 +122,7 @@ def _what_differs(saved: dict, now: dict) -> str:
     (before, old_probes), (after, new_probes) = without_probes(saved), without_probes(now)
     if not old_probes <= new_probes:
         return "evaluation.probes (a probe was dropped)"
-    return _first_difference(before, after)
-
-
-def _first_difference(a, b, where: str = "") -> str:
-    """The path of the first field where two JSON values differ ("policies[1].train_seed"), "" where they are equal."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        for key in sorted(set(a) | set(b)):
-            found = _first_difference(a.get(key), b.get(key), f"{where}.{key}" if where else key)
-            if found:
-                return found
-        return ""
-    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
-        found = (_first_difference(x, y, f"{where}[{i}]") for i, (x, y) in enumerate(zip(a, b)))
-        return next((f for f in found if f), "")
-    return "" if a == b else (where or "config")
+    return files.first_difference(before, after)
 
 
 # ---------------------------------------------------------------------- planning
