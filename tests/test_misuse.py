@@ -489,6 +489,7 @@ def test_a_flag_given_twice_is_refused_not_silently_dropped(argv, flag, capsys, 
     # Checked here, not by the local servers after they start (a multi-line failure that said to rerun).
     (["--num-envs", "0"], "--num-envs must be >= 1, got 0"),
     (["--commit-seconds", "nan"], "--commit-seconds must be > 0, got nan"),
+    (["--commit-every", "0"], "--commit-every must be a positive integer, got 0"),
     (["--commit-seconds", "-5"], "--commit-seconds must be > 0, got -5.0"),
     # Malformed server URLs (a websockets traceback, or its words without the flag's), a missing expert (each local
     # server refused it after starting, and the recorder said to rerun), an unknown robot mesh.

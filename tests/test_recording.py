@@ -277,6 +277,8 @@ BAD_CLIENTS = {
                           "[0, 4294967295]"),
     "too many outstanding": ([GOOD_HELLO, P.run(list(range(9)))], P.CLOSE_LIMIT, "outstanding"),
     "unknown message": ([GOOD_HELLO, P.encode({"type": "dance"})], P.CLOSE_UNEXPECTED, "'dance'"),
+    "failed_frames not a bool": ([GOOD_HELLO, P.encode({"type": "run", "seeds": [1], "failed_frames": "no"})],
+                                 P.CLOSE_MALFORMED, "'failed_frames' not bool"),
 }
 
 
@@ -341,6 +343,28 @@ def test_malformed_episode_frames_are_rejected_by_the_client():
     failed = Episode.from_message(P.decode(P.encode({**header, "metrics": {**metrics, "success": False},
                                                      "has_frames": False})), "test")
     assert not failed.success and not failed.has_frames
+    # A close frame carries at most 123 bytes: a reason cut by characters was refused ("control frame too long") and
+    # the malformed episode taken for a lost connection.
+    reason = P.ProtocolError("condition " + "é" * 100).close_reason
+    assert len(reason.encode()) <= 123 and reason.startswith("condition é")
+
+
+def test_record_refuses_a_server_that_serves_no_expert_or_does_not_say_what_it_serves(tmp_path, capsys):
+    """A server's welcome names the expert the dataset records: a reference policy is refused as `record --policy`
+    refuses it (it was recorded as the expert), and a welcome without it is one line, not a KeyError."""
+    import functools
+
+    from test_reconnect import LoopThread, _greeting_server
+
+    limits = {"max_outstanding": 8, "max_seeds_per_request": 16}
+    for serves, words in (({"policy": "random", "condition": "small_jitter/canonical/2", "num_envs": 1},
+                           "serves 'random', which is not an expert; allowed: scripted, ppo:PATH"),
+                          ({"condition": "small_jitter/canonical/2"}, "its welcome does not say what it serves")):
+        with LoopThread(functools.partial(_greeting_server, serves=serves, limits=limits)) as greeter:
+            assert main(["record", "--episodes", "1", "--out", str(tmp_path / "d"), "--server", greeter.url]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0] and "Traceback" not in err[0], err
+    assert not (tmp_path / "d").exists()
 
 
 def test_server_dropped_mid_episode_leaves_no_partial_episode(server, recorded, capsys):

@@ -277,6 +277,15 @@ def test_a_growing_datasets_quantiles_are_refreshed_by_a_tenth_and_exact_when_it
     assert check(root) == (14 * FRAMES, 15 * FRAMES)
     again.close()
     assert check(root) == (15 * FRAMES, 15 * FRAMES)
+    # Commits of failures alone (a recording stopped after them) change only the counters: the card tells them too.
+    last = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=1)
+    for seed in last.reserve_seeds(3):
+        last.count(False, seed)
+    last.close()
+    state = read_recording_state(root)
+    assert state["counters"]["failed"] == 3 and state["counters"]["attempted"] == 18
+    assert check(root) == (15 * FRAMES, 15 * FRAMES)
+    assert "18 were played, 3 failed" in (root / "README.md").read_text()
 
 
 def test_a_long_recordings_episode_metadata_is_joined_into_one_file(tmp_path):

@@ -168,7 +168,7 @@ class EpisodeClient:
             if episode.seed not in self.requested:
                 raise P.ProtocolError(f"episode {episode.seed} was not asked for, or was sent already")
         except P.ProtocolError as e:
-            await self.ws.close(e.code, e.reason[:120])
+            await self.ws.close(e.code, e.close_reason)
             raise ServerError(self.url, f"malformed episode: {e.reason}", e.code) from None
         self.requested.discard(episode.seed)
         return episode
@@ -193,7 +193,7 @@ class EpisodeClient:
         try:
             return P.decode(data)
         except P.ProtocolError as e:
-            await self.ws.close(e.code, e.reason[:120])
+            await self.ws.close(e.code, e.close_reason)
             raise ServerError(self.url, f"malformed message: {e.reason}", e.code) from None
 
     def _closed(self, e) -> ServerError:

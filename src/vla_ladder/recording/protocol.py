@@ -58,6 +58,12 @@ class ProtocolError(Exception):
         super().__init__(reason)
         self.reason, self.code = reason, code
 
+    @property
+    def close_reason(self) -> str:
+        """The reason as a close frame may carry it: at most 123 UTF-8 bytes (a longer one is refused by websockets,
+        "control frame too long", in place of the close)."""
+        return self.reason.encode()[:123].decode(errors="ignore")
+
 
 @dataclass
 class Message:

@@ -17,7 +17,7 @@ from typing import Annotated
 
 import tyro
 
-from vla_ladder.checks import SEED_LIMIT, check_ws_url
+from vla_ladder.checks import SEED_LIMIT, check_count, check_ws_url
 from vla_ladder.conditions import Condition
 from vla_ladder.machine import auto_workers, auto_writers, check_workers
 from vla_ladder.recording.card import missing_targets, target_counts
@@ -104,6 +104,7 @@ class RecordConfig:
                              "--num-envs 1 and --workers N")
         if self.give_up_after < 0:
             raise ValueError(f"--give-up-after must be >= 0 (0: never), got {self.give_up_after}")
+        check_count(self.commit_every, "--commit-every")
         if not self.commit_seconds > 0:  # (nan too)
             raise ValueError(f"--commit-seconds must be > 0, got {self.commit_seconds}")
         if self.first_seed < 0 or self.first_seed + self.episodes > SEED_LIMIT:
@@ -149,7 +150,13 @@ def recording_of(cfg: RecordConfig) -> Recording:
     if not cfg.server:
         return Recording(cfg.policy, cfg.condition, cfg.first_seed, cfg.video, cfg.robot_mesh, cfg.instructions,
                          cfg.vcodec)
+    from vla_ladder.policies import check_expert
     served = {url: asyncio.run(_welcome(url, cfg.token)) for url in cfg.server}
+    for url, info in served.items():
+        if not (isinstance(info, dict) and all(isinstance(info.get(k), str) for k in ("policy", "condition"))):
+            raise ValueError(f"--server {url}: its welcome does not say what it serves (server.policy and "
+                             f"server.condition, strings): {str(info)[:200]}")
+        check_expert(info["policy"], f"--server {url} serves {info['policy']!r}, which")
     kinds = {(info["policy"], info["condition"], info.get("robot_mesh", "full"), info.get("instructions", "canonical"))
              for info in served.values()}
     if len(kinds) > 1:

@@ -325,7 +325,7 @@ class EpisodeServer:
         while True:
             item = await conn.outbox.get()
             if isinstance(item, P.ProtocolError):
-                await conn.ws.close(item.code, _reason(item.reason))
+                await conn.ws.close(item.code, item.close_reason)
                 return
             result, failed_frames = item
             with_frames = result.header["metrics"]["success"] or failed_frames
@@ -361,12 +361,14 @@ class EpisodeServer:
                     raise P.ProtocolError(f"{conn.outstanding + len(seeds)} episodes outstanding; the limit is "
                                           f"{self.cfg.max_outstanding}", P.CLOSE_LIMIT)
                 conn.outstanding += len(seeds)
-                failed_frames = bool(msg.header.get("failed_frames", False))
+                failed_frames = msg.header.get("failed_frames", False)
+                if not isinstance(failed_frames, bool):
+                    raise P.ProtocolError("'run' message: field 'failed_frames' not bool")
                 for s in seeds:
                     self._work.put(_Work(conn, s, failed_frames))
         except P.ProtocolError as e:
             log.warning("closing %s: %s (%d)", peer, e.reason, e.code)
-            await ws.close(e.code, _reason(e.reason))
+            await ws.close(e.code, e.close_reason)
         except Exception as e:  # ConnectionClosed and friends: the client is gone, keep serving others
             log.info("client %s gone: %s", peer, e)
         finally:
@@ -396,12 +398,6 @@ class EpisodeServer:
             self._stop.set()
             if self._thread is not None:
                 self._thread.join(timeout=60)
-
-
-def _reason(text: str) -> str:
-    """Close reasons are limited to 123 UTF-8 bytes."""
-    data = text.encode()[:123]
-    return data.decode(errors="ignore")
 
 
 def _url_host(host: str) -> str:

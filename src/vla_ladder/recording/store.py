@@ -299,6 +299,7 @@ class DatasetStore:
                 # report too few attempts).
                 files.write_json(self.root / RECORDING_FILE, {**published, "counters": self.counters, **moved})
                 self._published = dict(self.counters)
+                self._card_rows = self._write_card(self.root)  # (it says how many were played and failed)
             return
         t0 = time.perf_counter()
         # Ctrl-C waits for the commit's end: cut short after the swap, the store took the committed episodes for
@@ -402,7 +403,7 @@ class DatasetStore:
         quantiles are computed again over all frames when `exact`, or when the dataset has grown
         by more than stats.REFRESH_GROWTH since they last were; otherwise DATASET_DIR's are kept (each computation
         reads every frame: 9 s for 100k demos, benchmarks/commit_scaling.py)."""
-        from vla_ladder.recording import card, stats
+        from vla_ladder.recording import stats
 
         frames = json.loads((self.staging / "meta/info.json").read_text())["total_frames"]
         over = self._quantile_frames
@@ -414,12 +415,7 @@ class DatasetStore:
         state = {**state, "quantile_frames": over}
         files.write_json(self.staging / RECORDING_FILE, state)
         self._published = dict(state["counters"])
-        if self._card_rows is None:  # (once a process, and after a merge)
-            card_rows = read_provenance(self.staging)
-        else:
-            card_rows = pd.concat([self._card_rows, rows], ignore_index=True) if rows is not None else self._card_rows
-        card_rows = card_rows[[c for c in card.COLUMNS if c in card_rows]]
-        card.write_card(self.staging, card_rows, name=self.root.name)
+        card_rows = self._write_card(self.staging, rows)
         _fsync_tree(self.staging)
         if self.root.exists():
             if not any(self.root.iterdir()):
@@ -432,6 +428,19 @@ class DatasetStore:
         self._quantile_frames, self._card_rows = over, card_rows
         shutil.rmtree(self.staging, ignore_errors=True)  # the previous version, after an exchange
         shutil.rmtree(self.work / "hf-cache", ignore_errors=True)
+
+    def _write_card(self, root: Path, added: pd.DataFrame | None = None) -> pd.DataFrame:
+        """Write the card of `root` (DATASET_DIR, or staging adding the provenance rows `added`) from the rows kept
+        between commits (read from `root` once a process, and after a merge); returns its rows."""
+        from vla_ladder.recording import card
+
+        if self._card_rows is None:
+            rows = read_provenance(root)
+        else:
+            rows = pd.concat([self._card_rows, added], ignore_index=True) if added is not None else self._card_rows
+        rows = rows[[c for c in card.COLUMNS if c in rows]]
+        card.write_card(root, rows, name=self.root.name)
+        return rows
 
     def _exact_quantiles(self) -> None:
         """Publish stats.json's quantiles over all frames where the last commits kept those over fewer (_publish):
