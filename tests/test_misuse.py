@@ -219,7 +219,9 @@ def test_a_second_study_or_evaluation_writing_the_same_directory_is_refused_at_o
     study.write_text(resources.files("vla_ladder.configs.study").joinpath("micro.json").read_text())
     cases = {"evaluation": ["eval", "--policy", "scripted", "--regimes", "small_jitter", "--num-objects", "1",
                             "--episodes", "1", "--out", str(tmp_path / "ev")],
-             "vla-ladder study": ["study", str(study), "--out", str(tmp_path / "st")]}
+             "vla-ladder study": ["study", str(study), "--out", str(tmp_path / "st")],
+             "probe": ["probe", "position-swap", "--policy", "nearest", "--num-objects", "2", "--episodes", "1",
+                       "--overwrite", "--out", str(tmp_path / "pr")]}  # (--overwrite removed the first's variants)
     for what, argv in cases.items():
         out = tmp_path / argv[-1]
         with files.writing(out, "test"):

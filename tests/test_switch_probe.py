@@ -142,6 +142,8 @@ def test_switch_configs_and_refusals(tmp_path, refused):
         # Another probe's option was accepted and ignored.
         (["probe", "instruction-swap", "--policy", "nearest", "--out", p, "--switch-steps", "5"],
          "--switch-steps is instruction-switch's option; instruction-swap has none"),
+        (["probe", "position-swap", "--policy", "nearest", "--out", p, "--resamples", "500"],
+         "--resamples is instruction-swap's option; position-swap has none"),
         (["eval", "--policy", "nearest", "--out", e, "--switch-at", "50"],
          "switch_at must be a control step from 1 to 49 (the episode has 50), got 50"),
         (["eval", "--policy", "nearest", "--out", e, "--switch-at", "0"], "switch_at must be a control step"),

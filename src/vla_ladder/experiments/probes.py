@@ -162,7 +162,7 @@ def _against_original(second: str, options: dict, metrics: Callable[[pd.DataFram
 
 TWO = dict(objects=(2, MAX_OBJECTS), needs="at least two objects on the table")
 PROBES: dict[str, Probe] = {
-    "instruction-swap": Probe(_swap_variants, _swap_results, **TWO),
+    "instruction-swap": Probe(_swap_variants, _swap_results, **TWO, options=("resamples",)),
     "paraphrase": Probe(_paraphrase_variants, lambda runs, _: grounding.paraphrase(
         {name: r.episodes for name, r in runs.items()})),
     "appearance-swap": _against_original("swap", {"appearance": "swap"}, grounding.appearance_swap, **TWO,
@@ -227,7 +227,7 @@ class ProbeConfig:
     videos: int = 0
     """film the first K scenes of each condition in every variant"""
     resamples: int = grounding.RESAMPLES
-    """shuffles of the instruction swap's permutation null (its NMI's p-value)"""
+    """instruction-swap only: shuffles of its permutation null (its NMI's p-value)"""
     report: bool = True
     """write report.html (the variants' results and the probe's section)"""
     overwrite: bool = False
@@ -326,6 +326,11 @@ def run_probe(cfg: ProbeConfig, policy: Policy | None = None, progress: bool = T
         raise ValueError("--policy SPEC is required; allowed: " + allowed_specs())
     if policy is None:
         check_spec(cfg.policy)  # a missing checkpoint or server fails before the probe directory is written
+    with files.writing(cfg.out, "probe"):  # a second one with --overwrite would remove this one's variants
+        return _play_probe(cfg, policy, progress)
+
+
+def _play_probe(cfg: ProbeConfig, policy: Policy | None, progress: bool) -> dict:
     open_probe_dir(cfg)
     runs: dict[str, Run] = {}
     for name, ec in cfg.variants().items():
