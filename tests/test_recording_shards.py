@@ -466,12 +466,13 @@ def test_a_shard_of_another_recording_or_task_contract_cannot_join(tmp_path):
 
 class _SyntheticSimulator:
     """The server's simulator without physics: every seed a successful episode of a seed-coloured picture, but the
-    seeds in `fail`, whose simulation raises (the server closes the connection with 1011, simulation failed)."""
+    seeds in `fail`, whose simulation raises (the server closes the connection with 1011, simulation failed), and
+    those in `unsuccessful`, episodes the expert failed."""
 
     object_set = "standin"
 
-    def __init__(self, fail: set[int]):
-        self.fail = fail
+    def __init__(self, fail: set[int] = frozenset(), unsuccessful: set[int] = frozenset()):
+        self.fail, self.unsuccessful = fail, unsuccessful
 
     def run(self, seeds: list[int]):
         from vla_ladder.contract import EPISODE_STEPS
@@ -484,6 +485,8 @@ class _SyntheticSimulator:
             episode = synthetic_episode(seed, EPISODE_STEPS)
             header = {**episode.header, "type": "episode", "sim_seconds": 0.0, "sim_backend": "physx_cpu",
                       "replayable": True}
+            if seed in self.unsuccessful:
+                header["metrics"] = {**header["metrics"], "success": False, "lifted": False, "held": "none"}
             arrays = {**{f"images.{c}": episode.images[c] for c in ("hand_camera", "fixed_camera")},
                       "state": episode.state, "action": episode.action}
             out.append(EpisodeResult(seed, header, arrays))
@@ -510,7 +513,7 @@ def test_writers_finish_when_a_block_ends_in_a_seed_the_servers_failed(tmp_path)
         s._build = lambda: setattr(s, "_sim", _SyntheticSimulator(fail={3}))
         return s
 
-    servers = [server() for _ in range(4)]
+    servers = [server() for _ in range(4)]  # (two writers of two servers each: one failing server ends a writer)
     with contextlib.ExitStack() as stack:
         urls = [stack.enter_context(LoopThread(s.serve)).url for s in servers]
         for writers, out in (("2", tmp_path / "two"), ("1", tmp_path / "one")):
@@ -520,3 +523,29 @@ def test_writers_finish_when_a_block_ends_in_a_seed_the_servers_failed(tmp_path)
             assert r.returncode == 0, r.stderr[-3000:]
             assert read_provenance(out)["seed"].tolist() == [0, 1, 2, 4], writers
             assert read_recording_state(out)["counters"]["saved"] == 4
+
+
+def test_a_recording_whose_seeds_run_out_keeps_every_episode_in_flight(tmp_path):
+    """Near seed 2**32 a recording can run out of seeds before it has its demos: it ends with 'no seeds left' (exit 1)
+    once the episodes it had asked for have come, and keeps them (it stopped at once, losing those in flight: a
+    rerun of the same command then found more)."""
+    import subprocess
+
+    from test_reconnect import LoopThread
+    from test_recording import ENV, _cli
+
+    from vla_ladder.conditions import Condition
+    from vla_ladder.recording.server import EpisodeServer, ServeConfig
+
+    first = 2**32 - 4
+    served = EpisodeServer(ServeConfig(condition=Condition("small_jitter", "canonical", 2), port=0))
+    served._build = lambda: setattr(served, "_sim", _SyntheticSimulator(unsuccessful={first + 1}))
+    with LoopThread(served.serve) as running:
+        r = subprocess.run(_cli("record", "--episodes", "4", "--first-seed", str(first), "--encoder-threads", "1",
+                                "--out", str(tmp_path / "d"), "--server", running.url), env=ENV, capture_output=True,
+                           text=True, timeout=300)
+    assert r.returncode == 1 and "no seeds left: the recording has used every seed" in r.stderr, r.stderr[-3000:]
+    assert "rerun the same command" not in r.stderr
+    assert read_provenance(tmp_path / "d")["seed"].tolist() == [first, first + 2, first + 3]
+    counters = read_recording_state(tmp_path / "d")["counters"]
+    assert (counters["saved"], counters["attempted"], counters["failed"]) == (3, 4, 1)

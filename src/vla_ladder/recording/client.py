@@ -246,10 +246,10 @@ class SeedOrder:
 
 
 class _Failed:
-    """Queue marker: every server is gone."""
+    """Queue marker: every server is gone (or, `why` "", the seeds ran out and everything played has come)."""
 
-    def __init__(self, errors: list[Exception]):
-        self.errors = errors
+    def __init__(self, errors: list[Exception], why: str = "no server left to draw episodes from: "):
+        self.errors, self.why = errors, why
 
 
 class EpisodeSource:
@@ -281,6 +281,7 @@ class EpisodeSource:
         self._order = SeedOrder()
         self._retry: list[int] = []  # seeds of lost connections, to play again
         self._retried: set[int] = set()
+        self._no_seeds: ValueError | None = None  # reserve's, once the seeds below 2**32 ran out
         self._out: queue.Queue = queue.Queue(maxsize=queue_size)
         self._stopping = threading.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -303,7 +304,7 @@ class EpisodeSource:
             # A server that serves something else (check_server's ValueError) or refused us refuses a rerun too.
             permanent = all(isinstance(e, ValueError) or (isinstance(e, ServerError) and e.permanent)
                             for e in item.errors)
-            raise ServerError("all servers", f"no server left to draw episodes from: {errors}", permanent=permanent)
+            raise ServerError("all servers", f"{item.why}{errors}", permanent=permanent)
         return item
 
     def stop(self) -> None:
@@ -335,6 +336,8 @@ class EpisodeSource:
         errors = [r for r in results if isinstance(r, Exception)]
         if errors and not self._stopping.is_set():
             self._put(_Failed(errors))
+        elif self._no_seeds is not None and not self._stopping.is_set():
+            self._put(_Failed([self._no_seeds], why=""))
 
     def _demand(self, free: int) -> int:
         """How many more seeds to request now: enough that the expected successes of everything
@@ -392,15 +395,18 @@ class EpisodeSource:
             seeds = self._retry[:max(free, 0)]
             del self._retry[:len(seeds)]
             k = self._demand(free) - len(seeds)
-            if k > 0:
-                new = self.reserve(k)  # fewer than k when the seeds run out
+            if k > 0 and self._no_seeds is None:
+                try:
+                    new = self.reserve(k)  # fewer than k when the seeds run out
+                except ValueError as e:  # none left: the episodes in flight still come, then the source ends
+                    self._no_seeds, new = e, []
                 self._order.hand_out(new)
                 seeds += new
             if seeds:
                 await client.request(seeds, self.failed_frames)
                 self.outstanding[url] += len(seeds)
             if self.outstanding[url] == 0:
-                if self.successes >= self.successes_needed and not self._retry:
+                if (self.successes >= self.successes_needed or self._no_seeds is not None) and not self._retry:
                     return
                 self._changed.clear()
                 try:  # another server's results may change the demand
