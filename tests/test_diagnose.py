@@ -178,3 +178,13 @@ def test_two_policies_side_by_side_beside_one_set_of_references(tmp_path, capsys
     assert row["question"] == "Does it hold up as the objects move?" and "resembles layout-prior" in row[
         "shortcut [95% CI]"] and "blind [95% CI]" in row
     assert "instruction-swap: layout-prior" in text and "instruction-swap: nearest" in text
+
+
+def test_an_answer_or_reference_without_plays_resembles_nothing_by_it():
+    """A NaN answer (no plays, say a probe none of whose scenes was complete) named no reference as "" where the
+    others say None; a NaN reference is left out of the comparison."""
+    from vla_ladder.experiments.diagnose import _resembles
+
+    nan = float("nan")
+    assert _resembles({"value": nan}, {"nearest": 0.1, "layout-prior": 0.5}) is None
+    assert _resembles({"value": 0.2}, {"nearest": nan, "layout-prior": 0.5, "scripted": 0.1}) == "scripted"

@@ -541,6 +541,7 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
                                   {"reaches_new": s["new"], "reaches_old": s["old"]})}
             entry["pairs"] = {f"{a}/{b}": int(c) for (a, b), c in s.groupby(["old", "new"]).size().items()}
             cond = out.setdefault(key, {"scenes": n, "switch_steps": [], "by_step": {}})
+            cond["scenes"] = min(cond["scenes"], n)  # (that every step has: an interrupted run's last has fewer)
             cond["switch_steps"].append(step)
             cond[f"follows_new_at_{step}"] = entry["follows_new_switched"]
             cond[f"stays_old_at_{step}"] = entry["stays_old_switched"]

@@ -46,6 +46,7 @@ policies' episodes scene by scene.
 from __future__ import annotations
 
 import json
+import math
 import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -315,6 +316,7 @@ def _resembles(answer: dict | None, theirs: dict[str, float | None]) -> str | No
     """Every reference at the nearest distance (scripted and layout-prior both read the words, for one); with fewer
     than two references, or all at the same distance, there is nothing to choose between."""
     known = {r: abs(v - answer["value"]) for r, v in theirs.items() if v is not None and answer is not None}
+    known = {r: d for r, d in known.items() if not math.isnan(d)}  # (an answer or reference without plays)
     if len(known) < 2 or max(known.values()) - min(known.values()) < 1e-9:
         return None  # no reference is nearer than another
     return " / ".join(r for r, d in known.items() if d <= min(known.values()) + 1e-9)
