@@ -63,16 +63,14 @@ class Ledger:
         (shards on disk, all done) hold more above it; the seeds between them are played again."""
         blocks = sorted(blocks, key=lambda b: b.start)
         next_seed = max([base_seed] + [b.end for b in blocks])
-        files.write_json(path, {"run": uuid.uuid4().hex, "config": config, "target": target, "writers": writers,
-                                "base": [base_seed, base_saved], "next_seed": next_seed,
-                                "blocks": [asdict(b) for b in blocks]})
+        with _locked(Path(path)):  # (a writer of a killed run reporting late would write its run's ledger back)
+            files.write_json(path, {"run": uuid.uuid4().hex, "config": config, "target": target, "writers": writers,
+                                    "base": [base_seed, base_saved], "next_seed": next_seed,
+                                    "blocks": [asdict(b) for b in blocks]})
         return cls(path)
 
-    @contextlib.contextmanager
-    def _locked(self) -> Iterator[None]:
-        with open(self.path.with_suffix(".lock"), "a+") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            yield
+    def _locked(self):
+        return _locked(self.path)
 
     def _read(self) -> dict:
         return json.loads(self.path.read_text())
@@ -165,3 +163,11 @@ class Ledger:
         unplayed = (seed - base_seed) - sum((seed if seed < b.end else min(b.played_to, seed)) - b.start
                                             for b in below)
         return KEEP if kept + unplayed < led["target"] else WAIT
+
+
+@contextlib.contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    """The ledger file's lock, held for one read or read-modify-write."""
+    with open(path.with_suffix(".lock"), "a+") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield

@@ -110,8 +110,11 @@ class DatasetStore:
         self.seeds = SeedBook(self.work / "seeds.json", config, floor)
         self._unused_from = floor  # after the last seed written or counted failed: none from there reached the dataset
         self.pending = 0
-        # Shards of a merge that was killed after its swap are in the dataset already.
-        for name in (state or {}).get("merged_shards", []):
+        # Shards of a merge that was killed after its swap are in the dataset already. (Removing them removes the
+        # work directories of writers that never committed: a killed run's writer may still be making its first.)
+        if merged := (state or {}).get("merged_shards", []):
+            self._wait_for_writers()
+        for name in merged:
             _remove_shard(self.shards_dir / name)
 
     # ------------------------------------------------------------------ state on disk
@@ -175,8 +178,7 @@ class DatasetStore:
         Waits for writers a killed recorder left to commit first (they get SIGINT when it dies)."""
         if not self.shards_dir.is_dir():
             return []
-        for work in self.shards_dir.glob(".*.recording"):
-            wait_for_writer(self.shards_dir / work.name[1:-len(".recording")])
+        self._wait_for_writers()
         found: dict[int, Block] = {}
         if self.ledger_path.is_file():
             ledger = json.loads(self.ledger_path.read_text())
@@ -193,6 +195,11 @@ class DatasetStore:
                 found[int(shard.name)] = Block(int(shard.name), played_to(state), played_to(state), c["saved"],
                                                c["attempted"], c["failed"], True)
         return [b for _, b in sorted(found.items()) if b.start >= self.played_to and b.played_to > b.start]
+
+    def _wait_for_writers(self) -> None:
+        """Return once no writer holds a shard's lock (writers of a killed recorder commit what they hold first)."""
+        for work in self.shards_dir.glob(".*.recording"):
+            wait_for_writer(self.shards_dir / work.name[1:-len(".recording")])
 
     def begin_ledger(self, target: int, writers: int) -> Ledger:
         """The ledger of a sharded recording of `target` demos by `writers` writers, from what is on disk."""
