@@ -508,6 +508,18 @@ def test_record_writers_each_need_a_server(extra, says, tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_record_refuses_the_root_and_a_directory_that_holds_no_recording_leaving_nothing_beside_it(tmp_path, capsys):
+    """`--out /` wrote its work directory as /..recording; a directory that is not a recording was refused after an
+    empty .NAME.recording/ had been made beside it."""
+    _one_line_error(capsys, main(["record", "--out", "/", "--episodes", "1"]), "--out '/' is the file system's root")
+    assert not Path("/..recording").exists()
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "mine.txt").write_text("keep me")
+    _one_line_error(capsys, main(["record", "--out", str(notes), "--episodes", "1"]), "is not a vla-ladder recording")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes"] and (notes / "mine.txt").read_text() == "keep me"
+
+
 def test_eval_batches_cpu_envs_one_per_core_and_not_with_workers(tmp_path, capsys):
     from vla_ladder.machine import cores
 

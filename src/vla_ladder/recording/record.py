@@ -92,6 +92,8 @@ class RecordConfig:
         if self.token is None:
             self.token = os.environ.get(TOKEN_ENV)
         self.out = Path(self.out)
+        if not self.out.resolve().name:  # (its work directory is a hidden sibling: the root has none)
+            raise ValueError(f"--out {str(self.out)!r} is the file system's root; give a directory for the dataset")
         self.condition = Condition.of(self.condition)
         self.server = tuple(self.server)
         if self.episodes < 1:

@@ -79,6 +79,7 @@ class DatasetStore:
         self.repo_id = repo_id or f"vla-ladder/{self.root.name}"
         self.work = self.root.parent / f".{self.root.name}.recording"
         self.staging = self.work / "staging"
+        made = not self.work.exists()
         self.work.mkdir(parents=True, exist_ok=True)
         self._lock_file = open(self.work / "lock", "a+")
         try:
@@ -94,7 +95,13 @@ class DatasetStore:
         self._rows: list[dict] = []
         self._writing = False  # inside add(): staging holds a half-written episode
         self._batch_started = time.monotonic()
-        state = self._load_committed()
+        try:
+            state = self._load_committed()
+        except ValueError:  # another dataset, or none: leave no work directory beside it
+            self._lock_file.close()
+            if made:
+                shutil.rmtree(self.work, ignore_errors=True)
+            raise
         self.saved = int(state["counters"]["saved"]) if state else 0
         self.counters = dict(state["counters"]) if state else {"saved": 0, "attempted": 0, "failed": 0,
                                                                 "commits": 0}
