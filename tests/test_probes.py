@@ -200,6 +200,7 @@ def test_paired_and_appearance_metrics():
     assert c["original"]["instructed"]["value"] == 1.0
     assert c["follows_shape"]["value"] == pytest.approx(1 - followed / n)
     assert c["transitions"]["counts"][0][:2] == [n - followed, followed] and c["shape_change"]["value"] < 0
+    assert c["colour_change"]["value"] == pytest.approx(followed / n)  # (no swap: never the partner)
     with pytest.raises(ValueError, match="different seeds or instructions"):  # not the same scenes: no pairs
         grounding.appearance_swap(original.assign(seed=original["seed"] + 100), swapped)
 

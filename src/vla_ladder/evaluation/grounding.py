@@ -316,7 +316,8 @@ def held_outcome(held: str, first: str, second: str, names: tuple[str, ...] = CO
 def appearance_swap(original: pd.DataFrame, swapped: pd.DataFrame) -> dict:
     """Per condition, on the scenes whose instructed object had a swap partner: what is held under the swap and
     without it (the same scenes), as shares of COLOUR_OUTCOMES with Wilson intervals; the transition table
-    original -> swap; follows-shape minus its no-swap value with Newcombe's paired interval and McNemar's p."""
+    original -> swap; follows-shape and follows-colour (the partner held) minus their no-swap values with Newcombe's
+    paired interval and McNemar's p (a policy blind to colour takes the partner as often either way)."""
     merged = same_scenes(original, swapped, ("_o", "_s"), same_target=True)
     merged["partner"] = [(json.loads(lay).get("colour_swap") or [None, None])[1] for lay in merged["layout_s"]]
     out = {}
@@ -334,6 +335,8 @@ def appearance_swap(original: pd.DataFrame, swapped: pd.DataFrame) -> dict:
             "follows_shape": wilson_rate(after.count("instructed"), n),
             "follows_colour": wilson_rate(after.count("partner"), n),
             "shape_change": paired_change(x, y),
+            "colour_change": paired_change(np.array([o == "partner" for o in before], bool),
+                                           np.array([o == "partner" for o in after], bool)),
             "transitions": transitions(before, after, COLOUR_OUTCOMES),
             "pairs": {f"{a}/{b}": int(c) for (a, b), c in
                       s.groupby(["target_s", "partner"]).size().items()},

@@ -18,8 +18,8 @@ ninth, a difference of two rates):
 6. Does it understand the instruction worded otherwise? The paraphrase probe: success with held-out wordings minus
    success with "grasp the <object>" on the same scenes (Newcombe's interval for paired rates).
 7. Does it find the named object by its colour rather than its shape? The appearance swap (the named object and a
-   distractor exchange colours): the share of swapped scenes in which it grasps the object wearing the named
-   object's colour.
+   distractor exchange colours): how much more often it grasps the object wearing the named object's colour in the
+   swapped scenes than in the same scenes as they are.
 8. Do the other objects cost it success? The distractor removal: success with every distractor taken off the
    table minus success as the scene is (Newcombe's interval for paired rates).
 9. Far from its usual place, does it go to the named object or to that place? The ladder's episodes whose named
@@ -250,7 +250,8 @@ QUESTIONS = (
     ("reworded", "Does it understand the instruction worded otherwise?",
      "paraphrase: success with held-out wordings minus with \"grasp the <object>\" (points)"),
     ("by_colour", "Does it find the named object by its colour rather than its shape?",
-     "appearance swap: grasps the object that wears the named object's colour"),
+     "appearance swap: grasps of the object that wears the named object's colour, swapped minus as the scene is "
+     "(points)"),
     ("distracted", "Do the other objects cost it success?",
      "distractor removal: success with the distractors taken off the table minus as the scene is (points)"),
     ("goes_to_place", "Far from its usual place, does it go to the named object or to that place?",
@@ -259,7 +260,8 @@ QUESTIONS = (
 )
 # Wording cannot change what the references do (scripted, committed and nearest read their target from the state or
 # not at all; layout-prior parses every shipped wording): on "reworded" they all answer 0 and none is nearer than
-# another (resembles then names none).
+# another (resembles then names none). Nor can colour (none sees it): "by_colour" is the change the swap makes, 0
+# for them all, where the level counted a colour-blind policy's grasps of the partner as following the colour.
 
 
 def answers(root: Path, condition: str) -> tuple[dict[str, dict | None], dict | None]:
@@ -281,7 +283,7 @@ def answers(root: Path, condition: str) -> tuple[dict[str, dict | None], dict | 
             "empty_place": _rate(probe("absent-object")["shortcut_reach"]),
             "keeps_reading": _rate(switch["reaches_new_switched"]),
             "reworded": _rate(probe("paraphrase")["paraphrase-heldout"]["vs_canonical"]["success"]),
-            "by_colour": _rate(probe("appearance-swap")["follows_colour"]),
+            "by_colour": _rate(probe("appearance-swap")["colour_change"]),
             "distracted": _rate(probe("distractor-removal")["success_change"]),
             "goes_to_place": None if curve is None else _rate(curve["far"]["place_minus_object"])}, curve
 
