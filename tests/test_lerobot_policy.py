@@ -69,6 +69,15 @@ def test_act_queues_its_chunks_as_select_action_does(tmp_path_factory):
                               for obs in observations]).clamp(-1, 1)
     torch.testing.assert_close(ours, theirs, atol=0, rtol=0)
     assert policy.noise(2) is None  # ACT takes no noise
+    # so another noise stream would be recorded and play the same episodes: refused, before and at loading
+    from vla_ladder.policies import check_spec
+    spec = f"lerobot:{H.trained(tmp_path_factory, 'act')}?noise_seed=1"
+    for call in (lambda: check_spec(spec), lambda: load_policy(spec, device="cpu")):
+        with pytest.raises(ValueError, match="only pi0, pi05, smolvla draw; this checkpoint is act"):
+            call()
+    if not torch.backends.mps.is_available():  # (LeRobot played on the CPU, with a warning)
+        with pytest.raises(ValueError, match="device=mps needs Apple's Metal"):
+            check_spec(f"lerobot:{H.trained(tmp_path_factory, 'act')}?device=mps")
 
 
 def test_flow_matching_noise_is_drawn_per_episode(smolvla_run):

@@ -107,6 +107,9 @@ def test_bad_remote_specs_fail_in_one_line_before_work(tmp_path, capsys):
                           ("remote:http://127.0.0.1:8000", "a remote policy is a WebSocket URL"),
                           ("remote:ws://127.0.0.1:1?horizon=3", "unknown option 'horizon' .*allowed: n_action_steps"),
                           ("remote:ws://127.0.0.1:1?n_action_steps=0", "expected an integer >= 1"),
+                          # (the server refuses a prompt this long: it failed at the first request, in the run)
+                          ("remote:ws://127.0.0.1:1?instruction=" + "grasp" * 201,
+                           "an instruction has at most 1000 characters, got 1005"),
                           ("remote:ws://127.0.0.1:99999", "a remote policy is a WebSocket URL"),
                           ("remote:ws://[::1", "a remote policy is a WebSocket URL"),
                           ("remote:", "policy 'remote' needs a server: remote:URL")]:
@@ -226,6 +229,29 @@ def test_a_server_error_without_words_is_still_one_clear_error():
         policy = RemotePolicy(f"ws://127.0.0.1:{server.socket.getsockname()[1]}", n_action_steps=2)
         policy.send({PROMPT_KEY: "grasp the apple"})
         with pytest.raises(RuntimeError, match=r"the policy server at ws://.* failed: \(no message\)$"):
+            policy.receive()
+        server.shutdown()
+
+
+def test_actions_that_are_not_finite_are_refused():
+    """A NaN action passed the shape checks, stayed NaN through the clamp and reached the simulator (serve-policy
+    itself answers NaN to a state that is not finite)."""
+    import threading
+
+    from websockets.sync.server import serve
+
+    from vla_ladder.policies.remote import ACTIONS_KEY, RemotePolicy
+
+    def server_side(ws):
+        ws.send(pack({}))
+        for _ in ws:
+            ws.send(pack({ACTIONS_KEY: np.full((4, 7), np.nan, np.float32)}))
+
+    with serve(server_side, "127.0.0.1", 0) as server:
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        policy = RemotePolicy(f"ws://127.0.0.1:{server.socket.getsockname()[1]}", n_action_steps=2)
+        policy.send({PROMPT_KEY: "grasp the apple"})
+        with pytest.raises(RuntimeError, match=r"answered actions that are not finite"):
             policy.receive()
         server.shutdown()
 

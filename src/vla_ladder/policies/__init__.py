@@ -137,10 +137,16 @@ def positive_int(value: str) -> int:
     return int(value)
 
 
+MAX_PROMPT = 1000
+"""characters of an instruction: what serve-policy accepts, and so what an option may give"""
+
+
 def instruction_text(value: str) -> str:
-    """An option's parser: the words of an instruction (not blank)."""
+    """An option's parser: the words of an instruction (not blank, at most MAX_PROMPT characters)."""
     if not value.strip():
         raise ValueError(f"expected the instruction's words, got {value!r}")
+    if len(value) > MAX_PROMPT:
+        raise ValueError(f"an instruction has at most {MAX_PROMPT} characters, got {len(value)}")
     return value
 
 
@@ -234,10 +240,12 @@ def check_spec(spec: str, connections: int = 1) -> tuple[str, str | None]:
         from vla_ladder.policies.ppo import load_agent
         load_agent(arg)  # a small network: read whole, so an unreadable or other-contract checkpoint stops here
     elif kind == "lerobot":
-        from vla_ladder.policies.lerobot import CONFIG_OPTIONS, check_checkpoint, checked_config, parse_arg
+        from vla_ladder.policies.lerobot import (CONFIG_OPTIONS, check_checkpoint, check_noise_seed, checked_config,
+                                                 parse_arg)
         path, options = parse_arg(arg)
         check_checkpoint(path)  # first: a copy without its weights says so before its config is parsed
-        checked_config(path, **{k: v for k, v in options.items() if k in CONFIG_OPTIONS})
+        cfg = checked_config(path, **{k: v for k, v in options.items() if k in CONFIG_OPTIONS})
+        check_noise_seed(cfg.type, options.get("noise_seed", 0))
     elif kind == "remote":
         from vla_ladder.policies.remote import check_server
         check_server(arg, connections)

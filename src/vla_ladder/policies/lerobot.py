@@ -182,6 +182,9 @@ def checked_config(path: str | Path, n_action_steps: int | None = None, device: 
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"device={device} needs a CUDA GPU and none is visible; use ?device=cpu, or leave "
                          "device out (cuda when there is one, else cpu)")
+    if device == "mps" and not torch.backends.mps.is_available():  # (LeRobot would play on the CPU, warning only)
+        raise ValueError("device=mps needs Apple's Metal (MPS) and it is not available here; use ?device=cpu, or "
+                         "leave device out")
     overrides.append(f"--device={device}")
     if use_amp is not None:
         overrides.append(f"--use_amp={str(bool(use_amp)).lower()}")
@@ -195,6 +198,14 @@ def checked_config(path: str | Path, n_action_steps: int | None = None, device: 
     check_trained_contract(path)
     check_checkpoint(path)  # last: a mismatch is named even where the weights are missing
     return cfg
+
+
+def check_noise_seed(policy_type: str, noise_seed: int) -> None:
+    """Another noise stream (noise_seed > 0) exists only for the types that draw their noise per episode: for the
+    others it would be recorded and play the same episodes."""
+    if noise_seed and policy_type not in NOISE_PER_EPISODE:
+        raise ValueError(f"noise_seed picks a stream of per-episode flow-matching noise, which only "
+                         f"{', '.join(sorted(NOISE_PER_EPISODE))} draw; this checkpoint is {policy_type}")
 
 
 def check_trained_contract(path: Path) -> None:
@@ -261,6 +272,7 @@ class LeRobotPolicy(Policy):
         self.instruction = instruction
         if noise_seed < 0:
             raise ValueError(f"noise_seed must be >= 0, got {noise_seed}")
+        check_noise_seed(cfg.type, noise_seed)
         self.noise_seed = int(noise_seed)
         self._num_envs = 0
         self._seeds: list[int] = []

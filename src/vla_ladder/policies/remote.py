@@ -265,6 +265,8 @@ class RemotePolicy(Policy):
             got = actions.shape if isinstance(actions, np.ndarray) else type(actions).__name__
             raise RuntimeError(f"the policy server at {self.url} answered {got} under {ACTIONS_KEY!r}; expected a "
                                f"float array of shape (T, {ACTION_DIM}) or ({ACTION_DIM},)")
+        if not np.isfinite(actions).all():  # (clamped, a NaN stays NaN and reaches the simulator)
+            raise RuntimeError(f"the policy server at {self.url} answered actions that are not finite (NaN or inf)")
         return actions.reshape(-1, ACTION_DIM)
 
     @torch.no_grad()

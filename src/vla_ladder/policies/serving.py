@@ -45,12 +45,11 @@ import torch
 
 from vla_ladder.checks import SEED_LIMIT, check_count, check_port_free, is_loopback, refuse_past_max_clients
 from vla_ladder.contract import ACTION_DIM, CAMERAS, STATE_DIM, STATE_KEY
-from vla_ladder.policies import check_spec, parse_spec
+from vla_ladder.policies import MAX_PROMPT, check_spec, parse_spec
 from vla_ladder.policies.remote import (API_KEY_ENV, CHUNK_KEY, CONTRACT_KEY, MAX_MESSAGE, PROMPT_KEY, SEED_KEY,
                                         WINDOW_KEY, pack, unpack)
 
 log = logging.getLogger(__name__)
-MAX_PROMPT = 1000  # characters of an instruction
 
 
 @dataclass
