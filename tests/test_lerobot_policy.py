@@ -226,6 +226,24 @@ def test_lerobot_env_plugin_steps_and_scores_the_final_step(tmp_path):
     assert LeRobotGraspObject._info(held_now, final=True)["is_success"] is True
 
 
+def test_the_lerobot_env_clamps_actions_as_vla_ladder_eval_does():
+    """ManiSkill clips only the rotation's norm: a rotation component past 1 turned the wrist otherwise under
+    lerobot-eval than under `vla-ladder eval`, which clamps every action to [-1, 1]."""
+    from vla_ladder.lerobot_env import LeRobotGraspObject
+
+    env = LeRobotGraspObject(regime="small_jitter", num_objects=2)
+    try:
+        states = []
+        for action in ([0.0, 0.0, 0.0, 1.5, 0.5, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0, 0.5, 0.0, 1.0]):
+            env.reset(seed=3)
+            for _ in range(5):
+                obs = env.step(np.array(action, np.float32))[0]
+            states.append(obs["agent_pos"])
+    finally:
+        env.close()
+    np.testing.assert_array_equal(states[0], states[1])
+
+
 def test_lerobot_eval_runs_grasp_object_from_the_installed_plugin(smolvla_run, tmp_path):
     """`lerobot-eval --env.type=grasp_object` as a user types it: no --env.discover_packages_path, offline."""
     from importlib.metadata import distribution

@@ -103,6 +103,28 @@ def test_checkpoints_last_moves_in_one_step(tmp_path):
     assert loop.update_last_checkpoint is own
 
 
+def test_a_run_with_its_own_optimizer_resumes_with_it(data, tmp_path):
+    """A resumed run was given the policy's optimizer and scheduler presets whatever the first part used: trained with
+    `--use_policy_training_preset=false` and its own (lr 1e-3), it resumed at ACT's 1e-5."""
+    out = tmp_path / "run"
+    own = ["--use_policy_training_preset=false", "--optimizer.type=adamw", "--optimizer.lr=0.001",
+           "--scheduler.type=cosine_decay_with_warmup", "--scheduler.num_warmup_steps=0",
+           "--scheduler.num_decay_steps=3", "--scheduler.peak_lr=0.001", "--scheduler.decay_lr=0.001"]
+    args = [*H.train_args("act", data, out, steps=3), *own]
+    args[args.index("--"):args.index("--")] = ["--save-freq", "1"]
+    assert main(args) == 0
+    checkpoints = out / "checkpoints"
+    # As if killed after its second checkpoint
+    from vla_ladder.training.train import RUN_FILE
+    (out / RUN_FILE).unlink()
+    shutil.rmtree(checkpoints / "000003")
+    (checkpoints / "last").unlink()
+    (checkpoints / "last").symlink_to("000002")
+    assert main(args) == 0
+    groups = json.loads((checkpoints / "000003" / "training_state" / "optimizer_param_groups.json").read_text())
+    assert {g["lr"] for g in groups} == {0.001}
+
+
 def test_a_killed_training_resumes_from_its_last_checkpoint(data, tmp_path, capsys):
     """Each checkpoint gets the data's task contract as LeRobot saves it, not when training ends, so a run killed
     after a save leaves a `checkpoints/last` that `lerobot:` can check. The same command then resumes it there
@@ -200,6 +222,13 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     base = ["train", "--dataset", str(data), "--out", str(tmp_path / "run"), "--pretrained", "none"]
     assert main(base + ["--policy-type", "nope"]) == 2
     assert "allowed: act, diffusion" in capsys.readouterr().err
+    try:  # a type whose LeRobot extra is missing (diffusion: diffusers) failed after loading the data, 174 lines
+        import diffusers  # noqa: F401
+    except ImportError:
+        assert main(base + ["--policy-type", "diffusion"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "--policy-type diffusion needs diffusers, which is not installed here (pip install 'lerobot[diffusion]" \
+            in err and len(err.splitlines()) == 1, err
     assert main(["train", "--policy-type", "act", "--dataset", str(tmp_path / "missing"),
                  "--out", str(tmp_path / "run")]) == 2
     assert "does not exist" in capsys.readouterr().err
@@ -216,9 +245,15 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
                  "--", "--dataset.root=/tmp"]) == 2
     assert "--dataset.root after -- is vla-ladder's to set; use --dataset" in capsys.readouterr().err
     assert not (tmp_path / "elsewhere").exists() and not (tmp_path / "g").exists()
+    # So are those that set what train's own flags set: they won unsaid (a grid's b4_c4 trained with batch 2).
+    for flag, own in (("--batch_size=2", "--batch-size"), ("--policy.chunk_size=8", "--chunk-size"),
+                      ("--seed=3", "--train-seed"), ("--policy.n_action_steps=2", "--n-action-steps")):
+        assert main(["grid", "--train.policy-type", "act", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
+                     "--", flag]) == 2
+        assert f"{flag.split('=')[0]} after -- is vla-ladder's to set; use {own}" in capsys.readouterr().err
     # An unknown raw flag printed argparse's usage of every LeRobot flag (540 lines); tyro's failure, 5 lines.
     for extra, says in ((["--", "--unknown_flag=3"], "lerobot-train: unrecognized arguments: --unknown_flag=3"),
-                        (["--", "--policy.chunk_size=x"], "`chunk_size`: Couldn't parse 'x' into an int"),
+                        (["--", "--policy.dim_model=x"], "`dim_model`: Couldn't parse 'x' into an int"),
                         (["--rename-map", "a"], "--rename-map: no type matching")):
         assert main(base + ["--policy-type", "act", *extra]) == 2
         err = capsys.readouterr().err.strip()

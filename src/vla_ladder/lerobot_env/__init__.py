@@ -92,7 +92,9 @@ class LeRobotGraspObject(gym.Env):
         return self._convert(obs), self._info(info)
 
     def step(self, action):
-        action = torch.as_tensor(np.asarray(action, dtype=np.float32)).reshape(1, ACTION_DIM)
+        # Clamped to the action space, as `vla-ladder eval` plays a policy: ManiSkill clips only the rotation's norm,
+        # so a rotation component past 1 turned the wrist otherwise here than there.
+        action = torch.as_tensor(np.asarray(action, dtype=np.float32)).reshape(1, ACTION_DIM).clamp(-1, 1)
         obs, reward, terminated, truncated, info = self.env.step(action)
         done = bool(terminated[0]) or bool(truncated[0])
         info = self._info(info, final=done)

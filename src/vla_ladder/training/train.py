@@ -32,7 +32,12 @@ log = logging.getLogger(__name__)
 # (and so what a rerun resumes and what eval finds) and what it trains on.
 OWN_FLAGS = {"--output_dir": "--out", "--dataset.root": "--dataset",
              "--dataset.repo_id": "--dataset", "--resume": "the same command again (it resumes)",
-             "--config_path": "train's own flags"}
+             "--config_path": "train's own flags",
+             # what the run is, as its request, its log and a grid's labels say: given after --, they won unsaid
+             "--batch_size": "--batch-size", "--steps": "--steps", "--seed": "--train-seed",
+             "--save_freq": "--save-freq", "--log_freq": "--log-freq", "--num_workers": "--num-workers",
+             "--wandb.enable": "--wandb", "--policy.device": "--device", "--policy.n_action_steps": "--n-action-steps",
+             "--policy.chunk_size": "--chunk-size"}
 # Paper, appendix "VLA implementation details": checkpoints and per-policy settings.
 DEFAULT_PRETRAINED = {"smolvla": "lerobot/smolvla_base", "pi05": "lerobot/pi05_base"}
 POLICY_PRESETS: dict[str, dict[str, str]] = {
@@ -60,6 +65,28 @@ def policy_types() -> list[str]:
     from lerobot.configs.policies import PreTrainedConfig
 
     return sorted(PreTrainedConfig.get_known_choices())
+
+
+def check_policy_packages(policy_type: str) -> None:
+    """ValueError in one line when a policy type needs a package that is not installed: LeRobot's policies ask for
+    their extra's packages (`require_package("diffusers", extra="diffusion")`) only when the model is built, after the
+    dataset has loaded, in a 170-line traceback."""
+    import importlib.util
+    import inspect
+    import re
+    import sys
+
+    from lerobot.policies.factory import get_policy_class
+
+    try:
+        module = sys.modules[get_policy_class(policy_type).__module__]
+    except ImportError as e:
+        raise ValueError(f"--policy-type {policy_type} cannot load here: {e}") from None
+    for package, extra in re.findall(r"require_package\(\s*[\"']([\w.-]+)[\"'],\s*extra=[\"']([\w-]+)[\"']",
+                                     inspect.getsource(module)):
+        if importlib.util.find_spec(package) is None:
+            raise ValueError(f"--policy-type {policy_type} needs {package}, which is not installed here "
+                             f"(pip install 'lerobot[{extra}]')")
 
 
 NO_PRETRAINED = ("", "none", "None")
@@ -117,10 +144,12 @@ class TrainConfig:
         self.dataset = Path(self.dataset)
         self.out = None if self.out is None else Path(self.out)
         self.lerobot_args = tuple(self.lerobot_args)
+        chunk_flag = f"--policy.{CHUNK_FIELD.get(self.policy_type, 'chunk_size')}"
         for a in self.lerobot_args:  # flags that would move the run away from what vla-ladder keeps and resumes
             flag = a.split("=", 1)[0]
-            if flag in OWN_FLAGS:
-                raise ValueError(f"{flag} after -- is vla-ladder's to set; use {OWN_FLAGS[flag]}")
+            if flag in OWN_FLAGS or flag == chunk_flag:
+                raise ValueError(f"{flag} after -- is vla-ladder's to set; use {OWN_FLAGS.get(flag, '--chunk-size')}")
+        check_policy_packages(self.policy_type)
         self.info = read_info(self.dataset)
         check_features(self.info, self.dataset)
         if self.pretrained == "default":
@@ -136,6 +165,10 @@ class TrainConfig:
             self.batch_size = BATCH_FOR_REGIME.get(self.condition.regime, DEFAULT_BATCH)
         if self.n_action_steps is None and self.policy_type not in CHUNK_FIELD:
             self.n_action_steps = self.chunk_size
+        elif self.n_action_steps is None:  # LeRobot's default, where the chunk of `horizon` steps holds it (diffusion
+            # runs actions n_obs_steps - 1 .. of its horizon: its default 32 of 64 queued 15 with a horizon of 16)
+            default = self._config_class()()
+            self.n_action_steps = min(default.n_action_steps, self.chunk_size - default.n_obs_steps + 1)
         for name in ("batch_size", "chunk_size", "n_action_steps", "steps"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
@@ -378,8 +411,9 @@ def train(req: TrainConfig) -> Path:
         if resume is not None:
             cfg.resume = True
             # LeRobot sets the optimizer and scheduler presets only for new runs; a resumed one loads their state
-            # into the same ones (what the first run used: the policy's presets).
-            cfg.optimizer, cfg.scheduler = cfg.policy.get_optimizer_preset(), cfg.policy.get_scheduler_preset()
+            # into the same ones: the policy's presets where the first run used them, else the ones its flags set.
+            if cfg.use_policy_training_preset:
+                cfg.optimizer, cfg.scheduler = cfg.policy.get_optimizer_preset(), cfg.policy.get_scheduler_preset()
             log.info("resuming %s from %s", req.out, resume)
         log.info("training %s on %s for %d steps (batch %d, chunk %d): %s", req.policy_type, req.dataset,
                  req.steps, req.batch_size, req.chunk_size, shlex.join(req.lerobot_command()))
