@@ -384,6 +384,13 @@ def test_the_server_answers_bad_requests_in_one_message_and_keeps_serving(served
     text, code = closes(pickle.dumps({"a": 1}))  # never unpickled: not msgpack, refused
     assert code == 1008 and text.startswith("bad request: not a msgpack message"), text
     assert closes(b"\0" * (MAX_MESSAGE + 1))[1] == 1009  # too big: closed by websockets before it is read
+    # Inside an open window (two requests announced, one sent), a bad request or an episode marker hung the
+    # connection: its first answer waited for the window, and nothing came back, not even a close.
+    opened = pack({**good, SEED_KEY: 1, CHUNK_KEY: 0, WINDOW_KEY: 2})
+    text, code = closes(opened, pack({"bogus": 1}))
+    assert code == 1008 and text.startswith("bad request:"), text
+    text, code = closes(opened, pack({"__ctrl__": "episode_start"}))
+    assert code == 1008 and "an episode marker inside an open window of requests" in text, text
     with connect(url, additional_headers=headers, compression=None) as ws:  # still serving
         unpack(ws.recv(timeout=30))
         ws.send(pack({"__ctrl__": "episode_start"}))  # openpi's episode markers are acknowledged

@@ -253,8 +253,11 @@ class PolicyServer:
             while (reply := await replies.get()) is not None:
                 kind, value = reply
                 if kind == "answer":
+                    await asyncio.wait([value])  # (a cancel of this task still ends it here)
+                    if value.cancelled():  # its window never completed: the error or the end follows
+                        continue
                     try:
-                        actions, timing = await value
+                        actions, timing = value.result()
                     except Exception as e:
                         await ws.send(f"inference failed: {type(e).__name__}: {e}")
                         await ws.close(1011, "inference failed")
@@ -280,17 +283,27 @@ class PolicyServer:
 
         group: list[tuple] = []  # the requests of an open window
         expected = 1
+
+        def abandon() -> None:
+            # A window that will not complete (a bad request inside it, or its client gone): its answers will not
+            # come, and `handle`, waiting for the first, would wait for ever.
+            for _, answer in group:
+                answer.cancel()
+
         try:
             async for message in ws:
                 try:
                     request = unpack(message)
                     if isinstance(request, dict) and "__ctrl__" in request:  # openpi's episode markers: nothing to do
+                        if group:  # (its acknowledgement would queue behind answers that wait for the window)
+                            raise ValueError("an episode marker inside an open window of requests")
                         await replies.put(("ack", pack({"__ack__": str(request["__ctrl__"])[:64]})))
                         continue
                     parsed = read_request(request)  # a bad request is the client's mistake: no inference
                     window = read_window(request, self.cfg.max_batch)
                 except ValueError as e:
                     log.info("client %s sent a bad request: %s", ws.remote_address, e)
+                    abandon()
                     await replies.put(("bad", f"bad request: {e}"))
                     return
                 del message, request  # what was parsed is kept, not the raw message while the next one is awaited
@@ -304,6 +317,7 @@ class PolicyServer:
                     group = []
         except ConnectionClosed:
             pass
+        abandon()
         await replies.put(None)
 
     async def _serve(self, ready) -> None:
