@@ -109,6 +109,11 @@ def test_flow_matching_noise_is_drawn_per_episode(smolvla_run):
     stream_1 = actions(first, [11])
     assert (stream_1 - alone).abs().max() > 1e-3
     torch.testing.assert_close(actions(both, [11, 12]), stream_1, atol=1e-5, rtol=0)
+    # Seeds given with env_ids in another order are each env's own (they were taken by position).
+    policy.reset([12, 11], env_ids=[1, 0])
+    assert policy._seeds == [11, 12]
+    with pytest.raises(ValueError, match="not each of the 2 envs once"):
+        policy.reset([11, 12], env_ids=[0, 0])
     with pytest.raises(ValueError, match="noise_seed=.-1.* expected an integer from 0"):
         load_policy(f"lerobot:{smolvla_run}?noise_seed=-1")
 

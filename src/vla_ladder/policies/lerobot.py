@@ -289,7 +289,11 @@ class LeRobotPolicy(Policy):
         if env_ids is not None and self._num_envs and len(set(env_ids)) < self._num_envs:
             raise ValueError("LeRobot policies keep one action queue per batch: reset all envs together")
         self.policy.reset()
-        self._seeds, self._chunks = [int(s) for s in seeds], 0
+        # Seeds are the envs' in env order (row i's noise is episode i's): given in another order, put them back.
+        order = list(range(len(seeds))) if env_ids is None else [int(i) for i in env_ids]
+        if sorted(order) != list(range(len(seeds))):
+            raise ValueError(f"reset all envs together: env_ids {order} are not each of the {len(seeds)} envs once")
+        self._seeds, self._chunks = [int(s) for _, s in sorted(zip(order, seeds))], 0
         self._queue.clear()
         if len(seeds):
             torch.manual_seed(int(seeds[0]))  # any other randomness (a diffusion policy's noise): per batch
