@@ -112,7 +112,7 @@ def test_flow_matching_noise_is_drawn_per_episode(smolvla_run):
     # Seeds given with env_ids in another order are each env's own (they were taken by position).
     policy.reset([12, 11], env_ids=[1, 0])
     assert policy._seeds == [11, 12]
-    with pytest.raises(ValueError, match="not each of the 2 envs once"):
+    with pytest.raises(ValueError, match="reset all envs together"):
         policy.reset([11, 12], env_ids=[0, 0])
     with pytest.raises(ValueError, match="noise_seed=.-1.* expected an integer from 0"):
         load_policy(f"lerobot:{smolvla_run}?noise_seed=-1")
