@@ -454,6 +454,10 @@ def test_train_expert_without_a_gpu_names_the_cpu_flags(tmp_path, capsys):
                     "--sim-backend physx_cpu --num-envs N")
     rc = main(["train-expert", "--out", str(tmp_path / "ppo"), "--sim-backend", "physx_cpu", "--num-envs", "4096"])
     _one_line_error(capsys, rc, "one process per env", "got 4096")
+    # Minibatches of one step: one optimizer step made every weight NaN (the std of one advantage).
+    rc = main(["train-expert", "--out", str(tmp_path / "ppo"), "--sim-backend", "physx_cpu", "--num-envs", "1",
+               "--num-steps", "2", "--num-minibatches", "2"])
+    _one_line_error(capsys, rc, "leaves minibatches of one step", "use at most 1, or --no-norm-adv")
     assert list(tmp_path.iterdir()) == []
 
 

@@ -135,6 +135,9 @@ class Args:
         if self.minibatch_size < 1:
             raise ValueError(f"--num-minibatches {self.num_minibatches} exceeds the batch of "
                              f"{self.batch_size} (num_envs x num_steps)")
+        if self.minibatch_size < 2 and self.norm_adv:  # the std of one advantage is NaN, and so was every weight
+            raise ValueError(f"--num-minibatches {self.num_minibatches} leaves minibatches of one step, whose "
+                             f"advantages cannot be normalised; use at most {self.batch_size // 2}, or --no-norm-adv")
         if self.total_timesteps < self.batch_size:
             raise ValueError(f"--total-timesteps must be at least one batch (num_envs x num_steps = "
                              f"{self.batch_size}), got {self.total_timesteps}")
