@@ -103,10 +103,12 @@ def test_checkpoints_last_moves_in_one_step(tmp_path):
     assert loop.update_last_checkpoint is own
 
 
-def test_a_run_with_its_own_optimizer_resumes_with_it(data, tmp_path):
+def test_a_run_with_its_own_optimizer_resumes_with_it(data, tmp_path, monkeypatch, capsys):
     """A resumed run was given the policy's optimizer and scheduler presets whatever the first part used: trained with
-    `--use_policy_training_preset=false` and its own (lr 1e-3), it resumed at ACT's 1e-5."""
-    out = tmp_path / "run"
+    `--use_policy_training_preset=false` and its own (lr 1e-3), it resumed at ACT's 1e-5. It resumes with --out
+    spelled otherwise, not with another recording at the same --dataset."""
+    shutil.copytree(data, tmp_path / "data")
+    data, out = tmp_path / "data", tmp_path / "run"
     own = ["--use_policy_training_preset=false", "--optimizer.type=adamw", "--optimizer.lr=0.001",
            "--scheduler.type=cosine_decay_with_warmup", "--scheduler.num_warmup_steps=0",
            "--scheduler.num_decay_steps=3", "--scheduler.peak_lr=0.001", "--scheduler.decay_lr=0.001"]
@@ -120,7 +122,14 @@ def test_a_run_with_its_own_optimizer_resumes_with_it(data, tmp_path):
     shutil.rmtree(checkpoints / "000003")
     (checkpoints / "last").unlink()
     (checkpoints / "last").symlink_to("000002")
-    assert main(args) == 0
+    info = data / "meta" / "info.json"
+    original = info.read_text()
+    info.write_text(json.dumps({**json.loads(original), "total_episodes": 99}))
+    assert main(args) == 2
+    assert "holds a training run with other arguments (dataset_size was" in capsys.readouterr().err
+    info.write_text(original)
+    monkeypatch.chdir(tmp_path)
+    assert main([a if a != str(out) else "run" for a in args]) == 0
     groups = json.loads((checkpoints / "000003" / "training_state" / "optimizer_param_groups.json").read_text())
     assert {g["lr"] for g in groups} == {0.001}
 

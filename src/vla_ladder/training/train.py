@@ -344,8 +344,17 @@ RESUMES_WITH_OTHER = ("num_workers", "log_freq", "wandb", "print_command", "devi
 """Request fields a resumed run may change: where it runs, how it loads and logs, not what it learns."""
 
 
+PATH_FIELDS = ("out", "dataset")
+"""Request fields compared as the directories they name: `--out run` and `--out $PWD/run` are one run."""
+ADDED_SINCE = ("dataset_size",)
+"""Request fields added since runs were first kept: a request file without them resumes unchecked on them."""
+
+
 def _request(req: TrainConfig) -> dict:
-    return {k: v for k, v in files.plain(asdict(req)).items() if k not in RESUMES_WITH_OTHER}
+    request = {k: v for k, v in files.plain(asdict(req)).items() if k not in RESUMES_WITH_OTHER}
+    # The data it trains on is what --dataset holds: another recording at the same path is another run.
+    request["dataset_size"] = {"episodes": req.info.get("total_episodes"), "frames": req.info.get("total_frames")}
+    return {**request, **{k: str(Path(request[k]).resolve()) for k in PATH_FIELDS if request.get(k) is not None}}
 
 
 def resume_point(req: TrainConfig) -> Path | None:
@@ -363,8 +372,9 @@ def resume_point(req: TrainConfig) -> Path | None:
         raise ValueError(f"output directory {str(out)!r} exists and holds no training run of vla-ladder (no "
                          f"{REQUEST_FILE}); pick a new --out")
     was, now = json.loads(saved.read_text()), _request(req)
+    was.update({k: str(Path(was[k]).resolve()) for k in PATH_FIELDS if was.get(k) is not None})
     if changed := [f"{k} was {was.get(k)!r}, now {now.get(k)!r}" for k in sorted({*was, *now})
-                   if was.get(k) != now.get(k)]:
+                   if was.get(k) != now.get(k) and not (k in ADDED_SINCE and k not in was)]:
         raise ValueError(f"output directory {str(out)!r} holds a training run with other arguments "
                          f"({'; '.join(changed)[:300]}); re-run it with its own, or pick a new --out")
     last = out / "checkpoints" / "last"
