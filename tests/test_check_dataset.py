@@ -100,6 +100,8 @@ def test_a_leaky_dataset_built_on_purpose_is_caught(recorded, tmp_path, capsys):
     data.to_parquet(data_path, index=False)
     state = read_recording_state(leaky)  # and recorded when the episode was 10 steps longer
     state["contract"]["episode_steps"] = EPISODE_STEPS + 10
+    saved = state["counters"]["saved"]
+    state["counters"]["saved"] = 99  # and counting other episodes than it holds
     write_json(leaky / RECORDING_FILE, state)
 
     rc, summary, lines = check(leaky, tmp_path, capsys)
@@ -116,6 +118,7 @@ def test_a_leaky_dataset_built_on_purpose_is_caught(recorded, tmp_path, capsys):
     assert any(line.startswith(frames) for line in lines)
     assert (f"structure: recorded under another task contract: episode_steps was {EPISODE_STEPS + 10}, now "
             f"{EPISODE_STEPS}") in lines
+    assert f"structure: the recording state counts 99 episodes but info.json has {saved}" in lines
     assert summary["checks"]["leakage"]["episodes_with_held_out_pairs"] == 1
     replayed = {e["episode_index"]: e for e in summary["checks"]["replay"]["episodes"]}
     assert 2 not in replayed  # its missing frame is the frames check's to report

@@ -142,9 +142,13 @@ class Checker:
             check_features(self.info, self.root)
         except ValueError as e:
             self.flag("structure", str(e))
-        for change in contract_changes(read_recording_state(self.root).get("contract")):
+        state = read_recording_state(self.root)
+        for change in contract_changes(state.get("contract")):
             self.flag("structure", f"recorded under another task contract: {change}")
         total = int(self.info.get("total_episodes", 0))
+        saved = state.get("counters", {}).get("saved")
+        if saved is not None and saved != total:  # (an edit by other tools, or a copy of another version's state)
+            self.flag("structure", f"the recording state counts {saved} episodes but info.json has {total}")
         indices = self.prov["episode_index"].tolist() if len(self.prov) else []
         if indices != list(range(total)):
             self.flag("structure", f"provenance covers episodes {_ranges(indices)} but info.json has {total} "
