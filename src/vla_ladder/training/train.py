@@ -209,7 +209,8 @@ class TrainConfig:
             flags["device"] = self.device
         return [f"--{k}={v}" for k, v in flags.items()]
 
-    def pipeline_flags(self) -> list[str]:
+    def pipeline_flags(self, rename: dict[str, str] | None = None) -> list[str]:
+        """`rename`: the camera rename map the built config has (a hub checkpoint's is known once it is read)."""
         flags = [
             f"--dataset.repo_id=local/{self.dataset.resolve().name}",
             f"--dataset.root={self.dataset.resolve()}",
@@ -223,7 +224,7 @@ class TrainConfig:
             f"--seed={self.train_seed}",
             f"--wandb.enable={'true' if self.wandb else 'false'}",
         ]
-        rename = self.camera_rename_map()
+        rename = self.camera_rename_map() if rename is None else rename
         if rename:
             flags.append(f"--rename_map={json.dumps(rename)}")
         return flags
@@ -237,11 +238,11 @@ class TrainConfig:
             return dict(PAPER_RENAME) if self.pretrained in DEFAULT_PRETRAINED.values() else {}
         return _rename_for(json.loads(config_path.read_text()).get("input_features", {}))
 
-    def lerobot_command(self) -> list[str]:
-        """The equivalent `lerobot-train` command line."""
+    def lerobot_command(self, rename: dict[str, str] | None = None) -> list[str]:
+        """The equivalent `lerobot-train` command line (`rename`: as in pipeline_flags)."""
         policy = ([f"--policy.path={self.pretrained}"] if self.pretrained
                   else [f"--policy.type={self.policy_type}"])
-        return ["lerobot-train", *self.pipeline_flags(), *policy,
+        return ["lerobot-train", *self.pipeline_flags(rename), *policy,
                 *(f"--policy.{f[2:]}" for f in self.policy_flags()), *self.lerobot_args]
 
     def build_config(self):
@@ -425,8 +426,10 @@ def train(req: TrainConfig) -> Path:
             if cfg.use_policy_training_preset:
                 cfg.optimizer, cfg.scheduler = cfg.policy.get_optimizer_preset(), cfg.policy.get_scheduler_preset()
             log.info("resuming %s from %s", req.out, resume)
+        # The rename map the run uses: a hub checkpoint's cameras are known once build_config has read its config.
+        command = shlex.join(req.lerobot_command(dict(cfg.rename_map or {})))
         log.info("training %s on %s for %d steps (batch %d, chunk %d): %s", req.policy_type, req.dataset,
-                 req.steps, req.batch_size, req.chunk_size, shlex.join(req.lerobot_command()))
+                 req.steps, req.batch_size, req.chunk_size, command)
         start = time.time()
         try:
             with stamp_checkpoints(req.contract, req.out, _request(req)), \
@@ -439,7 +442,7 @@ def train(req: TrainConfig) -> Path:
         if main_process:
             files.write_json(req.out / RUN_FILE, {
                 "request": asdict(req),
-                "lerobot_train_command": shlex.join(req.lerobot_command()),
+                "lerobot_train_command": command,
                 "dataset": {"root": str(req.dataset), "condition": req.condition and req.condition.key,
                             "episodes": req.info.get("total_episodes"), "frames": req.info.get("total_frames"),
                             "contract": req.contract},
