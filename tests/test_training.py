@@ -262,6 +262,8 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
         assert f"{flag.split('=')[0]} after -- is vla-ladder's to set; use {own}" in capsys.readouterr().err
     # An unknown raw flag printed argparse's usage of every LeRobot flag (540 lines); tyro's failure, 5 lines.
     for extra, says in ((["--", "--unknown_flag=3"], "lerobot-train: unrecognized arguments: --unknown_flag=3"),
+                        (["--", "--policy.dim_model", "x"], "`dim_model`: Couldn't parse 'x' into an int"),  # (its
+                        # value apart, as lerobot-train takes it: it was "expected one argument")
                         (["--", "--policy.dim_model=x"], "`dim_model`: Couldn't parse 'x' into an int"),
                         (["--rename-map", "a"], "--rename-map: no type matching")):
         assert main(base + ["--policy-type", "act", *extra]) == 2

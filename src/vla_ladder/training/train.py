@@ -67,6 +67,18 @@ def policy_types() -> list[str]:
     return sorted(PreTrainedConfig.get_known_choices())
 
 
+def joined_flags(args) -> tuple[str, ...]:
+    """lerobot-train flags as --flag=value: `--policy.dim_model 64`, which lerobot-train takes too, split the value
+    from its flag when train sorted the flags into the policy's and the pipeline's."""
+    out: list[str] = []
+    for a in args:
+        if out and not a.startswith("--") and out[-1].startswith("--") and "=" not in out[-1]:
+            out[-1] = f"{out[-1]}={a}"
+        else:
+            out.append(a)
+    return tuple(out)
+
+
 def check_policy_packages(policy_type: str) -> None:
     """ValueError in one line when a policy type needs a package that is not installed: LeRobot's policies ask for
     their extra's packages (`require_package("diffusers", extra="diffusion")`) only when the model is built, after the
@@ -143,7 +155,7 @@ class TrainConfig:
             raise ValueError(f"unknown policy type {self.policy_type!r}; allowed: {', '.join(allowed)}")
         self.dataset = Path(self.dataset)
         self.out = None if self.out is None else Path(self.out)
-        self.lerobot_args = tuple(self.lerobot_args)
+        self.lerobot_args = joined_flags(self.lerobot_args)
         chunk_flag = f"--policy.{CHUNK_FIELD.get(self.policy_type, 'chunk_size')}"
         for a in self.lerobot_args:  # flags that would move the run away from what vla-ladder keeps and resumes
             flag = a.split("=", 1)[0]
