@@ -211,8 +211,13 @@ def test_a_policy_served_under_another_task_contract_is_refused(tmp_path, capsys
         check_server(url)
 
 
-def test_a_server_error_without_words_is_still_one_clear_error():
-    """openpi-style servers answer a failure as text; an empty one crashed the client with an IndexError."""
+@pytest.mark.parametrize("answer, says", [
+    # openpi-style servers answer a failure as text; an empty one crashed the client with an IndexError.
+    (" \n", r"the policy server at ws://.* failed: \(no message\)$"),
+    # A NaN action passed the shape checks, stayed NaN through the clamp and reached the simulator (serve-policy
+    # itself answers NaN to a state that is not finite).
+    (pack({"actions": np.full((4, 7), np.nan, np.float32)}), r"answered actions that are not finite")])
+def test_a_bad_answer_is_one_clear_error(answer, says):
     import threading
 
     from websockets.sync.server import serve
@@ -222,36 +227,13 @@ def test_a_server_error_without_words_is_still_one_clear_error():
     def server_side(ws):
         ws.send(pack({}))
         for _ in ws:
-            ws.send(" \n")
+            ws.send(answer)
 
     with serve(server_side, "127.0.0.1", 0) as server:
         threading.Thread(target=server.serve_forever, daemon=True).start()
         policy = RemotePolicy(f"ws://127.0.0.1:{server.socket.getsockname()[1]}", n_action_steps=2)
         policy.send({PROMPT_KEY: "grasp the apple"})
-        with pytest.raises(RuntimeError, match=r"the policy server at ws://.* failed: \(no message\)$"):
-            policy.receive()
-        server.shutdown()
-
-
-def test_actions_that_are_not_finite_are_refused():
-    """A NaN action passed the shape checks, stayed NaN through the clamp and reached the simulator (serve-policy
-    itself answers NaN to a state that is not finite)."""
-    import threading
-
-    from websockets.sync.server import serve
-
-    from vla_ladder.policies.remote import ACTIONS_KEY, RemotePolicy
-
-    def server_side(ws):
-        ws.send(pack({}))
-        for _ in ws:
-            ws.send(pack({ACTIONS_KEY: np.full((4, 7), np.nan, np.float32)}))
-
-    with serve(server_side, "127.0.0.1", 0) as server:
-        threading.Thread(target=server.serve_forever, daemon=True).start()
-        policy = RemotePolicy(f"ws://127.0.0.1:{server.socket.getsockname()[1]}", n_action_steps=2)
-        policy.send({PROMPT_KEY: "grasp the apple"})
-        with pytest.raises(RuntimeError, match=r"answered actions that are not finite"):
+        with pytest.raises(RuntimeError, match=says):
             policy.receive()
         server.shutdown()
 
