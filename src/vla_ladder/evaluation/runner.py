@@ -226,7 +226,7 @@ def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
         return []
     rows = read_episodes(path).to_dict("records")
     from vla_ladder.task.assets import resolve_object_set
-    played_with, here = {r["object_set"] for r in rows}, resolve_object_set(cfg.object_set)
+    played_with, here = {r.get("object_set") for r in rows} - {None}, resolve_object_set(cfg.object_set)
     if played_with and played_with != {here}:  # "auto" resolves per machine: a resume elsewhere may not match
         raise ValueError(f"{path} holds episodes played with the {'/'.join(sorted(played_with))} objects, and "
                          f"object_set={cfg.object_set!r} plays the {here} objects here; resume where its episodes were "
