@@ -235,7 +235,7 @@ def test_the_env_instructs_an_absent_object_in_the_same_scene(make_env):
 
 def probe(tmp_path, policy, regimes, scenes, **kw) -> dict:
     cfg = ProbeConfig("absent-object", policy=policy, out=tmp_path / policy, grid=ProbeGrid(tuple(regimes)),
-                      episodes=scenes, workers=1, resamples=500, **kw)
+                      episodes=scenes, workers=1, **kw)
     return run_probe(cfg, progress=False)
 
 

@@ -173,7 +173,7 @@ def test_the_env_places_the_objects_at_the_swapped_positions(make_env):
 
 def probe(tmp_path, policy, regimes, scenes, **kw) -> dict:
     cfg = ProbeConfig("position-swap", policy=policy, out=tmp_path / policy, grid=ProbeGrid(tuple(regimes)),
-                      episodes=scenes, workers=1, resamples=500, **kw)
+                      episodes=scenes, workers=1, **kw)
     return run_probe(cfg, progress=False)
 
 

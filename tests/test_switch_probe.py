@@ -199,7 +199,7 @@ def test_the_env_switches_target_and_instruction_exactly_at_its_step(make_env):
 
 def probe(tmp_path, policy, scenes, **kw) -> dict:
     cfg = ProbeConfig("instruction-switch", policy=policy, out=tmp_path / policy, grid=ProbeGrid(("small_jitter",)),
-                      episodes=scenes, workers=1, resamples=500, object_set="standin", **kw)
+                      episodes=scenes, workers=1, object_set="standin", **kw)
     return run_probe(cfg, progress=False)
 
 
