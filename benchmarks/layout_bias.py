@@ -3,13 +3,13 @@ the instructed object is the one nearest the workspace centre, and the one neare
 `nearest` reference grasps; chance: 1 / objects for both), and how much nearer the centre an object stands when it
 is the target than when it is a distractor.
 
-`sample_layout` draws the target first and places the objects one after another, each drawn again until it
-collides with none placed before it. In full random the first object lands uniformly, the later ones are pushed
-away from it: the target ends nearer the centre than its distractors. The script also places the same objects in an
-order drawn at random ("shuffled order", not what `sample_layout` does), which makes the target's place the same
-as any object's, to show how big the effect of the order is. No simulator.
+Each object is drawn again until it clears those placed before it, so the first one lands uniformly and the later
+ones are pushed away from it. Until 2026-11-28 (contract.LAYOUTS 1) `sample_layout` placed the target first, and in
+full random it stood nearer the centre than its distractors; it now places full random's objects in an order drawn
+from the seed. The script measures `sample_layout` and, for full random, the same objects placed target first
+("target first (layouts 1)": that sampler's order, positions from a stream of its own) for the record. No simulator.
 
-    python benchmarks/layout_bias.py        # 10000 seeds a condition, about 10 s on 2 cores
+    python benchmarks/layout_bias.py        # 10000 seeds a condition, about 20 s on 2 cores
 
 writes benchmarks/results/layout_bias.json.
 """
@@ -25,6 +25,7 @@ import tyro
 
 from vla_ladder import files
 from vla_ladder.conditions import Condition
+from vla_ladder.contract import LAYOUTS
 from vla_ladder.stats import wilson
 from vla_ladder.task import layouts as L
 from vla_ladder.task.objects import OBJECT_NAMES, OBJECTS
@@ -42,30 +43,25 @@ class Args:
     out: Path = Path(__file__).parent / "results" / "layout_bias.json"
 
 
-def shuffled_order_xy(condition: Condition, seed: int) -> tuple[tuple[str, ...], np.ndarray]:
-    """The objects `sample_layout` puts on the table for this seed, placed in an order drawn from the seed (target
-    first in the returned names, as in a Layout)."""
+def target_first_xy(condition: Condition, seed: int) -> tuple[tuple[str, ...], np.ndarray]:
+    """The objects `sample_layout` puts on the table for this seed, placed target first as layouts 1 did."""
     lay = L.sample_layout(condition, seed)
     rng = np.random.default_rng([seed, 0xB1A5])
-    order = rng.permutation(len(lay.objects))
-    names = tuple(lay.objects[i] for i in order)
-    radii = tuple(OBJECTS[OBJECT_NAMES.index(n)].footprint_radius for n in names)
-    boxes = L._boxes(names, condition.regime, None if lay.regions is None else tuple(lay.regions[i] for i in order))
+    radii = tuple(OBJECTS[OBJECT_NAMES.index(n)].footprint_radius for n in lay.objects)
     xy: list[tuple[float, float]] = []
-    for i, box in enumerate(boxes):  # (the shipped objects always fit: no restart needed in full random)
-        for _ in range(L.MAX_TRIES):
+    for i, box in enumerate(L._boxes(lay.objects, condition.regime, lay.regions)):
+        for _ in range(L.MAX_TRIES):  # (the shipped objects always fit: no restart needed in full random)
             xy[i:] = [L._draw(rng, box)]
             if not L._collides(xy, radii, i):
                 break
-    back = np.argsort(order)
-    return lay.objects, np.array(xy)[back]
+    return lay.objects, np.array(xy)
 
 
-def measure(condition: Condition, seeds: int, shuffled: bool) -> dict:
+def measure(condition: Condition, seeds: int, target_first: bool) -> dict:
     nearest, by_gripper, target_d, distractor_d = 0, 0, {n: [] for n in OBJECT_NAMES}, {n: [] for n in OBJECT_NAMES}
     for seed in range(seeds):
-        if shuffled:
-            names, xy = shuffled_order_xy(condition, seed)
+        if target_first:
+            names, xy = target_first_xy(condition, seed)
         else:
             lay = L.sample_layout(condition, seed)
             names, xy = lay.objects, np.asarray(lay.xy)
@@ -90,17 +86,19 @@ def main(args: Args) -> None:
     for regime in args.regimes:
         for k in args.objects:
             condition = Condition(regime, "canonical", k)
-            for shuffled in (False, True) if regime == "full_random" else (False,):
-                rows.append({"condition": condition.key, "placement": "shuffled order" if shuffled else "sample_layout",
-                             **measure(condition, args.seeds, shuffled)})
+            for first in (False, True) if regime == "full_random" else (False,):
+                rows.append({"condition": condition.key,
+                             "placement": "target first (layouts 1)" if first else "sample_layout",
+                             **measure(condition, args.seeds, first)})
                 r = rows[-1]
-                print(f"{r['condition']:28s} {r['placement']:14s} target nearest the centre "
+                print(f"{r['condition']:28s} {r['placement']:24s} target nearest the centre "
                       f"{100 * r['target_nearest_centre']:.1f}% [{100 * r['ci95'][0]:.1f}, {100 * r['ci95'][1]:.1f}] "
                       f"(chance {100 * r['chance']:.0f}%), nearest the gripper "
                       f"{100 * r['target_nearest_gripper']:.1f}% "
                       f"| nearer as target (cm): {r['target_nearer_cm']} "
                       f"({time.monotonic() - t0:.0f} s)", flush=True)
-    files.write_json(args.out, {"seeds": args.seeds, "rows": rows, "provenance": files.provenance()})
+    files.write_json(args.out, {"seeds": args.seeds, "layouts": LAYOUTS, "rows": rows,
+                                "provenance": files.provenance()})
     print(args.out)
 
 

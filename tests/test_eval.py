@@ -274,6 +274,11 @@ def test_a_run_directory_played_under_another_task_contract_is_not_resumed(tmp_p
     with pytest.raises(ValueError, match=rf"holds episodes of another task contract \(control_hz was 10, now "
                                          rf"{CONTROL_HZ}\); evaluate into a new --out, or pass --overwrite"):
         open_run_dir(cfg)
+    # Nor one played with the placement sampler before full random stopped placing the target first.
+    write_json(tmp_path / "run" / "config.json",
+               {**config, "contract": {k: v for k, v in config["contract"].items() if k != "layouts"}})
+    with pytest.raises(ValueError, match=r"another task contract \(layouts was 1, now 2\)"):
+        open_run_dir(cfg)
     (tmp_path / "run" / "episodes.parquet").write_bytes(b"")  # what --overwrite must clear
     assert open_run_dir(EvalConfig("scripted", out=tmp_path / "run", episodes=2, overwrite=True)) == []
     assert not (tmp_path / "run" / "episodes.parquet").exists()

@@ -63,6 +63,11 @@ ACTION_DIM = len(ACTION_NAMES)
 STATE_KEY = OBS_STATE
 ACTION_KEY = ACTION
 
+LAYOUTS = 2
+"""Version of the placement sampler (task/layouts.py), which a seed's scene depends on. 2 (2026-11-28): full random
+places its objects in an order drawn from the seed; 1 placed the target first, and it stood nearer the centre than
+its distractors (CHANGELOG.md). Run directories and recordings of another version do not resume under this one."""
+
 BLIND_INSTRUCTION = "grasp the object"
 """The one instruction an instruction-blind policy is trained and evaluated with (it names no object)."""
 
@@ -109,7 +114,7 @@ def fingerprint() -> dict:
             "cameras": [{"key": c.key, "fov_deg": c.fov_deg, "height": c.height, "width": c.width} for c in CAMERAS],
             "state": {"key": STATE_KEY, "names": list(STATE_NAMES)},
             "action": {"key": ACTION_KEY, "names": list(ACTION_NAMES)}, "metrics": list(METRICS),
-            "reach_threshold": REACH_THRESHOLD, "blind_instruction": BLIND_INSTRUCTION}
+            "reach_threshold": REACH_THRESHOLD, "blind_instruction": BLIND_INSTRUCTION, "layouts": LAYOUTS}
 
 
 POLICY_FIELDS: tuple[str, ...] = ("env_id", "robot", "control_mode", "sim_hz", "control_hz", "cameras", "state",
@@ -137,6 +142,7 @@ def contract_changes(saved: dict | None, fields: tuple[str, ...] | None = None) 
     contract's from then on)."""
     if saved is None:
         return []
+    saved = {"layouts": 1, **saved}  # (kept before the sampler had a version: its first)
     now = fingerprint()
     names = sorted({*saved, *now}) if fields is None else fields
     return [line for k in names for line in _differences(k, saved.get(k), now.get(k))]

@@ -41,6 +41,7 @@ MIN_GAP = 0.01  # free space kept between object footprints
 MAX_TRIES = 2000
 _POSITION_STREAM = 0x5A4B0  # the random stream of a position swap's partner order (Layout.position_partners)
 _SWITCH_STREAM = 0x5A4B1  # the random stream of an instruction switch's new target (Layout.switch_partner)
+_ORDER_STREAM = 0x5A4B2  # the random stream of the order full random places its objects in (sample_layout)
 
 
 @dataclass(frozen=True)
@@ -283,7 +284,7 @@ def usual_regions(obj: str, condition: Condition) -> tuple[int, ...] | None:
 def _collides(xy: list[tuple[float, float]], radii: tuple[float, ...], i: int) -> bool:
     # Scalar floats, not NumPy: this runs ~10 times a layout and a batched reset samples thousands of layouts.
     # sqrt(dx*dx + dy*dy) and (r_j + r_i) + gap are the operations np.linalg.norm and the array sums did, in the
-    # same order, so every comparison (and so every layout of every seed) is what it always was.
+    # same order, so every comparison (and so every layout of every seed) is what the NumPy version gave.
     x, y = xy[i]
     for j in range(i):
         dx, dy = xy[j][0] - x, xy[j][1] - y
@@ -324,7 +325,7 @@ def _boxes(names: tuple[str, ...], regime: str, regions: tuple[int, ...] | None)
 def _draw(rng: np.random.Generator, box: tuple) -> tuple[float, float]:
     # rng.uniform(low, high) on arrays is low + (high - low) * next_double per element (NumPy's random_uniform),
     # drawn in element order: rng.random(2) gives the same doubles at a tenth of the cost (no argument checks),
-    # and the float operations below are NumPy's, in its order, so every layout stays bit for bit what it was.
+    # and the float operations below are NumPy's, in its order, so every layout is bit for bit what NumPy gave.
     low, span, offset = box
     if low is None:
         return offset
@@ -357,20 +358,27 @@ def sample_layout(condition: Condition, seed: int = 0, target: str | None = None
         choices = region_assignments(idx, split)
         regions = choices[int(rng.integers(len(choices)))]
     boxes = _boxes(names, regime, regions)
+    # Each object is drawn again until it clears those placed before it, so the first one lands uniformly and the
+    # later ones are pushed away from it. Full random places them in an order drawn from the seed: placed first, the
+    # target stood nearer the workspace's centre than its distractors (the nearest in 26% of five-object layouts
+    # against 20%; benchmarks/layout_bias.py). In the jitter regimes each object keeps to its region.
+    order = (np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFFFFFFFFFF, _ORDER_STREAM]))
+             .permutation(num_objects).tolist() if regions is None else list(range(num_objects)))
+    placed_boxes, placed_radii = [boxes[j] for j in order], tuple(radii[j] for j in order)
     for _ in range(MAX_TRIES):
         xy: list[tuple[float, float]] = []
-        for i, box in enumerate(boxes):
+        for i, box in enumerate(placed_boxes):
             for _ in range(MAX_TRIES):
-                xy[i:] = [_draw(rng, box)]  # object i's draw, replacing its rejected one
-                if not _collides(xy, radii, i):
+                xy[i:] = [_draw(rng, box)]  # the i-th placed object's draw, replacing its rejected one
+                if not _collides(xy, placed_radii, i):
                     break
-            else:  # object i found no free place: start the layout again
+            else:  # it found no free place: start the layout again
                 break
         else:  # every object placed
             break
     else:  # pragma: no cover - the regions are sized so this cannot happen with the shipped objects
         raise RuntimeError(f"no collision-free layout after {MAX_TRIES} tries ({regime}, seed {seed})")
-    xy = np.array(xy)
+    xy = np.array(xy)[np.argsort(order)]  # back in the layout's order, the target first
     low = -LADDER[regime].yaw
     yaw = low + (LADDER[regime].yaw - low) * rng.random(num_objects)  # rng.uniform(low, high, k), as in _draw
     partner = swap_partner(names, seed) if appearance == "swap" else None
