@@ -254,6 +254,10 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
                  "--", "--dataset.root=/tmp"]) == 2
     assert "--dataset.root after -- is vla-ladder's to set; use --dataset" in capsys.readouterr().err
     assert not (tmp_path / "elsewhere").exists() and not (tmp_path / "g").exists()
+    # A type without an action chunk (VQ-BeT) trained the same model under each chunk size's label.
+    assert main(["grid", "--train.policy-type", "vqbet", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
+                 "--chunk-sizes", "8", "16"]) == 2
+    assert "vqbet has no action chunk to size" in capsys.readouterr().err and not (tmp_path / "g").exists()
     # So are those that set what train's own flags set: they won unsaid (a grid's b4_c4 trained with batch 2).
     for flag, own in (("--batch_size=2", "--batch-size"), ("--policy.chunk_size=8", "--chunk-size"),
                       ("--seed=3", "--train-seed"), ("--policy.n_action_steps=2", "--n-action-steps")):

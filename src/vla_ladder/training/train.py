@@ -205,12 +205,17 @@ class TrainConfig:
         from lerobot.configs.policies import PreTrainedConfig
         return PreTrainedConfig.get_choice_class(self.policy_type)
 
+    def chunk_field(self) -> str | None:
+        """The policy config's field that --chunk-size sets (chunk_size, or CHUNK_FIELD's), None where it has none
+        (vqbet, tdmpc, ...: --chunk-size changes nothing there)."""
+        field = CHUNK_FIELD.get(self.policy_type, "chunk_size")
+        return field if field in {f.name for f in dataclasses.fields(self._config_class())} else None
+
     def policy_flags(self) -> list[str]:
         """--policy.* flags, without the leading "policy." (the form PreTrainedConfig overrides take)."""
         names = {f.name for f in dataclasses.fields(self._config_class())}
         flags = {"push_to_hub": "false"}
-        chunk_field = CHUNK_FIELD.get(self.policy_type, "chunk_size")
-        if chunk_field in names:
+        if chunk_field := self.chunk_field():
             flags[chunk_field] = str(self.chunk_size)
         if "n_action_steps" in names and self.n_action_steps is not None:
             flags["n_action_steps"] = str(self.n_action_steps)
