@@ -496,6 +496,16 @@ class _SyntheticSimulator:
         pass
 
 
+def _synthetic_server(**simulated):
+    """A real episode server (protocol, limits, close codes) whose simulator is _SyntheticSimulator(**simulated)."""
+    from vla_ladder.conditions import Condition
+    from vla_ladder.recording.server import EpisodeServer, ServeConfig
+
+    server = EpisodeServer(ServeConfig(condition=Condition("small_jitter", "canonical", 2), port=0))
+    server._build = lambda: setattr(server, "_sim", _SyntheticSimulator(**simulated))
+    return server
+
+
 def test_writers_finish_when_a_block_ends_in_a_seed_the_servers_failed(tmp_path):
     """Seed 3's simulation fails on every server: one writer gives it up and records seeds 0, 1, 2 and 4; so do two
     writers, where seed 3 ends the block [2, 4). That block was never played to its end, so the ledger counted on a
@@ -505,15 +515,8 @@ def test_writers_finish_when_a_block_ends_in_a_seed_the_servers_failed(tmp_path)
     from test_reconnect import LoopThread
     from test_recording import ENV, _cli
 
-    from vla_ladder.conditions import Condition
-    from vla_ladder.recording.server import EpisodeServer, ServeConfig
-
-    def server() -> EpisodeServer:
-        s = EpisodeServer(ServeConfig(condition=Condition("small_jitter", "canonical", 2), port=0))
-        s._build = lambda: setattr(s, "_sim", _SyntheticSimulator(fail={3}))
-        return s
-
-    servers = [server() for _ in range(4)]  # (two writers of two servers each: one failing server ends a writer)
+    # Two writers of two servers each: one failing server ends a writer.
+    servers = [_synthetic_server(fail={3}) for _ in range(4)]
     with contextlib.ExitStack() as stack:
         urls = [stack.enter_context(LoopThread(s.serve)).url for s in servers]
         for writers, out in (("2", tmp_path / "two"), ("1", tmp_path / "one")):
@@ -534,13 +537,8 @@ def test_a_recording_whose_seeds_run_out_keeps_every_episode_in_flight(tmp_path)
     from test_reconnect import LoopThread
     from test_recording import ENV, _cli
 
-    from vla_ladder.conditions import Condition
-    from vla_ladder.recording.server import EpisodeServer, ServeConfig
-
     first = 2**32 - 4
-    served = EpisodeServer(ServeConfig(condition=Condition("small_jitter", "canonical", 2), port=0))
-    served._build = lambda: setattr(served, "_sim", _SyntheticSimulator(unsuccessful={first + 1}))
-    with LoopThread(served.serve) as running:
+    with LoopThread(_synthetic_server(unsuccessful={first + 1}).serve) as running:
         r = subprocess.run(_cli("record", "--episodes", "4", "--first-seed", str(first), "--encoder-threads", "1",
                                 "--out", str(tmp_path / "d"), "--server", running.url), env=ENV, capture_output=True,
                            text=True, timeout=300)

@@ -196,6 +196,12 @@ def video_name(condition: Condition, episode: int, seed: int) -> str:
     return f"videos/{condition.slug}-ep{episode:03d}-seed{seed}.mp4"
 
 
+def saved_request(config: dict) -> dict:
+    """A saved EvalConfig (config.json) as the request it made, as EvalConfig.request() gives it now: without the
+    fields that do not decide its episodes, and with fields added since at the value their absence meant."""
+    return {k: v for k, v in {**PRESENTATION, **config}.items() if k not in NOT_THE_REQUEST}
+
+
 def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     """Make cfg.out ready and return the rows it already holds for this request (resume). A directory that
     holds another request, or is not a run directory, is refused unless cfg.overwrite; so is one whose episodes
@@ -204,8 +210,7 @@ def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     from before either was kept resume unchecked on it."""
     out, saved = cfg.out, cfg.out / "config.json"
     config = json.loads(saved.read_text()) if saved.is_file() else None
-    previous = ({k: v for k, v in {**PRESENTATION, **config}.items() if k not in NOT_THE_REQUEST}
-                if config is not None else None)
+    previous = saved_request(config) if config is not None else None
     before = (config or {}).get("policy_weights")
     other = []
     if before and weights and before["sha256"] != weights["sha256"]:

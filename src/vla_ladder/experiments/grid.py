@@ -27,7 +27,7 @@ import pandas as pd
 from vla_ladder import files
 from vla_ladder.checks import check_ray_address
 from vla_ladder.contract import METRICS
-from vla_ladder.evaluation.runner import NOT_THE_REQUEST, PRESENTATION, EvalConfig
+from vla_ladder.evaluation.runner import EvalConfig, saved_request
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
 from vla_ladder.training.train import TrainConfig, check_offline_assets, checkpoint_dir
 
@@ -85,8 +85,7 @@ class GridConfig:
 def settings_as_now(saved: dict) -> dict:
     """grid_settings.json as this version writes it: the evaluation's request, which leaves out how it runs (workers,
     batching: the same episodes) and holds the fields added since at the value their absence meant."""
-    evaluation = {**PRESENTATION, **saved.get("eval", {})}
-    return {**saved, "eval": {k: v for k, v in evaluation.items() if k not in NOT_THE_REQUEST}}
+    return {**saved, "eval": saved_request(saved.get("eval", {}))}
 
 
 def overall(summary: dict) -> dict:

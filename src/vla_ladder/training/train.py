@@ -372,6 +372,11 @@ def _request(req: TrainConfig) -> dict:
     request = {k: v for k, v in files.plain(asdict(req)).items() if k not in RESUMES_WITH_OTHER}
     # The data it trains on is what --dataset holds: another recording at the same path is another run.
     request["dataset_size"] = {"episodes": req.info.get("total_episodes"), "frames": req.info.get("total_frames")}
+    return _as_dirs(request)
+
+
+def _as_dirs(request: dict) -> dict:
+    """`request` with its PATH_FIELDS as the absolute directories they name."""
     return {**request, **{k: str(Path(request[k]).resolve()) for k in PATH_FIELDS if request.get(k) is not None}}
 
 
@@ -389,8 +394,7 @@ def resume_point(req: TrainConfig) -> Path | None:
     if not saved.is_file():
         raise ValueError(f"output directory {str(out)!r} exists and holds no training run of vla-ladder (no "
                          f"{REQUEST_FILE}); pick a new --out")
-    was, now = json.loads(saved.read_text()), _request(req)
-    was.update({k: str(Path(was[k]).resolve()) for k in PATH_FIELDS if was.get(k) is not None})
+    was, now = _as_dirs(json.loads(saved.read_text())), _request(req)
     if changed := [f"{k} was {was.get(k)!r}, now {now.get(k)!r}" for k in sorted({*was, *now})
                    if was.get(k) != now.get(k) and not (k in ADDED_SINCE and k not in was)]:
         raise ValueError(f"output directory {str(out)!r} holds a training run with other arguments "
