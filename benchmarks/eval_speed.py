@@ -106,6 +106,15 @@ def main(args: Args) -> None:
     load_before = os.getloadavg()[0]
     timed(args, 1, 1, False)  # warm-up: the first env of this machine (asset caches, the lite robot's meshes)
     rows, same = [], {}
+    result = {
+        "benchmark": "eval_speed", "policy": args.policy, "sim_backend": "physx_cpu",
+        "condition": f"{args.regime}/canonical/{args.num_objects}", "robot_mesh": args.robot_mesh,
+        "renderer": "cuda" if gpu else "lavapipe (CPU)", "rows": rows,
+        "same_episodes_for_every_worker_count_and_num_envs": same,
+        "machine": {"cores": cores(), "gpu": gpu, "load_average_1min": [load_before, None]},
+        "provenance": files.provenance(),
+    }
+    out = args.out or RESULTS / ("eval_speed_cuda.json" if gpu else "eval_speed.json")
     for kind, filmed in (("state", False), ("filmed", True)):
         if filmed and args.filmed < 1:
             continue
@@ -116,19 +125,10 @@ def main(args: Args) -> None:
             row["same_outcomes_as_first_row"] = bool(not played or episodes[OUTCOMES].equals(played[0][OUTCOMES]))
             rows.append(row)
             played.append(episodes)
-        same[kind] = all(p.equals(played[0]) for p in played[1:])
-    result = {
-        "benchmark": "eval_speed", "policy": args.policy, "sim_backend": "physx_cpu",
-        "condition": f"{args.regime}/canonical/{args.num_objects}", "robot_mesh": args.robot_mesh,
-        "renderer": "cuda" if gpu else "lavapipe (CPU)", "rows": rows,
-        "same_episodes_for_every_worker_count_and_num_envs": same,
-        "machine": {"cores": cores(), "gpu": gpu, "load_average_1min": [load_before, os.getloadavg()[0]]},
-        "provenance": files.provenance(),
-    }
-    out = args.out or RESULTS / ("eval_speed_cuda.json" if gpu else "eval_speed.json")
-    files.write_json(out, result)
+            same[kind] = all(p.equals(played[0]) for p in played[1:])
+            result["machine"]["load_average_1min"][1] = os.getloadavg()[0]
+            files.write_json(out, result)  # after each row: a time box keeps the rows that finished
     print(f"same episodes for every worker count and num_envs: {same}; load {os.getloadavg()[0]:.1f}; wrote {out}")
-
 
 if __name__ == "__main__":
     main(tyro.cli(Args))

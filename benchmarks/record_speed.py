@@ -399,7 +399,6 @@ def main(args: Args) -> None:
         video = encode_and_write(args, ok, work, video=True)
         video_lerobot_stats = encode_and_write(args, ok, work, video=True, lerobot_stats=True)
         images = encode_and_write(args, ok, work, video=False)
-        scaling = [writer_scaling(ok, work, k, t, args.vcodec) for k in args.writers for t in args.encoder_threads]
     success = stages[False]["simulator"]["success_rate"] or 1 / args.stage_episodes
     n_cores = cores()
     per_episode, bounds = {}, {}
@@ -420,7 +419,7 @@ def main(args: Args) -> None:
         "stages": {"no_rebuild": stages[False], "rebuild": stages[True]}, "transfer": trans,
         "encode_and_write_video": video, "encode_and_write_video_lerobot_stats": video_lerobot_stats,
         "encode_and_write_images": images, "video_encoder_alone": encoder,
-        "writer_scaling": scaling,
+        "writer_scaling": [],  # filled last
         "stage_s_per_episode": per_episode, "expert_success_rate": success,
         "steady_state_bounds": bounds,
         "how": "s_per_demo: a stage's seconds per episode / expert success rate / workers for the simulation stages "
@@ -443,6 +442,13 @@ def main(args: Args) -> None:
             print(f"  --workers {b['workers']} --writers {b['writers']}: bound {b['demos_per_s_bound']:.3f} demos/s, "
                   f"bottleneck {b['bottleneck']}")
     print(f"wrote {out}")
+    # The writer stage alone comes last, the file written again after each row: a time box keeps what finished.
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in args.writers:
+            for t in args.encoder_threads:
+                result["writer_scaling"].append(writer_scaling(ok, Path(tmp), k, t, args.vcodec))
+                files.write_json(out, result)
+                print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -64,9 +64,14 @@ def measure(model: str, args: Args, root: Path) -> dict:
     start = time.monotonic()
     logged = []  # (seconds since start, step, updt_s, data_s)
     tail = []
+    decoder = "torchcodec"  # LeRobot's default where it loads; the two messages below say otherwise
     with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
         for line in proc.stdout:
             tail = (tail + [line])[-30:]
+            if "restarting with PyAV's own FFmpeg" in line:  # training/decoding.restart_with_torchcodec
+                decoder = "torchcodec on PyAV's FFmpeg"
+            elif "falling back to 'pyav'" in line:  # LeRobot, when torchcodec does not import
+                decoder = "pyav"
             m = STEP_LINE.search(line)
             if m:
                 step = (len(logged) + 1) * args.log_freq
@@ -84,11 +89,11 @@ def measure(model: str, args: Args, root: Path) -> dict:
            "startup_s": round(t0 - s0 / steady, 1), "wall_s": round(wall, 1),
            "update_s_mean": round(sum(r[2] for r in later) / len(later), 4),
            "data_wait_s_mean": round(sum(r[3] for r in later) / len(later), 4),
-           "num_workers": args.num_workers, "lerobot_args": extra}
+           "num_workers": args.num_workers, "video_decoder": decoder, "lerobot_args": extra}
     row["bound_by"] = "data loading" if row["data_wait_s_mean"] > row["update_s_mean"] else "the model's update"
     print(f"{model:16s} batch {args.batch_size}: {steady:6.2f} steps/s ({row['samples_per_s']} samples/s), "
           f"update {row['update_s_mean']:.3f} s, data wait {row['data_wait_s_mean']:.3f} s, "
-          f"start-up {row['startup_s']} s", flush=True)
+          f"start-up {row['startup_s']} s, decoding with {decoder}", flush=True)
     return row
 
 
@@ -129,23 +134,21 @@ def main(args: Args) -> None:
     import torch
 
     load_before = os.getloadavg()[0]
-    with tempfile.TemporaryDirectory() as tmp:
-        rows = [measure(m, args, Path(tmp)) for m in args.models]
     gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
     info = json.loads((args.dataset / "meta" / "info.json").read_text())
-    for row in rows:
-        row.update(gpu=gpu, dataset_episodes=info.get("total_episodes"), load_average_1min=load_before)
     out = args.out or Path(__file__).parent / "results" / f"train_speed_{args.device.split(':')[0]}.json"
-    # A row per model, device, batch and loader workers: a re-run with other workers sits beside the baseline it is
-    # compared with (docs/gpu.md) instead of replacing it.
-    key = lambda r: (r["model"], r["device"], r["batch_size"], r.get("num_workers"))  # noqa: E731
-    old = json.loads(out.read_text())["results"] if out.is_file() else []
-    fresh = {key(r) for r in rows}
-    files.write_json(out, {"benchmark": "train_speed", "cpu_count": os.cpu_count(), "cores": cores(),
-                           "results": [r for r in old if key(r) not in fresh] + rows,
-                           "provenance": files.provenance()})
-    print(f"wrote {out}")
-
+    # A row per model, device, batch, loader workers and GPU: a re-run with other workers sits beside the baseline
+    # it is compared with (docs/gpu.md) instead of replacing it.
+    key = lambda r: (r["model"], r["device"], r["batch_size"], r.get("num_workers"), r.get("gpu"))  # noqa: E731
+    with tempfile.TemporaryDirectory() as tmp:
+        for model in args.models:  # the file written after each model: a time box keeps the models that finished
+            row = measure(model, args, Path(tmp))
+            row.update(gpu=gpu, dataset_episodes=info.get("total_episodes"), load_average_1min=load_before)
+            old = json.loads(out.read_text())["results"] if out.is_file() else []
+            files.write_json(out, {"benchmark": "train_speed", "cpu_count": os.cpu_count(), "cores": cores(),
+                                   "results": [r for r in old if key(r) != key(row)] + [row],
+                                   "provenance": files.provenance()})
+            print(f"wrote {out}")
 
 if __name__ == "__main__":
     main(tyro.cli(Args))

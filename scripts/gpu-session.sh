@@ -3,10 +3,10 @@
 # box. A session has 15 minutes of device time and a call at most 10, so the work is cut into parts of about 9
 # minutes, one a session, in the order that gives the most per minute:
 #
-#   record  H.264's stage bound and 16 writers, filming apart from encoding, an 800-demo AV1 recording's steady
-#           rate, training speed on it (the SmolVLA-scratch run is kept in /tmp/gpu-runs for `policy`)
 #   policy  a learned LeRobot policy evaluated by 16 workers against one acting on a batch of 16 envs, and through
 #           a GPU policy server (`serve-policy`); trains its checkpoint first where /tmp/gpu-runs has none
+#   record  H.264's stage bound and 16 writers; filming in one process; which decoder training uses there (the
+#           SmolVLA-scratch run is kept in /tmp/gpu-runs for `policy`)
 #   ppo     the few-env PPO run on the easiest condition, in a time box of LIMIT seconds (default 540); it resumes
 #           a run carried in runs/ppo16 (unpack the previous session's $OUT/ppo16.tgz at the repository root and
 #           carry runs/ppo16; leave all of benchmarks/results out of that call so that the kit and it fit 64 MiB)
@@ -19,7 +19,7 @@
 # Results and logs are packed into $OUT/session.tgz after every step, so a call stopped at its limit keeps what
 # the finished steps wrote: unpack it at the repository root (benchmarks/results/..., logs/).
 set -uo pipefail
-PART=${1:-record}
+PART=${1:-policy}
 case "$PART" in record|policy|ppo) ;; *) echo "unknown part '$PART'; allowed: record, policy, ppo" >&2; exit 2 ;; esac
 cd "$(dirname "$0")/.."
 T0=$(date +%s)
@@ -61,21 +61,22 @@ RUNS=/tmp/gpu-runs  # training runs kept for a later part on the same warm machi
 CKPT=$RUNS/smolvla-scratch/checkpoints/last/pretrained_model
 
 if [ "$PART" = record ]; then
-  rm -rf "$RUNS"
-  # 1. H.264's stage bound beside AV1's 9.9 demos/s (record_speed_cuda.json), and 16 writers against 8.
-  step record_stages_h264 "$(n 200 600)" python3 benchmarks/record_speed.py --no-end-to-end --workers "$(n 16 2)" \
+  rm -rf "$RUNS" /tmp/small
+  # 1. H.264's stage bound beside AV1's 9.9 demos/s (record_speed_cuda.json), and 16 writers against 8 (2026-11-28:
+  # 8 H.264 writers alone 13.7 demos/s; the 16 writers' spawn, each importing torch and LeRobot, outlasted a 180 s box).
+  # The stage rows are written before the writer runs, and the file again after each.
+  step record_stages_h264 "$(n 280 600)" python3 benchmarks/record_speed.py --no-end-to-end --workers "$(n 16 2)" \
     --writers $(n "8 16" 2) --episodes "$(n 8 2)" --num-objects 5 --vcodec h264 \
     --out "$R/record_speed_cuda_h264.json"
-  # 2. Filming apart from encoding (one phase in eval_speed_scripted_cuda.json), with the veryfast preset.
-  step eval_filmed "$(n 120 600)" python3 benchmarks/eval_speed.py --workers "$(n 16 2)" --num-envs 1 \
-    --episodes "$(n 64 4)" --filmed "$(n 64 2)" --out "$R/eval_speed_scripted_cuda.json"
-  # 3. A long recording with record's defaults (AV1, scenes rebuilt): its steady rate, which 128 demos could not show.
-  rm -rf /tmp/long /tmp/.long.recording  # a fresh one: an earlier call's would resume
-  step record_long "$(n 180 600)" python3 -m vla_ladder.cli record --out /tmp/long --episodes "$(n 800 4)" \
-    --workers "$(n 16 2)" --num-objects 5
-  # 4. Training speed on that recording (torchcodec on PyAV's FFmpeg now; the H100's figures had PyAV decoding).
+  # 2. Filming in one process, against 2.59 s an episode in each of 16 (eval_speed_scripted_cuda.json, 2026-11-28).
+  step eval_filmed_alone "$(n 60 600)" python3 benchmarks/eval_speed.py --workers 1 --num-envs 1 \
+    --episodes "$(n 16 2)" --filmed "$(n 16 2)" --out "$R/eval_speed_scripted_alone_cuda.json"
+  # 3. Which decoder LeRobot's training uses there (`vla-ladder train` restarts itself for torchcodec on PyAV's
+  # FFmpeg; train_speed.py's rows now say which), on a small H.264 recording; the run is kept for `policy`.
+  step record_small "$(n 100 600)" python3 -m vla_ladder.cli record --out /tmp/small --episodes "$(n 96 4)" \
+    --workers "$(n 16 2)" --num-objects 5 --vcodec h264 --no-rebuild-scenes
   cp benchmarks/results/train_speed_cuda.json "$R/" 2>/dev/null  # its rows of other models and settings stay
-  step train_speed "$(n 150 900)" python3 benchmarks/train_speed.py --dataset /tmp/long --models smolvla-scratch act \
+  step train_speed "$(n 120 900)" python3 benchmarks/train_speed.py --dataset /tmp/small --models smolvla-scratch \
     --device "$(n cuda cpu)" --batch-size "$(n 64 2)" --steps "$(n 100 4)" --log-freq "$(n 20 1)" \
     --num-workers "$(n 10 0)" --keep "$RUNS" --out "$R/train_speed_cuda.json"
 fi
@@ -83,15 +84,15 @@ fi
 if [ "$PART" = policy ]; then
   if [ ! -f "$CKPT/config.json" ]; then  # a fresh machine: a small recording and 100 training steps give one
     rm -rf "$RUNS" /tmp/small
-    step record_small "$(n 120 600)" python3 -m vla_ladder.cli record --out /tmp/small --episodes "$(n 96 4)" \
+    step record_small "$(n 100 600)" python3 -m vla_ladder.cli record --out /tmp/small --episodes "$(n 96 4)" \
       --workers "$(n 16 2)" --num-objects 5 --vcodec h264 --no-rebuild-scenes
-    step train_small "$(n 150 900)" python3 benchmarks/train_speed.py --dataset /tmp/small --models smolvla-scratch \
+    step train_small "$(n 110 900)" python3 benchmarks/train_speed.py --dataset /tmp/small --models smolvla-scratch \
       --device "$(n cuda cpu)" --batch-size "$(n 64 2)" --steps "$(n 100 4)" --log-freq "$(n 20 1)" \
       --num-workers "$(n 10 0)" --keep "$RUNS" --out "$W/logs/train_speed_small.json"
   fi
   SPEC="lerobot:$CKPT?device=$(n cuda cpu)"
   # 1. 16 policy copies (one a worker process) against one policy acting on a batch of 16 envs; 1 worker as the base.
-  step eval_learned "$(n 240 900)" python3 benchmarks/eval_speed.py --policy "$SPEC" --workers 1 "$(n 16 2)" \
+  step eval_learned "$(n 200 900)" python3 benchmarks/eval_speed.py --policy "$SPEC" --workers 1 "$(n 16 2)" \
     --num-envs "$(n 16 2)" --episodes "$(n 64 4)" --filmed 0 --out "$R/eval_speed_cuda.json"
   # 2. The same through one GPU policy server that batches what arrives together: 16 worker clients, then one client
   # whose 16 envs send a pipelined window a chunk.
@@ -100,12 +101,12 @@ if [ "$PART" = policy ]; then
     python3 -c "import socket; socket.create_connection(('127.0.0.1', 8765), 1)" 2> /dev/null && break
     sleep 1
   done
-  step eval_remote "$(n 150 900)" python3 benchmarks/eval_speed.py --policy remote:ws://127.0.0.1:8765 \
+  step eval_remote "$(n 120 900)" python3 benchmarks/eval_speed.py --policy remote:ws://127.0.0.1:8765 \
     --workers "$(n 16 2)" --num-envs "$(n 16 2)" --episodes "$(n 64 4)" --filmed 0 \
     --out "$R/eval_speed_remote_cuda.json"
   pkill -f 'vla_ladder.cli serve-policy'
   # 3. The protocol's share of a chunk, and 1/4/16-env windows, on the GPU.
-  step remote_overhead "$(n 90 600)" python3 benchmarks/remote_overhead.py "$CKPT" --device "$(n cuda cpu)" \
+  step remote_overhead "$(n 60 600)" python3 benchmarks/remote_overhead.py "$CKPT" --device "$(n cuda cpu)" \
     --out "$R/remote_overhead_cuda.json"
 fi
 

@@ -78,7 +78,8 @@ def write_video(path: str | Path, frames: np.ndarray, fps: int = CONTROL_HZ) -> 
     episode's 51 frames of both cameras (256x512) it took 0.20 CPU s against 0.55 through imageio with x264's
     default (medium) at the same CRF, for a file 5% smaller and 0.1 grey level further from the frames on average
     (2 cores, 2026-11-27). A filmed run on the H200 machine had spent 2.7 s an episode filming and encoding with
-    the default, 80% of its workers' time (benchmarks/results/eval_speed_scripted_cuda.json)."""
+    the default, 80% of its workers' time; timed apart there with this preset (2026-11-28), filming (rendering) took
+    2.59 s an episode and encoding 0.13 s (benchmarks/results/eval_speed_scripted_cuda.json)."""
     import io
     from fractions import Fraction
 
