@@ -258,6 +258,14 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     assert main(["grid", "--train.policy-type", "vqbet", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
                  "--chunk-sizes", "8", "16"]) == 2
     assert "vqbet has no action chunk to size" in capsys.readouterr().err and not (tmp_path / "g").exists()
+    assert main(["grid", "--train.policy-type", "vqbet", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
+                 "--chunk-sizes", "8"]) == 2  # one size, but not the one it would be labelled with and not train
+    assert "give --chunk-sizes 16" in capsys.readouterr().err and not (tmp_path / "g").exists()
+    # train took --chunk-size there and changed nothing; and gave TD-MPC n_action_steps 16, which LeRobot refuses.
+    assert main(base + ["--policy-type", "vqbet", "--chunk-size", "8"]) == 2
+    assert "--chunk-size: vqbet has no action chunk to size" in capsys.readouterr().err
+    assert main(base + ["--policy-type", "tdmpc", "--print-command"]) == 0
+    assert "n_action_steps" not in capsys.readouterr().out
     # So are those that set what train's own flags set: they won unsaid (a grid's b4_c4 trained with batch 2).
     for flag, own in (("--batch_size=2", "--batch-size"), ("--policy.chunk_size=8", "--chunk-size"),
                       ("--seed=3", "--train-seed"), ("--policy.n_action_steps=2", "--n-action-steps")):

@@ -72,9 +72,11 @@ class GridConfig:
             raise ValueError(f"no horizon in {list(self.horizons)} fits a chunk size in {list(self.chunk_sizes)}")
         if self.eval.policy or self.eval.out or self.train.out:
             raise ValueError("the grid sets --train.out, --eval.policy and --eval.out per run; leave them out")
-        if self.train.chunk_field() is None and len(self.chunk_sizes) > 1:  # (labelled apart, trained alike)
+        if self.train.chunk_field() is None and self.chunk_sizes != (self.train.chunk_size,):  # (labelled apart,
+            # trained alike)
             raise ValueError(f"--train.policy-type {self.train.policy_type} has no action chunk to size (its config "
-                             f"has no chunk_size): every --chunk-sizes value would train the same model; give one")
+                             f"has no chunk_size): every --chunk-sizes value would train the same model; give "
+                             f"--chunk-sizes {self.train.chunk_size}")
 
     def settings(self) -> dict:
         """What a rerun must repeat to resume this grid (not how much work is left)."""

@@ -49,6 +49,7 @@ BATCH_FOR_REGIME = {"full_random": 128}
 DEFAULT_BATCH = 64
 # The config field that holds the action chunk length, where it is not called chunk_size.
 CHUNK_FIELD = {"diffusion": "horizon"}
+DEFAULT_CHUNK = 16
 # Tokenizers the policies' saved processors load by name; offline they must be local or in the HF cache.
 PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"
 TOKENIZER_OF = {"pi0": lambda cfg: PALIGEMMA_TOKENIZER, "pi05": lambda cfg: PALIGEMMA_TOKENIZER,
@@ -122,8 +123,8 @@ class TrainConfig:
     smolvla, lerobot/pi05_base for pi05, else none)"""
     batch_size: int | None = None
     """default: the paper's, from the dataset's recorded regime (128 full random, else 64)"""
-    chunk_size: int = 16
-    """action chunk length"""
+    chunk_size: int = DEFAULT_CHUNK
+    """action chunk length (policy types with an action chunk: act, smolvla, pi05, diffusion's horizon, ...)"""
     n_action_steps: int | None = None
     """execution horizon stored with the checkpoint (default: the chunk size, or LeRobot's default for policies
     with observation history such as diffusion); evaluation can override it"""
@@ -156,7 +157,7 @@ class TrainConfig:
         self.dataset = Path(self.dataset)
         self.out = None if self.out is None else Path(self.out)
         self.lerobot_args = joined_flags(self.lerobot_args)
-        chunk_flag = f"--policy.{CHUNK_FIELD.get(self.policy_type, 'chunk_size')}"
+        chunk_flag = f"--policy.{self._chunk_name()}"
         for a in self.lerobot_args:  # flags that would move the run away from what vla-ladder keeps and resumes
             flag = a.split("=", 1)[0]
             if flag in OWN_FLAGS or flag == chunk_flag:
@@ -175,16 +176,22 @@ class TrainConfig:
                 raise ValueError(f"{str(self.dataset)!r} is not a vla-ladder recording, so its regime is unknown; "
                                  "pass --batch-size (the paper: 128 for full_random, else 64)")
             self.batch_size = BATCH_FOR_REGIME.get(self.condition.regime, DEFAULT_BATCH)
-        if self.n_action_steps is None and self.policy_type not in CHUNK_FIELD:
+        chunked = self.chunk_field() is not None
+        if not chunked and self.chunk_size != DEFAULT_CHUNK:  # it changed nothing, and the run was labelled with it
+            raise ValueError(f"--chunk-size: {self.policy_type} has no action chunk to size (its config has no "
+                             f"{self._chunk_name()}); leave --chunk-size out, and set its own fields after --")
+        # Without a chunk, n_action_steps stays LeRobot's where the type has one (tdmpc's 1: it refuses more).
+        if chunked and self.n_action_steps is None and self.policy_type not in CHUNK_FIELD:
             self.n_action_steps = self.chunk_size
-        elif self.n_action_steps is None:  # LeRobot's default, where the chunk of `horizon` steps holds it (diffusion
-            # runs actions n_obs_steps - 1 .. of its horizon: its default 32 of 64 queued 15 with a horizon of 16)
+        elif chunked and self.n_action_steps is None:  # LeRobot's default, where the chunk of `horizon` steps holds
+            # it (diffusion runs actions n_obs_steps - 1 .. of its horizon: its default 32 of 64 queued 15 with a
+            # horizon of 16)
             default = self._config_class()()
             self.n_action_steps = min(default.n_action_steps, self.chunk_size - default.n_obs_steps + 1)
         for name in ("batch_size", "chunk_size", "n_action_steps", "steps"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
-        if self.n_action_steps is not None and self.n_action_steps > self.chunk_size:
+        if chunked and self.n_action_steps is not None and self.n_action_steps > self.chunk_size:
             raise ValueError(f"--n-action-steps ({self.n_action_steps}) cannot exceed --chunk-size "
                              f"({self.chunk_size})")
         check_seed(self.train_seed, "--train-seed")  # lerobot-train seeds numpy with it too
@@ -205,10 +212,13 @@ class TrainConfig:
         from lerobot.configs.policies import PreTrainedConfig
         return PreTrainedConfig.get_choice_class(self.policy_type)
 
+    def _chunk_name(self) -> str:
+        return CHUNK_FIELD.get(self.policy_type, "chunk_size")
+
     def chunk_field(self) -> str | None:
         """The policy config's field that --chunk-size sets (chunk_size, or CHUNK_FIELD's), None where it has none
         (vqbet, tdmpc, ...: --chunk-size changes nothing there)."""
-        field = CHUNK_FIELD.get(self.policy_type, "chunk_size")
+        field = self._chunk_name()
         return field if field in {f.name for f in dataclasses.fields(self._config_class())} else None
 
     def policy_flags(self) -> list[str]:
