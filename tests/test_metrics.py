@@ -213,3 +213,19 @@ def test_compare_rejects_mismatched_runs_and_non_run_dirs(tmp_path, capsys):
     assert "missing episodes.parquet" in err and "missing episodes.parquet, summary.json" not in err
     assert main(["compare", str(a), str(shifted)]) == 2
     assert "different seeds" in capsys.readouterr().err
+
+    # The same seeds with another object named (--instruct 1) or other objects on the table were paired as the same
+    # episodes; and --json into a run directory replaced its summary.json, after which the run no longer loaded.
+    from vla_ladder.files import write_parquet
+    for column, value, says in (("target", "orange", "different targets"),
+                                ("object_set", "ycb", "different object sets")):
+        changed = make_run(tmp_path / f"c-{column}", "nearest", [SJ], ["success"] * 4)
+        df = pd.read_parquet(changed / "episodes.parquet")
+        df.loc[1, column] = value if df.loc[1, column] != value else "mug"
+        write_parquet(changed / "episodes.parquet", df)
+        with pytest.raises(ValueError, match=f"1 of 4 episodes with {says} \\(e.g. small_jitter/canonical/5 episode 1"):
+            compare_runs(load_run(a), load_run(changed))
+    for inside in (a / "summary.json", a / "cmp.json"):
+        assert main(["compare", str(a), str(ladder), "--conditions-in-both", "--json", str(inside)]) == 2
+        assert "is inside the run directory" in capsys.readouterr().err
+    assert load_run(a) and not (a / "cmp.json").exists()

@@ -380,6 +380,17 @@ def test_overwrite_replaces_only_a_directory_of_its_own_kind(command, tmp_path, 
     _one_line_error(capsys, main([*command, "--episodes", "1", "--out", str(mine), "--overwrite"]),
                     "holds files that are not", "pick a new or empty --out")
     assert (mine / "thesis.tex").read_text() == "years of work"
+    # Any config.json was read as an evaluation's request: a LeRobot checkpoint's folder was "another request", and
+    # --overwrite (which that error suggested) deleted it; a config.json holding a list ended in a traceback.
+    for config in ('{"type": "smolvla", "n_action_steps": 50}', "[1, 2]"):
+        ckpt = tmp_path / "pretrained_model"
+        ckpt.mkdir(exist_ok=True)
+        (ckpt / "config.json").write_text(config)
+        (ckpt / "model.safetensors").write_bytes(b"weights")
+        for extra in ([], ["--overwrite"]):
+            _one_line_error(capsys, main([*command, "--episodes", "1", "--out", str(ckpt), *extra]),
+                            "holds files that are not", "pick a new or empty --out")
+            assert sorted(p.name for p in ckpt.iterdir()) == ["config.json", "model.safetensors"]
 
 
 @pytest.mark.parametrize("query, says", [("n_action_steps=0", "expected an integer >= 1"),

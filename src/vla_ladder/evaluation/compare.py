@@ -68,6 +68,17 @@ def pair_episodes(a: Run, b: Run, in_both: bool = False) -> pd.DataFrame:
         raise ValueError(f"the runs have different episodes: {len(unpaired)} episodes are in only one run "
                          f"(e.g. {_describe(unpaired.iloc[0])}); evaluate both with the same --episodes")
     check_same_seeds(a, b)
+    # The same seed is the same scene only with the same objects, and the same episode only with the same object
+    # named: a run with --instruct K (or of a probe) asked for another object on the same tables.
+    for column, what in (("object_set", "object sets"), ("target", "targets")):
+        if f"{column}_a" in merged and f"{column}_b" in merged:
+            bad = merged[merged[f"{column}_a"] != merged[f"{column}_b"]]
+            if len(bad):
+                r = bad.iloc[0]
+                raise ValueError(f"the runs played {len(bad)} of {len(merged)} episodes with different {what} (e.g. "
+                                 f"{_describe(r)}: {r[f'{column}_a']} in {a.path}, {r[f'{column}_b']} in {b.path}); "
+                                 "compare pairs the same episodes: evaluate both with the same --instruct and "
+                                 "--object-set (an instruction probe's variants are compared by `vla-ladder probe`)")
     return merged.drop(columns="_merge")
 
 
@@ -171,6 +182,10 @@ class CompareConfig:
             raise ValueError(f"{self.run_a} is given twice; compare two different run directories")
         if self.json is not None:
             check_output_file(self.json, "--json")
+            for run in (self.run_a, self.run_b):  # its summary.json, say: the run would no longer load
+                if Path(self.json).resolve().is_relative_to(Path(run).resolve()):
+                    raise ValueError(f"--json {str(self.json)!r} is inside the run directory {str(run)!r}, which holds "
+                                     "what eval wrote; write the comparison elsewhere")
 
 
 def run(cfg: CompareConfig) -> int:

@@ -127,9 +127,10 @@ class EvalConfig:
             check_physx_cuda("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")
         if self.object_set not in OBJECT_SETS:
             raise ValueError(f"unknown object_set {self.object_set!r}; allowed: {', '.join(OBJECT_SETS)}")
-        if self.object_set == "ycb":  # its meshes must be on disk: said here, not once the run directory is written
-            from vla_ladder.task.assets import resolve_object_set
-            resolve_object_set("ycb")
+        # YCB's meshes must be on disk, and $VLA_LADDER_OBJECT_SET (for auto) name a set: said here, not once the run
+        # directory is written and the workers are building their envs.
+        from vla_ladder.task.assets import resolve_object_set
+        resolve_object_set(self.object_set)
         check_robot_mesh(self.robot_mesh)
         from vla_ladder.task.appearance import check_appearance
         from vla_ladder.task.instructions import check_instruction_set
@@ -202,6 +203,16 @@ def saved_request(config: dict) -> dict:
     return {k: v for k, v in {**PRESENTATION, **config}.items() if k not in NOT_THE_REQUEST}
 
 
+def _run_config(path: Path) -> dict | None:
+    """The evaluation request saved at `path` (a run directory's config.json), or None where there is none: a
+    LeRobot checkpoint's config.json, say, whose folder --overwrite must never replace."""
+    try:
+        config = json.loads(path.read_text()) if path.is_file() else None
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return config if isinstance(config, dict) and {"policy", "episodes", "first_seed"} <= config.keys() else None
+
+
 def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     """Make cfg.out ready and return the rows it already holds for this request (resume). A directory that
     holds another request, or is not a run directory, is refused unless cfg.overwrite; so is one whose episodes
@@ -209,7 +220,7 @@ def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     as policy_weights) or under another task contract (contract.fingerprint, kept as contract); run directories
     from before either was kept resume unchecked on it."""
     out, saved = cfg.out, cfg.out / "config.json"
-    config = json.loads(saved.read_text()) if saved.is_file() else None
+    config = _run_config(saved)
     previous = saved_request(config) if config is not None else None
     before = (config or {}).get("policy_weights")
     other = []

@@ -104,6 +104,9 @@ class RecordConfig:
             from vla_ladder.task.physx_gpu import check_physx_cuda
             check_physx_cuda("--num-envs > 1 batches each local server on physx_cuda (a CUDA GPU); on a CPU use "
                              "--num-envs 1 and --workers N")
+        if not self.server:  # the local servers' objects ($VLA_LADDER_OBJECT_SET), before any of them starts
+            from vla_ladder.task.assets import resolve_object_set
+            resolve_object_set("auto")
         if self.give_up_after < 0:
             raise ValueError(f"--give-up-after must be >= 0 (0: never), got {self.give_up_after}")
         check_count(self.commit_every, "--commit-every")

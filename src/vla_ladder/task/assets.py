@@ -65,7 +65,10 @@ def resolve_object_set(object_set: str = "auto") -> str:
         object_set = os.environ.get("VLA_LADDER_OBJECT_SET", "auto")
         if object_set == "auto":
             return "ycb" if ycb_available() else "standin"
-        return resolve_object_set(object_set)
+        try:
+            return resolve_object_set(object_set)
+        except ValueError as e:  # said of the variable, which the command line did not show
+            raise ValueError(f"$VLA_LADDER_OBJECT_SET: {e}") from None
     if object_set == "ycb":
         missing = ycb_missing()
         if missing:
