@@ -227,8 +227,27 @@ def test_a_second_study_or_evaluation_writing_the_same_directory_is_refused_at_o
         with files.writing(out, "test"):
             _one_line_error(capsys, main(argv), f"another {what} is writing {out}", str(files.lock_path(out)))
         assert not out.exists()
+        assert not files.lock_path(out).exists()  # its holder removes it: none is left beside an output
     assert main(cases["evaluation"]) == 0
     assert pd.read_parquet(tmp_path / "ev" / "episodes.parquet")["seed"].tolist() == [0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ev", "study.json"]  # (a refused --out left .NAME.lock)
+
+
+def test_the_root_and_the_current_directory_are_refused_as_outputs(tmp_path, monkeypatch, capsys):
+    """eval --out / made /..lock before it refused; --out . --overwrite made its aside folder inside the directory
+    it removed and failed there ("Device or resource busy"), a new hidden folder left at each try."""
+    for command in (["eval", "--policy", "scripted"], ["probe", "instruction-swap", "--policy", "nearest"]):
+        _one_line_error(capsys, main([*command, "--episodes", "1", "--out", "/"]), "is the file system's root")
+    assert not Path("/..lock").exists()
+    run = tmp_path / "run"
+    argv = ["eval", "--policy", "scripted", "--regimes", "small_jitter", "--num-objects", "1", "--episodes", "1",
+            "--workers", "1", "--out"]
+    assert main([*argv, str(run)]) == 0
+    capsys.readouterr()
+    monkeypatch.chdir(run)
+    _one_line_error(capsys, main([*argv[:-5], "2", "--workers", "1", "--out", ".", "--overwrite"]),  # (2 episodes)
+                    "holds the current directory", "run the command from elsewhere")
+    assert sorted(p.name for p in run.iterdir()) == ["config.json", "episodes.parquet", "summary.json"]
 
 
 # -------------------------------------------------------------------------------------------- the disk

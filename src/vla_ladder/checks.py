@@ -96,6 +96,8 @@ def check_output_dir(path: str | os.PathLike, flag: str) -> Path:
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise ValueError(f"{flag} {str(path)!r} is a file, not a directory; give a directory (or remove the file)")
+    if not path.resolve().name:
+        raise ValueError(f"{flag} {str(path)!r} is the file system's root; give a directory for the results")
     _check_writable_under(path if path.is_dir() else path.parent, flag, path)
     return path
 

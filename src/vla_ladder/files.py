@@ -68,7 +68,10 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
 def remove_dir(path: str | os.PathLike) -> None:
     """Delete directory `path` in a way a kill cannot leave half done under its name: renamed aside to a hidden
     sibling first (one step), then deleted. A half-deleted run directory would be refused as not a run of ours."""
-    path = Path(path)
+    path = Path(path).resolve()  # ("." has no name: its aside would be made inside it)
+    if Path.cwd().resolve().is_relative_to(path):
+        raise ValueError(f"{path} holds the current directory, which it cannot remove; run the command from "
+                         "elsewhere, or give another --out")
     aside = Path(tempfile.mkdtemp(prefix=f".{path.name}.removing.", dir=path.parent))
     path.rename(aside / path.name)
     shutil.rmtree(aside)
@@ -85,18 +88,32 @@ def writing(directory: str | os.PathLike, what: str) -> Iterator[None]:
     """Hold `directory`'s lock (lock_path) while the block runs; ValueError at once when another process holds it.
     A study, training run or evaluation started again while the first still runs (in another terminal, or after
     the first only seemed to have died) would otherwise write the same files, or remove a run that had not saved
-    its first checkpoint yet. The kernel releases the lock when its holder dies, kill -9 included."""
+    its first checkpoint yet. The kernel releases the lock when its holder dies, kill -9 included.
+
+    The holder removes the lock file before it lets go, so none is left beside the output (a refused --out
+    included); a process that locked a file already removed tries again with the path's new one."""
     import fcntl
 
     path = lock_path(directory)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a+") as f:
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise ValueError(f"another {what} is writing {directory} (it holds {path}); let it finish or stop it, "
-                             "then run this again") from None
-        yield
+    while True:
+        with open(path, "a+") as f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise ValueError(f"another {what} is writing {directory} (it holds {path}); let it finish or stop "
+                                 "it, then run this again") from None
+            try:
+                held = os.stat(path).st_ino == os.fstat(f.fileno()).st_ino
+            except FileNotFoundError:
+                held = False
+            if not held:  # its holder removed it between our open and our lock: lock the path's file instead
+                continue
+            try:
+                yield
+            finally:
+                path.unlink(missing_ok=True)  # (while locked: nobody else holds this file)
+            return
 
 
 @contextmanager

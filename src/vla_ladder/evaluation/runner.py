@@ -23,7 +23,7 @@ import numpy as np
 import tyro
 
 from vla_ladder import files
-from vla_ladder.checks import check_count
+from vla_ladder.checks import check_count, check_output_dir
 from vla_ladder.conditions import MAX_OBJECTS, Condition, ConditionGrid
 from vla_ladder.contract import EPISODE_STEPS, contract_changes, fingerprint
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
@@ -104,7 +104,7 @@ class EvalConfig:
     distractor-removal probe; task/layouts.py Layout.alone): the layout's "removed" names what stood there"""
 
     def __post_init__(self):
-        self.out = None if self.out is None else Path(self.out)
+        self.out = None if self.out is None else check_output_dir(self.out, "--out")  # a file, the root: now
         if not isinstance(self.grid, ConditionGrid):
             self.grid = ConditionGrid(**self.grid)
         for name in ("episodes", "num_envs"):

@@ -55,7 +55,7 @@ from typing import Annotated
 import tyro
 
 from vla_ladder import files
-from vla_ladder.checks import check_count
+from vla_ladder.checks import check_count, check_output_dir
 from vla_ladder.conditions import REGIMES, Condition, ConditionGrid
 from vla_ladder.evaluation.displacement import FAR_CM, by_displacement
 from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
@@ -126,7 +126,7 @@ class DiagnoseConfig:
                              "(several side by side: --policy SPEC SPEC ...)")
         if self.out is None:
             raise ValueError("--out DIR is required: the diagnosis directory to write")
-        self.out = Path(self.out)
+        self.out = check_output_dir(self.out, "--out")  # a file, the root: now
         for name in ("episodes", "probe_episodes"):  # named here: the probes' own check said --episodes
             check_count(getattr(self, name), f"--{name.replace('_', '-')}")
         if len(set(self.policy)) != len(self.policy):

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import tyro
 
-from vla_ladder.checks import check_count
+from vla_ladder.checks import check_count, check_output_dir
 from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
@@ -237,7 +237,7 @@ class ExperimentCommand:
     """write report.html"""
 
     def __post_init__(self):
-        self.out = Path(self.out)
+        self.out = check_output_dir(self.out, "--out")  # a file, the root: now
         self.config = ExperimentConfig.load(self.name)
         if self.episodes is not None:
             self.config.episodes = self.episodes

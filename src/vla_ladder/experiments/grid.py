@@ -25,7 +25,7 @@ from pathlib import Path
 import pandas as pd
 
 from vla_ladder import files
-from vla_ladder.checks import check_ray_address
+from vla_ladder.checks import check_ray_address, check_output_dir
 from vla_ladder.contract import METRICS
 from vla_ladder.evaluation.runner import EvalConfig, saved_request
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
@@ -61,7 +61,7 @@ class GridConfig:
     """address of a running Ray cluster (implies --ray)"""
 
     def __post_init__(self):
-        self.out = Path(self.out)
+        self.out = check_output_dir(self.out, "--out")  # a file, the root: now
         for name in ("batch_sizes", "chunk_sizes", "horizons"):
             values = tuple(getattr(self, name))
             if not values or min(values) < 1 or len(set(values)) != len(values):  # a repeat: two units, one directory

@@ -53,6 +53,7 @@ from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.policies import Policy, allowed_specs, check_spec, parse_spec
 from vla_ladder.task.appearance import SWAPS, SWAPS_VERSION
 from vla_ladder.task.instructions import INSTRUCTION_SETS, paraphrase_version
+from vla_ladder.checks import check_output_dir
 
 PROBE_FILE = "probe.json"
 CONFIG_FILE = "probe_config.json"
@@ -239,7 +240,7 @@ class ProbeConfig:
         if self.name not in PROBES:
             raise ValueError(f"unknown probe {self.name!r}; allowed: {', '.join(PROBES)}")
         probe = PROBES[self.name]
-        self.out = None if self.out is None else Path(self.out)
+        self.out = None if self.out is None else check_output_dir(self.out, "--out")  # a file, the root: now
         if not isinstance(self.grid, ConditionGrid):
             self.grid = ProbeGrid(**self.grid)
         g = self.grid

@@ -24,7 +24,7 @@ from pathlib import Path
 import tyro
 
 from vla_ladder import files
-from vla_ladder.checks import check_ray_address
+from vla_ladder.checks import check_ray_address, check_output_dir
 from vla_ladder.conditions import parse_regimes
 from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig, from_dict
 from vla_ladder.experiments.units import Unit, is_done, run_units, run_units_on_ray
@@ -57,7 +57,7 @@ class StudyCommand:
     probes, with this version's metrics (for a study copied without its datasets and models)"""
 
     def __post_init__(self):
-        self.out = Path(self.out)
+        self.out = check_output_dir(self.out, "--out")  # a file, the root: now
         self.study = StudyConfig.load(self.config)
         check_workers(self.workers)
         check_ray_address(self.ray_address)
@@ -66,8 +66,6 @@ class StudyCommand:
                              f"{self.writers}")
         if not 1 <= self.num_envs <= cores():  # one env process each: refused here, not after the recording
             raise ValueError(f"--num-envs must be from 1 to the {cores()} CPU cores here, got {self.num_envs}")
-        if self.out.exists() and not self.out.is_dir():
-            raise ValueError(f"--out {str(self.out)!r} is a file; give a directory")
         saved = self.out / "study.json"
         differs = saved.is_file() and _what_differs(_as_now(json.loads(saved.read_text())), asdict(self.study))
         if differs:
