@@ -53,9 +53,9 @@ def site(tmp_path_factory) -> Path:
 def installed(site, monkeypatch):
     monkeypatch.syspath_prepend(str(EXAMPLE))
     monkeypatch.syspath_prepend(str(site))
-    policies.policy_kinds.cache_clear()
+    policies._plugins.cache_clear()
     yield
-    policies.policy_kinds.cache_clear()
+    policies._plugins.cache_clear()
 
 
 def test_a_plugin_is_a_kind_beside_the_built_in_ones(installed, capsys):
@@ -77,6 +77,23 @@ def test_a_plugin_is_a_kind_beside_the_built_in_ones(installed, capsys):
     from vla_ladder.experiments.diagnose import default_label  # a plugin's label on the diagnosis page: kind first
     assert [default_label(s) for s in ("constant", "constant:0,0,1,0,0,0,1", "ppo:runs/x")] == \
         ["constant", "constant-0_0_1_0_0_0_1", "x"]
+
+
+def test_a_kind_two_plugins_declare_is_refused_naming_both(installed, tmp_path, monkeypatch, capsys):
+    """Two distributions declaring one kind: the one entry_points() listed first (the file system's order) was used,
+    and the other skipped with a warning that called its name a built-in kind's."""
+    info = tmp_path / "other_policy-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: other-policy\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(f"[{policies.PLUGIN_GROUP}]\nconstant = other_policy:make\n"
+                                           "weighted = weighted_plugin:make\n")  # (the same factory: no clash)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    policies._plugins.cache_clear()
+    with pytest.raises(ValueError, match=r"policy 'constant' is declared by two plugins, (vla-ladder-example-policy "
+                                         r"\(constant_policy:make_policy\)|other-policy \(other_policy:make\)) and "):
+        policies.check_spec("constant:0,0,0,0,0,0,1")
+    assert "constant" not in policies.policy_kinds() and "'constant'" not in capsys.readouterr().err
+    assert policies.check_spec("weighted:x") == ("weighted", "x")
 
 
 def test_a_plugin_spec_is_checked_before_any_work(installed):

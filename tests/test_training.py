@@ -261,6 +261,11 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     assert main(["grid", "--train.policy-type", "vqbet", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
                  "--chunk-sizes", "8"]) == 2  # one size, but not the one it would be labelled with and not train
     assert "give --chunk-sizes 16" in capsys.readouterr().err and not (tmp_path / "g").exists()
+    # The grid replaced --train.batch-size, --train.chunk-size and --train.n-action-steps by each model's, unsaid.
+    assert main(["grid", "--train.policy-type", "act", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
+                 "--train.batch-size", "4", "--train.chunk-size", "10", "--train.n-action-steps", "3"]) == 2
+    assert ("the grid sets --train.batch-size, --train.chunk-size, --train.n-action-steps per model; give "
+            "--batch-sizes, --chunk-sizes and --horizons instead") in capsys.readouterr().err
     # train took --chunk-size there and changed nothing; and gave TD-MPC n_action_steps 16, which LeRobot refuses.
     assert main(base + ["--policy-type", "vqbet", "--chunk-size", "8"]) == 2
     assert "--chunk-size: vqbet has no action chunk to size" in capsys.readouterr().err

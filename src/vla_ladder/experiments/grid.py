@@ -72,6 +72,9 @@ class GridConfig:
             raise ValueError(f"no horizon in {list(self.horizons)} fits a chunk size in {list(self.chunk_sizes)}")
         if self.eval.policy or self.eval.out or self.train.out:
             raise ValueError("the grid sets --train.out, --eval.policy and --eval.out per run; leave them out")
+        if self.train.given:  # they were replaced by each model's, unsaid
+            raise ValueError(f"the grid sets {', '.join(f'--train.{f[2:]}' for f in self.train.given)} per model; "
+                             "give --batch-sizes, --chunk-sizes and --horizons instead")
         if self.train.chunk_field() is None and self.chunk_sizes != (self.train.chunk_size,):  # (labelled apart,
             # trained alike)
             raise ValueError(f"--train.policy-type {self.train.policy_type} has no action chunk to size (its config "

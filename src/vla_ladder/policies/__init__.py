@@ -64,19 +64,28 @@ docs/evaluation.md, "Your own policy"; examples/policy_plugin."""
 
 
 @functools.cache
-def policy_kinds() -> dict[str, str]:
-    """POLICY_KINDS and the kinds that installed plugins declare (PLUGIN_GROUP); a plugin cannot replace a
-    built-in kind, nor take a name that a spec cannot hold (it is skipped, with a warning on stderr)."""
-    kinds = dict(POLICY_KINDS)
+def _plugins() -> tuple[dict[str, str], dict[str, tuple[str, ...]]]:
+    """The kinds installed plugins declare (PLUGIN_GROUP), kind -> "module:factory"; and the kinds that plugins
+    declare more than once, each with the factories declared (which one entry_points() lists first is down to the
+    file system's order: neither is used). A plugin cannot replace a built-in kind, nor take a name that a spec
+    cannot hold (it is skipped, with a warning on stderr)."""
+    declared: dict[str, dict[str, str]] = {}  # kind -> factory -> its distribution
     for ep in entry_points(group=PLUGIN_GROUP):
-        if ep.name in kinds or not ep.name or any(c in ep.name for c in ":?/ "):
-            why = "a built-in kind's" if ep.name in kinds else "not one a spec can hold (no ':', '?', '/', ' ')"
+        if ep.name in POLICY_KINDS or not ep.name or any(c in ep.name for c in ":?/ "):
+            why = "a built-in kind's" if ep.name in POLICY_KINDS else "not one a spec can hold (no ':', '?', '/', ' ')"
             if multiprocessing.parent_process() is None:  # said once, not again by each of --workers N
                 print(f"[vla-ladder] warning: policy plugin {ep.name!r} ({ep.value}) skipped: its name is {why}",
                       file=sys.stderr)
         else:
-            kinds[ep.name] = ep.value
-    return kinds
+            declared.setdefault(ep.name, {})[ep.value] = ep.dist.name if ep.dist else "?"
+    kinds = {k: next(iter(f)) for k, f in declared.items() if len(f) == 1}
+    clashes = {k: tuple(f"{dist} ({value})" for value, dist in f.items()) for k, f in declared.items() if len(f) > 1}
+    return kinds, clashes
+
+
+def policy_kinds() -> dict[str, str]:
+    """POLICY_KINDS and the kinds that installed plugins declare, each by one plugin (_plugins)."""
+    return {**POLICY_KINDS, **_plugins()[0]}
 
 
 def _factory(kind: str) -> Callable[..., Policy]:
@@ -108,6 +117,9 @@ def check_expert(spec: str, given: str) -> None:
 
 def parse_spec(spec: str) -> tuple[str, str | None]:
     kind, _, arg = spec.partition(":")
+    if kind in (clashes := _plugins()[1]):
+        raise ValueError(f"policy {kind!r} is declared by two plugins, {' and '.join(clashes[kind])}; uninstall all "
+                         "but one")
     if kind not in policy_kinds():
         raise ValueError(f"unknown policy {spec!r}; allowed: " + allowed_specs())
     if kind in NEEDS_ARG and not arg:

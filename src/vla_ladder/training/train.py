@@ -157,6 +157,10 @@ class TrainConfig:
         self.dataset = Path(self.dataset)
         self.out = None if self.out is None else Path(self.out)
         self.lerobot_args = joined_flags(self.lerobot_args)
+        # The flags given of those a grid sets per model (it refuses them), before batch and horizon are filled in.
+        self.given = tuple(flag for flag, given in (("--batch-size", self.batch_size is not None),
+                                                     ("--chunk-size", self.chunk_size != DEFAULT_CHUNK),
+                                                     ("--n-action-steps", self.n_action_steps is not None)) if given)
         chunk_flag = f"--policy.{self._chunk_name()}"
         for a in self.lerobot_args:  # flags that would move the run away from what vla-ladder keeps and resumes
             flag = a.split("=", 1)[0]
