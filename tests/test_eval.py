@@ -173,7 +173,14 @@ def test_a_killed_run_resumes_and_another_request_is_refused(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     # The timing goes on from the first invocation's: 3 episodes played there, 2 here.
     assert summary["complete"] and summary["timing"]["episodes"] == 5
-    assert summary["timing"]["lockstep_steps"] == 5 * 50
+    assert summary["timing"]["lockstep_steps"] == 5 * 50 and "untimed_episodes" not in summary["timing"]
+    # A kill between the writes of episodes.parquet and summary.json left the summary behind the rows (the timing
+    # of 1 episode, 2 rows): the episode whose time was lost is said, and the timed and untimed add up to the rows.
+    (out / "summary.json").write_text(json.dumps({**summary, "timing": {**summary["timing"], "episodes": 1}}))
+    full.iloc[:2].to_parquet(out / "episodes.parquet", index=False)
+    assert main(argv) == 0
+    timing = json.loads((out / "summary.json").read_text())["timing"]
+    assert (timing["episodes"], timing["untimed_episodes"]) == (2, 1)
     # Rows this request never plays, or plays once (an edited or mixed file), are refused, not counted.
     for odd in (full.iloc[[0]].assign(episode=3, seed=3), full.iloc[[1]]):
         pd.concat([full, odd]).to_parquet(out / "episodes.parquet", index=False)

@@ -265,15 +265,17 @@ def timing_summary(totals: dict[str, float]) -> dict:
     per_step_ms is the time of one step of a batch (num_envs episodes at once) in the policy and in the env;
     wall_s is the commands' own time (process start-up and policy loading included)."""
     steps = totals["lockstep_steps"]
-    return {"episodes": int(totals["episodes"]), "wall_s": round(totals["wall_s"], 1), "lockstep_steps": round(steps),
-            **{f"{p}_s": round(totals[f"{p}_s"], 3) for p in PHASES},
+    untimed = {"untimed_episodes": int(totals["untimed_episodes"])} if totals.get("untimed_episodes") else {}
+    return {"episodes": int(totals["episodes"]), **untimed, "wall_s": round(totals["wall_s"], 1),
+            "lockstep_steps": round(steps), **{f"{p}_s": round(totals[f"{p}_s"], 3) for p in PHASES},
             "per_step_ms": {p: round(1e3 * totals[f"{p}_s"] / steps, 2) if steps else None for p in ("policy", "env")}}
 
 
 def timing_totals(saved: dict) -> dict[str, float]:
     """A run's timing totals, going on from a saved summary.json `timing` (zeros for a new run, or one written
     before timings were kept)."""
-    return {k: float(saved.get(k, 0)) for k in ("episodes", "wall_s", "lockstep_steps", *(f"{p}_s" for p in PHASES))}
+    return {k: float(saved.get(k, 0)) for k in ("episodes", "untimed_episodes", "wall_s", "lockstep_steps",
+                                                *(f"{p}_s" for p in PHASES))}
 
 
 def add_timing(totals: dict[str, float], timing: dict[str, float]) -> None:
@@ -357,6 +359,9 @@ def _evaluate(cfg: EvalConfig, policy: Policy | None, spec: str, overlap: int, w
     policy_info = saved.get("policy", {"name": spec})
     # A resumed run's timing goes on from the seconds its earlier invocations recorded.
     timing = timing_totals(saved.get("timing", {}))
+    # A kill between the two files' writes leaves episodes.parquet ahead of summary.json: those episodes' time is
+    # lost, and said (untimed_episodes), so that the timed and the untimed still add up to the rows.
+    timing["untimed_episodes"] += max(0, len(rows) - timing["episodes"] - timing["untimed_episodes"])
     wall_before = timing["wall_s"]
     workers = 1 if obs_mode is not None else min(auto_workers(cfg.workers), max(len(jobs), 1))
     bar = tqdm(total=len(cfg.conditions) * cfg.episodes, initial=len(rows), desc=f"eval {spec}", unit="ep",
