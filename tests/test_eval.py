@@ -178,7 +178,9 @@ def test_a_killed_run_resumes_and_another_request_is_refused(tmp_path, capsys):
     # of 1 episode, 2 rows): the episode whose time was lost is said, and the timed and untimed add up to the rows.
     (out / "summary.json").write_text(json.dumps({**summary, "timing": {**summary["timing"], "episodes": 1}}))
     full.iloc[:2].to_parquet(out / "episodes.parquet", index=False)
+    (out / ".episodes.parquet.k1ll3d.tmp").write_bytes(b"half a file")  # a write kill -9 cut short: cleared
     assert main(argv) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["config.json", "episodes.parquet", "summary.json"]
     timing = json.loads((out / "summary.json").read_text())["timing"]
     assert (timing["episodes"], timing["untimed_episodes"]) == (2, 1)
     # Rows this request never plays, or plays once (an edited or mixed file), are refused, not counted.

@@ -235,6 +235,9 @@ def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
                              "--overwrite to start again")
         previous = {}  # another model or task: --overwrite starts afresh
     files.claim_dir(out, previous, cfg.request(), cfg.overwrite, "evaluation", "a run directory")
+    for name in ("episodes.parquet", "summary.json", "config.json"):  # writes a kill -9 cut short (files.atomic_path;
+        for stale in out.glob(f".{name}.*.tmp"):  # nobody else writes here: this process holds the directory's lock)
+            stale.unlink(missing_ok=True)
     files.write_json(saved, {**asdict(cfg), **({"policy_weights": weights} if weights else {}),
                              "contract": fingerprint()})
     path = out / "episodes.parquet"
