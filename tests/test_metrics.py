@@ -208,6 +208,10 @@ def test_compare_rejects_mismatched_runs_and_non_run_dirs(tmp_path, capsys):
     assert main(["compare", str(a), str(tmp_path / "empty")]) == 2
     err = capsys.readouterr().err
     assert "not a run directory" in err and "episodes.parquet" in err and "summary.json" in err
+    (tmp_path / "empty" / "config.json").write_text((a / "config.json").read_text())  # killed before its first save
+    assert main(["compare", str(a), str(tmp_path / "empty")]) == 2
+    assert "holds no episode yet (its evaluation stopped before the first was saved); rerun the command" in \
+        capsys.readouterr().err
     assert main(["compare", str(tmp_path / "half"), str(a)]) == 2
     err = capsys.readouterr().err
     assert "missing episodes.parquet" in err and "missing episodes.parquet, summary.json" not in err

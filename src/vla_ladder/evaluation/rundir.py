@@ -66,12 +66,25 @@ def read_episodes(path: str | Path) -> pd.DataFrame:
     return episodes.assign(**{c: v for c, v in ADDED_COLUMNS.items() if c not in episodes.columns})
 
 
+def run_config(path: Path) -> dict | None:
+    """The evaluation request saved at `path` (a run directory's config.json), or None where there is none: a
+    LeRobot checkpoint's config.json, say, whose folder `eval --overwrite` must never replace."""
+    try:
+        config = json.loads(path.read_text()) if path.is_file() else None
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return config if isinstance(config, dict) and {"policy", "episodes", "first_seed"} <= config.keys() else None
+
+
 def load_run(path: str | Path) -> Run:
     """Load a run directory; ValueError listing what is missing if it is not one."""
     path = Path(path)
     if not path.is_dir():
         raise ValueError(f"{path} is not a run directory: no such directory")
     missing = [f for f in REQUIRED_FILES if not (path / f).is_file()]
+    if missing and len(missing) == len(REQUIRED_FILES) and run_config(path / "config.json") is not None:
+        raise ValueError(f"{path} is a run directory that holds no episode yet (its evaluation stopped before the "
+                         "first was saved); rerun the command that made it")
     if missing:
         raise ValueError(f"{path} is not a run directory: missing {', '.join(missing)} "
                          f"(a run directory holds {', '.join(REQUIRED_FILES)} and config.json, "

@@ -28,7 +28,7 @@ from vla_ladder.conditions import MAX_OBJECTS, Condition, ConditionGrid
 from vla_ladder.contract import EPISODE_STEPS, contract_changes, fingerprint
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, check_workers, cores
-from vla_ladder.evaluation.rundir import EPISODE_COLUMNS, read_episodes
+from vla_ladder.evaluation.rundir import EPISODE_COLUMNS, read_episodes, run_config
 from vla_ladder.policies import Policy, allowed_specs, check_spec, selection_episodes, weights_identity
 from vla_ladder.task.robot import check_robot_mesh
 
@@ -203,16 +203,6 @@ def saved_request(config: dict) -> dict:
     return {k: v for k, v in {**PRESENTATION, **config}.items() if k not in NOT_THE_REQUEST}
 
 
-def _run_config(path: Path) -> dict | None:
-    """The evaluation request saved at `path` (a run directory's config.json), or None where there is none: a
-    LeRobot checkpoint's config.json, say, whose folder --overwrite must never replace."""
-    try:
-        config = json.loads(path.read_text()) if path.is_file() else None
-    except (UnicodeDecodeError, json.JSONDecodeError):
-        return None
-    return config if isinstance(config, dict) and {"policy", "episodes", "first_seed"} <= config.keys() else None
-
-
 def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     """Make cfg.out ready and return the rows it already holds for this request (resume). A directory that
     holds another request, or is not a run directory, is refused unless cfg.overwrite; so is one whose episodes
@@ -220,7 +210,7 @@ def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     as policy_weights) or under another task contract (contract.fingerprint, kept as contract); run directories
     from before either was kept resume unchecked on it."""
     out, saved = cfg.out, cfg.out / "config.json"
-    config = _run_config(saved)
+    config = run_config(saved)
     previous = saved_request(config) if config is not None else None
     before = (config or {}).get("policy_weights")
     other = []
