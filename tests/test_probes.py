@@ -322,9 +322,18 @@ def test_the_report_shows_a_probe_found_next_to_its_variant_runs(tmp_path):
     assert "Grounding probes" in page and "instruction sensitivity" in page and "Counts" in page
     assert 'alt="probe_0"' in page and 'alt="probe_0_matrix"' in page
     assert "No scene was filmed in every variant" in page  # made without videos
+    # The probe's folder is shown relative to the page (it was resolved: the machine's absolute path).
+    assert "<span class=ci>probe</span></h3>" in page and str(tmp_path) not in page
     plain = build_report([load_run(make_run(tmp_path / "plain", "nearest", [("small_jitter", "canonical", 2)],
                                             ["success"]))], tmp_path / "p.html", placements=False).read_text()
     assert "Grounding probes" not in plain
+    # Filmed variants and --samples 0: no scene shown, and no note that none was filmed.
+    filmed = make_probe(tmp_path / "filmed", videos=1)
+    runs = [load_run(filmed / "instruct-0"), load_run(filmed / "instruct-1")]
+    page = build_report(runs, tmp_path / "f.html", placements=False, samples=0).read_text()
+    assert "Grounding probes" in page and "No scene was filmed" not in page and "The same scenes" not in page
+    page = build_report(runs, tmp_path / "f.html", placements=False, samples=1).read_text()
+    assert "No scene was filmed" not in page and "(first 1 filmed)" in page
 
 
 # ---------------------------------------------------------------------- the real simulator

@@ -43,9 +43,13 @@ def test_tables_follow_the_paper_layouts(runs):
     assert "\\multirow{4}{*}{nearest} & Small jitter & $20$ & $100$ & $20$ \\\\" in tex
     assert "\\label{tab:ladder}" in tex and tex.count("\\midrule") == 2  # header rule + one between models
 
+    # Of two policies only one played the pairings: its rows still name it (the Model column was dropped).
     pair = tables.pairings_table(res)
-    assert "| Split | Success | Grasp-any | Reach |" in pair.to_markdown()
-    assert "Pairings (OOD) & $20$ & $100$ & $20$" in pair.to_latex()
+    assert "| Model | Split | Success | Grasp-any | Reach |" in pair.to_markdown()
+    assert "\\multirow{2}{*}{nearest} & Pairings (ID) & " in pair.to_latex()
+    alone = tables.pairings_table({"nearest": res["nearest"]})
+    assert alone.to_markdown().splitlines()[2] == "| Split | Success | Grasp-any | Reach |"
+    assert "Pairings (OOD) & $20$ & $100$ & $20$" in alone.to_latex()
 
     count = tables.object_count_table(res)
     assert [row for row, _ in count.groups["layout-prior"]] == ["1", "2", "3", "4", "5"]
@@ -56,6 +60,8 @@ def test_tables_follow_the_paper_layouts(runs):
                                           "before": res["nearest"], "after": conds}])
     assert "Med. jitter & $20\\!\\rightarrow\\!20$ & $100\\!\\rightarrow\\!60$" in scaling.to_latex()
     assert "0.5k → 1k" in scaling.to_markdown()
+    # Labels such as lerobot:~/ckpt or a^2 stay LaTeX (~ and ^ were written raw: a space and a superscript).
+    assert tables.tex_escape("lerobot:~/ckpt_a^2") == "lerobot:\\textasciitilde{}/ckpt\\_a\\textasciicircum{}2"
 
 
 def test_the_reports_paper_tables_follow_the_regimes_played(tmp_path):
@@ -101,6 +107,67 @@ def test_runs_of_one_policy_keep_their_own_rows_and_curves(tmp_path):
     assert list(curves) == labels[:3] and [curves[label]["n"] for label in labels[:3]] == [5, 2, 2]
 
 
+def test_runs_of_one_policy_on_other_object_sets_are_kept_apart(tmp_path):
+    """A policy's runs with the stand-in objects and with YCB's are two experiments: each keeps its rows under a
+    label naming its object set (they were merged into one model's), and the run list says each run's set."""
+    from vla_ladder.report.html import results_by_label, run_labels
+
+    paths = [make_run(tmp_path / d, "nearest", [(regime, "canonical", 2)], kinds)
+             for d, regime, kinds in (("standin", "small_jitter", ["success"]), ("ycb", "medium_jitter", ["nothing"]))]
+    episodes = pd.read_parquet(paths[1] / "episodes.parquet")
+    episodes.assign(object_set="ycb").to_parquet(paths[1] / "episodes.parquet", index=False)
+    runs = [load_run(p) for p in paths]
+    assert run_labels(runs) == ["nearest (standin)", "nearest (ycb)"]
+    assert {label: list(conds) for label, conds in results_by_label(runs).items()} == {
+        "nearest (standin)": ["small_jitter/canonical/2"], "nearest (ycb)": ["medium_jitter/canonical/2"]}
+    page = build_report(runs, tmp_path / "r.html", placements=False).read_text()
+    assert "1 episodes, object set standin</li>" in page and "1 episodes, object set ycb</li>" in page
+    # One object set: the label is the policy's alone, as before.
+    assert run_labels([runs[0], load_run(make_run(tmp_path / "more", "nearest", [("large_jitter", "canonical", 2)],
+                                                  ["success"]))]) == ["nearest", "nearest"]
+
+
+def test_the_report_names_no_folder_of_the_machine_that_wrote_it(runs, tmp_path):
+    """Run directories are shown relative to the report's folder (they were shown as given: absolute paths of the
+    machine that made the page), in the run list and over each run's rollouts."""
+    out = build_report(runs, tmp_path / "pages" / "report.html", samples=1, with_video=False, placements=False)
+    page = out.read_text()
+    shown = [f"../../{r.path.parent.name}/{r.path.name}" for r in runs]
+    assert str(runs[0].path.parent) not in page and str(tmp_path) not in page
+    for r, path in zip(runs, shown):
+        assert (out.parent / path).resolve() == r.path.resolve()
+        assert f"<code>{path}</code>" in page and f"<span class=ci>{path}</span></h3>" in page
+    # A study writes STUDY/report.html over STUDY/eval/RUN: its runs are named as the study names them.
+    study = tmp_path / "study"
+    shutil.copytree(runs[0].path, study / "eval" / "run")
+    page = build_report([load_run(study / "eval" / "run")], study / "report.html", samples=0,
+                        placements=False).read_text()
+    assert "<code>eval/run</code>" in page and "<span class=ci>eval/run</span></h3>" in page
+    assert str(tmp_path) not in page
+
+
+def test_the_placement_figure_draws_the_split_and_object_count_played(tmp_path, monkeypatch):
+    """The figure was always of the canonical split with five objects whatever the runs played; it draws the most
+    played split and count, in the regimes played with them, and its caption says which."""
+    from vla_ladder.report import placements
+    from vla_ladder.report.html import _placement_figure
+
+    drawn = []
+    real = placements.plot_placements
+    monkeypatch.setattr(placements, "plot_placements", lambda *a, **kw: drawn.append((a, kw)) or real(*a, **kw))
+    three = [(r, "pairings_ood", 3) for r in ("small_jitter", "large_jitter")]
+    run = load_run(make_run(tmp_path / "a", "nearest", three + [("full_random", "canonical", 5)], ["success"] * 2))
+    caption, img = _placement_figure([run], tmp_path)
+    assert drawn[-1][0][0] == ["small_jitter", "large_jitter"]
+    assert drawn[-1][1] == {"split": "pairings_ood", "num_objects": 3} and "<img" in img
+    assert caption == ("Initial object positions per regime (pairings ood split, 3 objects: the most played of the "
+                       "runs' 2 splits and object counts; 200 sampled layouts each)")
+    one = load_run(make_run(tmp_path / "b", "nearest", [("medium_jitter", "canonical", 1)], ["success"]))
+    caption, _ = _placement_figure([one], tmp_path)
+    assert drawn[-1][0][0] == ["medium_jitter"] and drawn[-1][1] == {"split": "canonical", "num_objects": 1}
+    assert caption == "Initial object positions per regime (canonical split, 1 object; 200 sampled layouts each)"
+
+
 def test_data_scaling_keeps_each_dataset_size_in_results_json(tmp_path):
     """Data scaling evaluates one model per dataset size on the same conditions: results.json keeps both sizes
     (it once kept the larger only, the two sharing the model's label), as table.md does."""
@@ -132,6 +199,14 @@ def test_plots_write_pngs(runs, tmp_path):
     paths.append(plot_curves({"a": points, "b": points}, tmp_path / "curves.png", xlabel="env steps"))
     for p in paths:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
+    # Summaries without confusion matrices: refused in one line (a ZeroDivisionError), and the report skips them.
+    with pytest.raises(ValueError, match="no condition with a confusion matrix"):
+        plots.plot_confusion({}, tmp_path / "none.png")
+    from vla_ladder.report.html import _figures
+    bare = {label: {k: {x: v for x, v in c.items() if x != "confusion"} for k, c in conds.items()}
+            for label, conds in res.items()}
+    captions = [caption for caption, _ in _figures(bare, runs, tmp_path, placements=False)]
+    assert captions and not any("Confusion" in c for c in captions)
 
 
 def test_study_probe_table_names_the_model_and_explains_its_probes():

@@ -12,7 +12,9 @@ from __future__ import annotations
 import base64
 import html
 import itertools
+import os
 import tempfile
+from collections import Counter
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -104,13 +106,25 @@ def _read_frames(path: Path) -> np.ndarray:
     return iio.imread(path, index=None)
 
 
+def object_set(run: Run) -> str:
+    """The object set(s) the run's episodes were played with (episodes' object_set column): "standin", "ycb"."""
+    return "+".join(sorted(map(str, run.episodes["object_set"].unique()))) or "none"
+
+
 def run_labels(runs: list[Run], labels: list[str] | None = None) -> list[str]:
-    """The label each run is shown under (default: its policy spec). Runs of one label that cover different
-    conditions keep it, and their results merge; a run that evaluated a condition already shown under its label
-    gets one of its own: the label with its directory's name, then with its parent's too, then numbered."""
+    """The label each run is shown under (default: its policy spec). Runs of one label that played different
+    object sets are told apart by it, "nearest (ycb)" and "nearest (standin)": their rates are of different
+    objects, not one model's. Runs of one label that cover different conditions keep it, and their results merge;
+    a run that evaluated a condition already shown under its label gets one of its own: the label with its
+    directory's name, then with its parent's too, then numbered."""
+    labels = labels or [r.label for r in runs]
+    sets: dict[str, set] = {}
+    for r, label in zip(runs, labels):
+        sets.setdefault(label, set()).add(object_set(r))
+    labels = [f"{label} ({object_set(r)})" if len(sets[label]) > 1 else label for r, label in zip(runs, labels)]
     shown: dict[str, set] = {}
     out = []
-    for r, label in zip(runs, labels or [r.label for r in runs]):
+    for r, label in zip(runs, labels):
         conds = set(r.summary.get("conditions", {}))
         tries = itertools.chain([label, f"{label} ({r.path.name})", f"{label} ({r.path.parent.name}/{r.path.name})"],
                                 (f"{label} ({r.path.name} {k})" for k in itertools.count(2)))
@@ -208,8 +222,11 @@ def _figures(results: dict[str, dict], runs: list[Run], tmp: Path, placements: b
          "object_count": plots.plot_object_count}[name](results, path, **kwargs)
         figs.append((table.caption, png_tag(path)))
     for label, conds in results.items():
+        panels = {key: c for key, c in conds.items() if "confusion" in c}
+        if not panels:  # summaries from before the confusion matrices: nothing to draw
+            continue
         path = tmp / f"confusion_{len(figs)}.png"
-        plots.plot_confusion({key: c for key, c in conds.items() if "confusion" in c}, path)
+        plots.plot_confusion(panels, path)
         figs.append((f"Confusion matrices of {label}: instructed object x object held at the final step",
                      png_tag(path)))
     if placements:
@@ -224,11 +241,21 @@ def _placement_figure(runs: list[Run], tmp: Path) -> tuple[str, str] | None:
         from vla_ladder.report.placements import plot_placements
     except ImportError:
         return None
-    present = {r for run in runs for r in run.episodes["regime"].unique()}
-    regimes = [r for r in REGIMES if r in present] or list(REGIMES)
+    # The split and object count the runs played (the most episodes, if several), in the regimes played with them.
+    played = pd.concat([run.episodes[["regime", "split", "num_objects"]] for run in runs], ignore_index=True)
+    counts = Counter(zip(played["split"], played["num_objects"]))
+    if not counts:
+        return None
+    (split, k), = (key for key, _ in counts.most_common(1))
+    k = int(k)
+    present = set(played.loc[(played["split"] == split) & (played["num_objects"] == k), "regime"])
+    regimes = [r for r in REGIMES if r in present]
     path = tmp / "placements.png"
-    plot_placements(regimes, 200, 0, path)
-    return ("Initial object positions per regime (200 sampled layouts each)", png_tag(path))
+    plot_placements(regimes, 200, 0, path, split=split, num_objects=k)
+    what = f"{split.replace('_', ' ')} split, {k} object{'s' * (k > 1)}"
+    if len(counts) > 1:
+        what += f": the most played of the runs' {len(counts)} splits and object counts"
+    return (f"Initial object positions per regime ({what}; 200 sampled layouts each)", png_tag(path))
 
 
 def _episode_card(run: Run, row, with_video: bool) -> str:
@@ -253,14 +280,20 @@ def _episode_card(run: Run, row, with_video: bool) -> str:
     return f"<div class=episode>{head}{video}<div class=strip>{strip}</div></div>"
 
 
-def _rollouts(runs: list[Run], labels: list[str], samples: int, with_video: bool) -> str:
+def _shown(path: str | Path, base: Path) -> str:
+    """A path as the report shows it: relative to the report's folder `base` (a study's runs: to the study), so
+    that the page names no folder of the machine that wrote it and still points at the runs when copied with them."""
+    return os.path.relpath(path, base)
+
+
+def _rollouts(runs: list[Run], labels: list[str], samples: int, with_video: bool, base: Path) -> str:
     parts = []
     for run, label in zip(runs, labels):
         df = run.episodes.copy()
         df["outcome"] = outcomes(df)
         filmed = df[df["video"].astype(str) != ""]
         counts = ", ".join(f"{k.replace('_', ' ')} {int((df['outcome'] == k).sum())}" for k in OUTCOMES)
-        parts.append(f"<h3>{html.escape(label)} <span class=ci>{html.escape(str(run.path))}</span></h3>"
+        parts.append(f"<h3>{html.escape(label)} <span class=ci>{html.escape(_shown(run.path, base))}</span></h3>"
                      f"<p class=note>{len(df)} episodes: {counts}; {len(filmed)} filmed.</p>")
         if filmed.empty:
             parts.append("<p class=note>This run recorded no videos (evaluate with --videos N to see rollouts "
@@ -300,12 +333,14 @@ def _signatures() -> str:
 def _paired_plays(variants: list[Run], samples: int, with_video: bool) -> str:
     """The first `samples` scenes filmed in every variant of a probe, each shown once per variant, one above the
     other: the frame strips line up in time, so what the probe changed between the plays shows."""
+    if len(variants) < 2 or samples == 0:  # nothing to set side by side, or no scene asked for
+        return ""
     indexed = [r.episodes.set_index(list(EPISODE_KEY)) for r in variants]
-    filmed = [set(e.index[e["video"].astype(str) != ""]) for e in indexed]
-    scenes = sorted(set.intersection(*filmed))[:samples] if len(variants) > 1 else []
-    if not scenes:
+    filmed = set.intersection(*(set(e.index[e["video"].astype(str) != ""]) for e in indexed))
+    if not filmed:
         return ("<p class=note>No scene was filmed in every variant (run the probe with --videos N to see the same "
-                "scenes played side by side here).</p>") if len(variants) > 1 else ""
+                "scenes played side by side here).</p>")
+    scenes = sorted(filmed)[:samples]
     parts = [f"<h4>The same scenes in each variant <span class=ci>(first {len(scenes)} filmed)</span></h4>"]
     for key in scenes:
         parts.append(f"<p class=note><b>{html.escape('/'.join(map(str, key[:3])))}, scene {key[3]}</b></p>")
@@ -315,15 +350,18 @@ def _paired_plays(variants: list[Run], samples: int, with_video: bool) -> str:
     return "".join(parts)
 
 
-def _probe_sections(runs: list[Run], tmp: Path, samples: int = 2, with_video: bool = True) -> str:
+def _probe_sections(runs: list[Run], tmp: Path, base: Path, samples: int = 2, with_video: bool = True) -> str:
     """A section per grounding probe whose variants are among the runs (`vla-ladder probe` writes its variants as
-    run directories next to probe.json, so `vla-ladder report PROBE_DIR/*/` shows the probe)."""
+    run directories next to probe.json, so `vla-ladder report PROBE_DIR/*/` shows the probe); its folder is shown
+    relative to the report's, `base`."""
     parts = []
     for i, path in enumerate(probe_report.probe_dirs([r.path for r in runs])):
         data = probe_report.load_probe(path)
         figures = [png_tag(p) for p in probe_report.plot_probe(data, tmp / f"probe_{i}.png")]
         variants = [r for r in runs if r.path.resolve().parent == path]
-        parts.append(probe_report.section(data, figures, str(path)) + _paired_plays(variants, samples, with_video))
+        # (the folder as the runs name it, not resolved: a resolved path names the machine's folders)
+        where = _shown(os.path.dirname(os.path.abspath(variants[0].path)), base)
+        parts.append(probe_report.section(data, figures, where) + _paired_plays(variants, samples, with_video))
     return "<h2>Grounding probes</h2>" + "".join(parts) if parts else ""
 
 
@@ -354,6 +392,7 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
         raise ValueError(f"got {len(labels)} labels for {len(runs)} runs")
     labels = run_labels(runs, labels)
     results = results_by_label(runs, labels)
+    base = Path(out).parent
     prov = runs[0].summary.get("provenance", {})
     with tempfile.TemporaryDirectory() as tmp:
         figs = _figures(results, runs, Path(tmp), placements)
@@ -361,8 +400,9 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
             f"<h1>{html.escape(title)}</h1>",
             f"<p class=note>Generated {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC from "
             f"{len(runs)} run(s); versions: {html.escape(', '.join(f'{k} {v}' for k, v in prov.items()))}</p>",
-            "<ul>" + "".join(f"<li>{html.escape(label)}: <code>{html.escape(str(r.path))}</code>, "
-                             f"{len(r.episodes)} episodes</li>" for r, label in zip(runs, labels)) + "</ul>",
+            "<ul>" + "".join(f"<li>{html.escape(label)}: <code>{html.escape(_shown(r.path, base))}</code>, "
+                             f"{len(r.episodes)} episodes, object set {html.escape(object_set(r))}</li>"
+                             for r, label in zip(runs, labels)) + "</ul>",
             *[part for heading, fragment in sections or () for part in (f"<h2>{html.escape(heading)}</h2>", fragment)],
             "<h2>Reading the metrics</h2>", _signatures(),
             "<h2>Results per condition</h2>", _conditions_table(results),
@@ -376,11 +416,11 @@ def build_report(runs: list[Run], out: str | Path, title: str = "vla-ladder eval
         if displacement is not None:
             trained_in, curves = displacement
             body += ["<h2>Where it stops finding the object</h2>", displacement_section(curves, trained_in, Path(tmp))]
-        body.append(_probe_sections([*runs, *(probe_runs or ())], Path(tmp), samples, with_video))
+        body.append(_probe_sections([*runs, *(probe_runs or ())], Path(tmp), base, samples, with_video))
         body += ["<h2>Success by instructed object</h2>", _per_object_table(results),
                  "<h2>Rollouts</h2>", f"<p class=note>Up to {samples} recorded episodes of each outcome per run; "
                  f"frames every {STRIP_EVERY * 1000 // CONTROL_HZ} ms.</p>",
-                 _rollouts(runs, labels, samples, with_video)]
+                 _rollouts(runs, labels, samples, with_video, base)]
     page = ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8>"
             f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body>{''.join(body)}</body></html>")
     return write_text(out, page)

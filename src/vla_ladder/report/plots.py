@@ -102,6 +102,8 @@ def plot_pairings(results: dict[str, dict], path: str | Path, regime: str = "sma
 
 def plot_confusion(panels: dict[str, dict], path: str | Path, ylabel: str = "instructed") -> Path:
     """panels: title -> condition summary with a "confusion" entry; counts annotated, rows normalised."""
+    if not panels:
+        raise ValueError("no condition with a confusion matrix to draw (summaries from before them have none)")
     plt = _plt()
     k = len(panels)
     cols = min(k, 4)

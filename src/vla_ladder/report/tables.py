@@ -56,20 +56,22 @@ class Change:
 
 @dataclass
 class Table:
-    """Rows grouped by model; `group_title` is None for a table with one unnamed model."""
+    """Rows grouped by model, with a Model column unless the table is of one unnamed model."""
 
     key: str
     caption: str
     row_title: str
     groups: dict[str, list[tuple[str, dict]]] = field(default_factory=dict)
     """model label -> [(row label, {metric: Rate | Change})]"""
+    models: int = 1
+    """how many models the results it was made from cover: a table that holds one's rows still names it"""
 
     def add(self, group: str, label: str, cells: dict) -> None:
         self.groups.setdefault(group, []).append((label, cells))
 
     @property
     def grouped(self) -> bool:
-        return len(self.groups) > 1 or self.key in ("ladder", "data_scaling")
+        return len(self.groups) > 1 or self.models > 1 or self.key in ("ladder", "data_scaling")
 
     def to_markdown(self) -> str:
         cols = (["Model"] if self.grouped else []) + [self.row_title] + [METRIC_NAMES[m] for m in METRICS]
@@ -108,7 +110,7 @@ def _pct(x: float) -> str:
 
 
 _TEX = {"\\": "\\textbackslash{}", "_": "\\_", "%": "\\%", "&": "\\&", "#": "\\#", "$": "\\$", "{": "\\{",
-        "}": "\\}", "→": "$\\rightarrow$", "–": "--"}
+        "}": "\\}", "~": "\\textasciitilde{}", "^": "\\textasciicircum{}", "→": "$\\rightarrow$", "–": "--"}
 
 
 def tex_escape(s: str) -> str:
@@ -131,7 +133,7 @@ def _find(conditions: dict, regime: str, split: str, num_objects: int) -> dict |
 
 def ladder_table(results: dict[str, dict], num_objects: int = 5) -> Table:
     """results: model label -> conditions (summary.json "conditions"); one row per regime present."""
-    t = Table("ladder", "Performance along the spatial task ladder.", "Regime")
+    t = Table("ladder", "Performance along the spatial task ladder.", "Regime", models=len(results))
     for model, conds in results.items():
         for regime, name in REGIME_NAMES.items():
             c = _find(conds, regime, "canonical", num_objects)
@@ -145,7 +147,8 @@ def pairings_table(results: dict[str, dict], regime: str = "small_jitter", num_o
     where = ", ".join(([] if regime == "small_jitter" else [REGIME_NAMES[regime].lower()])
                       + ([] if num_objects == 5 else [f"{num_objects} object{'s' * (num_objects > 1)}"]))
     where = where and f" ({where})"
-    t = Table("pairings", f"Compositional generalization to held-out object-region pairings{where}.", "Split")
+    t = Table("pairings", f"Compositional generalization to held-out object-region pairings{where}.", "Split",
+              models=len(results))
     for model, conds in results.items():
         for split in ("pairings_id", "pairings_ood"):
             c = _find(conds, regime, split, num_objects)
@@ -156,7 +159,7 @@ def pairings_table(results: dict[str, dict], regime: str = "small_jitter", num_o
 
 def object_count_table(results: dict[str, dict], regime: str = "full_random") -> Table:
     t = Table("object_count", f"Object-count ablation under {REGIME_NAMES[regime].lower()} placement.",
-              "# Objects")
+              "# Objects", models=len(results))
     for model, conds in results.items():
         for k in range(1, 6):
             c = _find(conds, regime, "canonical", k)
