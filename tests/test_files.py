@@ -1,3 +1,4 @@
+import json
 import os
 from pathlib import Path
 
@@ -25,6 +26,20 @@ def test_atomic_write_replaces_whole_and_respects_umask(tmp_path):
     os.umask(umask)
     assert target.stat().st_mode & 0o777 == 0o666 & ~umask
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
+
+
+def test_a_file_or_directory_of_the_longest_name_is_written_through_a_temporary_name_that_fits(tmp_path):
+    """The temporary sibling's name was `.NAME.` + 8 characters + `.tmp`: a valid 245-character name made one
+    too long for the file system, "File name too long" once the work was done."""
+    for name in ("r" * 245 + ".json", "é" * 127):  # 250 and 254 bytes, each a valid name
+        write_json(tmp_path / name, {"a": 1})
+        assert json.loads((tmp_path / name).read_text()) == {"a": 1}
+        (tmp_path / name).unlink()
+        with files.atomic_dir(tmp_path / name) as tmp:
+            (tmp / "config.json").write_text("{}")
+        assert (tmp_path / name / "config.json").is_file()
+        files.remove_dir(tmp_path / name)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_atomic_write_syncs_the_data_before_the_rename_and_the_rename_after(tmp_path, monkeypatch):

@@ -188,7 +188,9 @@ def test_condition_has_one_key_and_one_parser():
     for c in (Condition(), Condition("full_random", "canonical", 1), Condition("large_jitter", "pairings_ood", 3)):
         assert Condition.parse(c.key) == c and str(c) == c.key
     assert Condition.parse("medium_jitter/pairings_id/2") == Condition("medium_jitter", "pairings_id", 2)
-    for bad in ("small_jitter", "small_jitter/canonical", "small_jitter/canonical/x", "a/b/c/d"):
+    # str.isdigit() took full-width digits (read as 5) and "²" (then int()'s own words, without the form).
+    for bad in ("small_jitter", "small_jitter/canonical", "small_jitter/canonical/x", "a/b/c/d",
+                "small_jitter/canonical/\uff15", "small_jitter/canonical/\u00b2"):
         with pytest.raises(ValueError, match="regime/split/num_objects"):
             Condition.parse(bad)
     with pytest.raises(ValueError, match="allowed: small_jitter"):

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -181,6 +182,24 @@ def test_mismatched_checkpoint_features_are_rejected(smolvla_run, tmp_path):
     msg = str(err.value)
     assert "none of its cameras" in msg and "observation.images.top" in msg
     assert "action has shape (6,)" in msg
+
+
+def test_lerobot_env_config_refuses_what_the_simulator_or_the_first_episode_would(tmp_path, monkeypatch):
+    """A directory as --env.episode_metrics failed with IsADirectoryError after the first episode; an unknown object
+    set or backend once the simulator started, after LeRobot had loaded the policy."""
+    from vla_ladder.lerobot_env import GraspObjectEnvConfig
+
+    monkeypatch.setenv("VLA_LADDER_OBJECT_SET", "auto")
+    for kwargs, says in [
+        (dict(episode_metrics=str(tmp_path)), f"--env.episode_metrics {tmp_path} is a directory; give a file name"),
+        (dict(episode_metrics=str(tmp_path / "nowhere" / "e.jsonl")), "does not exist"),
+        (dict(object_set="foo"), "--env.object_set: unknown object_set 'foo'; allowed: auto, ycb, standin"),
+        (dict(sim_backend="gpu"), "--env.sim_backend: unknown sim_backend 'gpu'; allowed: physx_cpu, physx_cuda"),
+    ]:
+        with pytest.raises(ValueError, match=re.escape(says)):
+            GraspObjectEnvConfig(**kwargs)
+    GraspObjectEnvConfig(object_set="standin", sim_backend="physx_cpu", episode_metrics=str(tmp_path / "e.jsonl"))
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_lerobot_env_plugin_steps_and_scores_the_final_step(tmp_path):

@@ -514,6 +514,25 @@ def test_a_flag_given_twice_is_refused_not_silently_dropped(argv, flag, capsys, 
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("argv, says", [
+    # tyro reads --num_objects as --num-objects and --no-alone as --alone's other value: the last one won.
+    (["eval", "--policy", "scripted", "--num-objects", "3", "--num_objects", "5"],
+     "--num-objects is given twice (as --num-objects and --num_objects); give a list's values after one "
+     "--num-objects (e.g. --num-objects A B)"),
+    (["eval", "--policy", "scripted", "--alone", "--no-alone"],
+     "--alone is given twice (as --alone and --no-alone); give it once"),
+    (["grid", "--train.policy-type", "act", "--train.policy_type", "diffusion"],
+     "--train.policy-type is given twice (as --train.policy-type and --train.policy_type); give it once"),
+    # A scalar's message said to give a list's values after one flag.
+    (["train-expert", "--resume", "a", "--resume", "b"], "--resume is given twice; give it once"),
+])
+def test_a_field_given_twice_under_any_spelling_is_refused_with_the_fix_for_its_kind(argv, says, tmp_path, capsys,
+                                                                                     monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _one_line_error(capsys, main([*argv, "--out", "x"]), f"error: {says}")
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("extra, says", [
     (["--writers", "-1"], "--writers must be >= 0 (0: one per two servers), got -1"),
     (["--encoder-threads", "-2"], "--encoder-threads must be >= 0 (0: the encoder's choice), got -2"),
@@ -552,6 +571,37 @@ def test_record_refuses_the_root_and_a_directory_that_holds_no_recording_leaving
     (notes / "mine.txt").write_text("keep me")
     _one_line_error(capsys, main(["record", "--out", str(notes), "--episodes", "1"]), "is not a vla-ladder recording")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes"] and (notes / "mine.txt").read_text() == "keep me"
+
+
+@pytest.mark.parametrize("state, says", [
+    ("", "not a vla-ladder recording state (Expecting value: line 1 column 1 (char 0))"),  # cut short
+    ('{"config": {"policy": "scripted"}}', "not a vla-ladder recording state (expected an object with config, "
+     "counters and next_seed)"),
+    ('{"format": 2, "config": {"policy": "scripted"}, "counters": {}, "next_seed": 0}',
+     "not a vla-ladder recording state (KeyError: 'condition')"),
+    ("[1]", "not a vla-ladder recording state (expected an object with config, counters and next_seed)"),
+])
+@pytest.mark.parametrize("command", ["check-dataset", "record"])
+def test_a_damaged_recording_state_is_named_by_its_path(command, state, says, tmp_path, capsys):
+    """json's message without the file's name, or a KeyError's traceback."""
+    root = tmp_path / "data"
+    (root / "meta").mkdir(parents=True)
+    (root / "meta" / "info.json").write_text('{"codebase_version": "v3.0"}')
+    (root / "meta" / "vla_ladder_recording.json").write_text(state)
+    argv = [command, str(root)] if command == "check-dataset" else [command, "--out", str(root), "--episodes", "1"]
+    _one_line_error(capsys, main(argv), f"error: {root / 'meta' / 'vla_ladder_recording.json'}: {says}")
+    assert list(tmp_path.iterdir()) == [root] and sorted(p.name for p in (root / "meta").iterdir()) == \
+        ["info.json", "vla_ladder_recording.json"]
+
+
+def test_an_empty_cache_variable_is_unset_not_the_current_directory(tmp_path, monkeypatch):
+    from vla_ladder.machine import cache_root
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("VLA_LADDER_CACHE", "")
+    assert cache_root() == Path.home() / ".cache" / "vla-ladder"
+    monkeypatch.setenv("VLA_LADDER_CACHE", str(tmp_path / "c"))
+    assert cache_root() == tmp_path / "c"
 
 
 def test_eval_batches_cpu_envs_one_per_core_and_not_with_workers(tmp_path, capsys):

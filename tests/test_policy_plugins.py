@@ -111,6 +111,19 @@ def test_a_plugin_spec_is_checked_before_any_work(installed):
 
 
 
+def test_an_experiments_policy_entry_takes_a_spec_with_commas(installed):
+    """`experiment --policy label=L,spec=constant:A0,...,A6` was split at every comma: the documented plugin form was
+    refused as a bad entry. Only a known key after a comma starts the next pair; only spec= may hold commas."""
+    from vla_ladder.experiments.experiment import PolicyEntry
+
+    spec = "constant:0,0,0,0,0,0,1"
+    assert PolicyEntry.parse(f"label=const,spec={spec}") == PolicyEntry(spec, "const")
+    assert PolicyEntry.parse(f"spec={spec},label=const") == PolicyEntry(spec, "const")
+    for bad in (f"label=a,b,spec={spec}", f"label=a,colour=red,spec={spec}"):
+        with pytest.raises(ValueError, match="expected SPEC or comma-separated key=value pairs with keys label, spec"):
+            PolicyEntry.parse(bad)
+
+
 def test_a_plugin_that_names_its_weights_file_has_them_checked_on_resume(installed, tmp_path):
     """weights_identity, which a run directory keeps so that a resume with other weights at the same path is refused,
     hashes the file a plugin's weights_file(arg) names; a plugin without weights_file has none, like a reference."""

@@ -17,7 +17,7 @@ def parse_config(cls: type[T], argv: list[str], prog: str, description: str | No
     rejects raises ValueError with the message that names what is allowed."""
     import tyro
 
-    check_no_repeated_flags(argv)
+    check_no_repeated_flags(argv, cls)
     check_no_empty_paths(cls, argv)
     with _one_line_value_errors():
         return tyro.cli(cls, args=argv, prog=prog, description=description, default=default)
@@ -40,18 +40,67 @@ def unchecked(cls: type[T], values: dict) -> T:
     return obj
 
 
-def check_no_repeated_flags(argv: list[str]) -> None:
-    """ValueError for a flag given twice. tyro (like argparse) would keep the last one only, so
-    `--policy a --policy b` would silently evaluate b alone; a list flag takes all its values after one flag."""
-    seen = set()
+def check_no_repeated_flags(argv: list[str], cls: type | None = None) -> None:
+    """ValueError for a field given twice. tyro (like argparse) would keep the last one only, so
+    `--policy a --policy b` would silently evaluate b alone; a list flag takes all its values after one flag.
+    tyro reads `--num_objects` as `--num-objects` and `--no-alone` as the other value of `--alone`: each spelling
+    is one field's."""
+    fields = _flag_types(cls)
+    seen: dict[str, str] = {}  # field's flag -> the flag as first given
     for arg in argv:
         if arg == "--":
             break
         if arg.startswith("--"):
             flag = arg.split("=", 1)[0]
-            if flag in seen:
-                raise ValueError(f"{flag} is given twice; give a list's values after one {flag} (e.g. {flag} A B)")
-            seen.add(flag)
+            key = _field_flag(flag, fields)
+            if key in seen:
+                spelled = f" (as {seen[key]} and {flag})" if seen[key] != flag else ""
+                hint = f"give a list's values after one {key} (e.g. {key} A B)" if fields.get(key) else "give it once"
+                raise ValueError(f"{key} is given twice{spelled}; {hint}")
+            seen[key] = flag
+
+
+def _field_flag(flag: str, fields: dict[str, bool]) -> str:
+    """The flag of the field `flag` sets: `--num_objects` -> `--num-objects`, `--no-alone` -> `--alone`
+    (`--train.no-foo` -> `--train.foo`)."""
+    flag = "--" + flag[2:].replace("_", "-")
+    prefix, _, name = flag[2:].rpartition(".")
+    prefix = f"--{prefix}." if prefix else "--"
+    if name.startswith("no-") and flag not in fields and (not fields or prefix + name[3:] in fields):
+        return prefix + name[3:]
+    return flag
+
+
+def _flag_types(cls: type | None, prefix: str = "--") -> dict[str, bool]:
+    """Every flag of dataclass `cls` as tyro names it (nested dataclasses' `--train.policy-type`, or `--regimes`
+    where tyro.conf.arg(name="") drops the prefix) -> whether it takes a list of values."""
+    import dataclasses
+    import typing
+
+    import tyro
+
+    if cls is None or not dataclasses.is_dataclass(cls):
+        return {}
+    try:
+        hints = typing.get_type_hints(cls, include_extras=True)
+    except Exception:  # a hint that does not resolve here: no field known, every flag checked as spelled
+        return {}
+    arg_config = type(tyro.conf.arg())
+    out: dict[str, bool] = {}
+    for f in dataclasses.fields(cls):
+        hint, name = hints[f.name], f.name
+        if typing.get_origin(hint) is typing.Annotated:
+            renamed = [m.name for m in hint.__metadata__ if isinstance(m, arg_config) and m.name is not None]
+            hint, name = typing.get_args(hint)[0], renamed[-1] if renamed else name
+        flag = prefix + name.replace("_", "-")
+        kinds = [hint, *typing.get_args(hint)]
+        nested = next((t for t in kinds if dataclasses.is_dataclass(t)), None)
+        if nested is not None:
+            out.update(_flag_types(nested, flag + "." if name else prefix))
+        else:
+            out[flag] = any(typing.get_origin(t) in (list, tuple, set, frozenset) or t in (list, tuple, set)
+                            for t in kinds)
+    return out
 
 
 def check_no_empty_paths(cls: type, argv: list[str]) -> None:

@@ -22,7 +22,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     under the name (a killed process cannot: what it wrote is in the page cache either way)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
         yield Path(tmp)
@@ -39,6 +39,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             os.unlink(tmp)
 
 
+def _temp_prefix(path: Path) -> str:
+    """A hidden temporary sibling's name start: `path`'s name, cut short so that the temporary name stays within
+    the file system's 255 bytes however long the name it stands in for (tempfile adds 8 characters and a suffix)."""
+    return f".{os.fsencode(path.name)[:100].decode(errors='ignore')}."
+
+
 def _fsync(path: str | os.PathLike, flags: int = 0) -> None:
     fd = os.open(path, os.O_RDONLY | flags)
     try:
@@ -53,7 +59,7 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
     there is whole or absent. Where another process built `path` first (from the same inputs), theirs is kept."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), dir=path.parent))
     try:
         yield tmp
         try:
@@ -72,7 +78,7 @@ def remove_dir(path: str | os.PathLike) -> None:
     if Path.cwd().resolve().is_relative_to(path):
         raise ValueError(f"{path} holds the current directory, which it cannot remove; run the command from "
                          "elsewhere, or give another --out")
-    aside = Path(tempfile.mkdtemp(prefix=f".{path.name}.removing.", dir=path.parent))
+    aside = Path(tempfile.mkdtemp(prefix=_temp_prefix(path) + "removing.", dir=path.parent))
     path.rename(aside / path.name)
     shutil.rmtree(aside)
 

@@ -44,8 +44,9 @@ def check_workers(workers: int, flag: str = "--workers") -> int:
 
 def cache_root() -> Path:
     """Where files built once per machine live (the lite robot, FFmpeg links): $VLA_LADDER_CACHE, else
-    ~/.cache/vla-ladder."""
-    return Path(os.environ.get("VLA_LADDER_CACHE", Path.home() / ".cache" / "vla-ladder"))
+    ~/.cache/vla-ladder. An empty $VLA_LADDER_CACHE (a variable set to an unset one's value) counts as unset: as a
+    path it would be the current directory."""
+    return Path(os.environ.get("VLA_LADDER_CACHE") or Path.home() / ".cache" / "vla-ladder")
 
 
 def limit_threads(threads: int) -> None:

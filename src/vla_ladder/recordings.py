@@ -72,9 +72,7 @@ def read_recording(root: str | os.PathLike) -> Recording | None:
     """What the dataset at `root` is a recording of, from the recording state the recorder writes (None when
     it is not a vla-ladder recording)."""
     state = read_recording_state(root)
-    if state is None:
-        return None
-    return Recording.from_dict(state["config"], state.get("format", FORMAT_VERSION))
+    return None if state is None else _recording(state, Path(root) / RECORDING_FILE)
 
 
 def read_provenance(root: str | os.PathLike) -> pd.DataFrame:
@@ -87,8 +85,33 @@ def read_provenance(root: str | os.PathLike) -> pd.DataFrame:
 
 
 def read_recording_state(root: str | os.PathLike) -> dict | None:
+    """The recording state at `root` (None when there is none); ValueError naming the file when it is damaged
+    (cut short by a full disk, edited by hand): json's own message does not say which file it read."""
     path = Path(root) / RECORDING_FILE
-    return json.loads(path.read_text()) if path.exists() else None
+    if not path.exists():
+        return None
+    try:
+        state = json.loads(path.read_text())
+    except ValueError as e:  # JSONDecodeError, or bytes that are not UTF-8
+        raise _not_a_state(path, str(e)) from None
+    # What every reader takes from it (a resume, the card, check-dataset), so that none meets a KeyError.
+    if not (isinstance(state, dict) and isinstance(state.get("config"), dict)
+            and isinstance(state.get("counters"), dict) and isinstance(state.get("next_seed"), int)):
+        raise _not_a_state(path, "expected an object with config, counters and next_seed")
+    if state.get("format", FORMAT_VERSION) in (1, FORMAT_VERSION):  # (another format is refused by its readers)
+        _recording(state, path)
+    return state
+
+
+def _recording(state: dict, path: Path) -> Recording:
+    try:
+        return Recording.from_dict(state["config"], state.get("format", FORMAT_VERSION))
+    except (KeyError, TypeError, ValueError) as e:  # a field missing, of another type, or a bad value
+        raise _not_a_state(path, f"{type(e).__name__}: {e}") from None
+
+
+def _not_a_state(path: Path, why: str) -> ValueError:
+    return ValueError(f"{path}: not a vla-ladder recording state ({why})")
 
 
 def played_to(state: dict) -> int:

@@ -30,10 +30,10 @@ from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, check_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS, read_episodes, run_config
 from vla_ladder.policies import Policy, allowed_specs, check_spec, selection_episodes, weights_identity
+from vla_ladder.task.assets import OBJECT_SETS
+from vla_ladder.task.physx_gpu import SIM_BACKENDS
 from vla_ladder.task.robot import check_robot_mesh
 
-SIM_BACKENDS = ("physx_cpu", "physx_cuda")
-OBJECT_SETS = ("auto", "ycb", "standin")
 FLUSH_SECONDS = 10.0
 # Fields of EvalConfig that do not change which episodes are played or what they give: a run directory
 # written with other values of these is the same request and is resumed.

@@ -110,9 +110,10 @@ class PolicyEntry:
             parse_spec(text)
             return cls(text, text)
         fields = {}
-        for part in text.split(","):
+        # A spec may hold commas of its own (a plugin's `constant:A0,...,A6`): split only before the next key.
+        for part in re.split(rf",(?=(?:{'|'.join(ENTRY_KEYS)})=)", text):
             key, eq, value = part.partition("=")
-            if not eq or key not in ENTRY_KEYS or not value:
+            if not eq or key not in ENTRY_KEYS or not value or ("," in value and key != "spec"):
                 raise ValueError(f"bad --policy {text!r}: expected SPEC or comma-separated key=value pairs with "
                                  f"keys {', '.join(ENTRY_KEYS)}")
             if key in fields:

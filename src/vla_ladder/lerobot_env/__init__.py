@@ -38,6 +38,7 @@ from vla_ladder.conditions import Condition
 from vla_ladder.contract import (ACTION_DIM, ACTION_KEY, CAMERAS, CONTROL_HZ, ENV_ID, EPISODE_STEPS, METRICS,
                                  STATE_DIM, STATE_KEY)
 from vla_ladder.task.objects import OBJECT_NAMES
+from vla_ladder.task.physx_gpu import SIM_BACKENDS
 
 GYM_ID = f"vla_ladder/{ENV_ID}"
 log = logging.getLogger(__name__)
@@ -164,10 +165,31 @@ class GraspObjectEnvConfig(EnvConfig):
         if self.episode_length != EPISODE_STEPS:
             raise ValueError(f"episode_length must be {EPISODE_STEPS} (GraspObject-v1 judges success at its final "
                              f"step), got {self.episode_length}")
+        self._check_backend()
         if self.episode_metrics is not None:
-            parent = os.path.dirname(os.path.abspath(self.episode_metrics))
-            if not os.path.isdir(parent):
-                raise ValueError(f"--env.episode_metrics: directory {parent} does not exist")
+            self._check_episode_metrics()
+
+    def _check_backend(self) -> None:
+        """What the simulator would refuse only once it starts, after LeRobot has loaded the policy: an unknown
+        object set or backend, YCB without its meshes."""
+        from vla_ladder.task.assets import resolve_object_set  # (imports SAPIEN: here, not when LeRobot lists envs)
+
+        try:
+            resolve_object_set(self.object_set)
+        except ValueError as e:
+            raise ValueError(f"--env.object_set: {e}") from None
+        if self.sim_backend not in SIM_BACKENDS:
+            raise ValueError(f"--env.sim_backend: unknown sim_backend {self.sim_backend!r}; allowed: "
+                             f"{', '.join(SIM_BACKENDS)}")
+
+    def _check_episode_metrics(self) -> None:
+        """A file the adapter appends to at each episode's end: a directory there failed after the first episode."""
+        path = os.path.abspath(self.episode_metrics)
+        if os.path.isdir(path):
+            raise ValueError(f"--env.episode_metrics {self.episode_metrics} is a directory; give a file name "
+                             "(JSON lines, appended to)")
+        if not os.path.isdir(os.path.dirname(path)):
+            raise ValueError(f"--env.episode_metrics: directory {os.path.dirname(path)} does not exist")
 
     @property
     def package_name(self) -> str:

@@ -23,6 +23,8 @@ import sapien.render
 
 from vla_ladder.task.objects import OBJECTS, ObjectSpec
 
+# Which objects a scene holds: ManiSkill's YCB meshes, vla-ladder's stand-ins, or "auto" (YCB when on disk).
+OBJECT_SETS = ("auto", "ycb", "standin")
 # Rubik's cube sticker colours: white, yellow, red, orange, blue, green.
 _STICKERS = ((1, 1, 1), (1, 0.85, 0), (0.8, 0, 0), (1, 0.45, 0), (0, 0.3, 0.9), (0, 0.6, 0.2))
 
@@ -58,9 +60,8 @@ def ycb_available() -> bool:
 
 def resolve_object_set(object_set: str = "auto") -> str:
     """"auto" picks "ycb" when the meshes are on disk, else "standin"."""
-    allowed = ("auto", "ycb", "standin")
-    if object_set not in allowed:
-        raise ValueError(f"unknown object_set {object_set!r}; allowed: {', '.join(allowed)}")
+    if object_set not in OBJECT_SETS:
+        raise ValueError(f"unknown object_set {object_set!r}; allowed: {', '.join(OBJECT_SETS)}")
     if object_set == "auto":
         object_set = os.environ.get("VLA_LADDER_OBJECT_SET", "auto")
         if object_set == "auto":

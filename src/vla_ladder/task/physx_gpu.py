@@ -14,6 +14,8 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+# The simulator backends vla-ladder runs: one env per process on the CPU, or many at once on a CUDA GPU.
+SIM_BACKENDS = ("physx_cpu", "physx_cuda")
 RELEASES = "https://github.com/sapien-sim/physx-precompiled/releases/download"
 
 
