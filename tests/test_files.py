@@ -28,6 +28,14 @@ def test_atomic_write_replaces_whole_and_respects_umask(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
 
 
+def test_an_atomic_write_leaves_the_umask_alone(tmp_path, monkeypatch):
+    """It set the umask to 0 to read it: a file another thread created meanwhile was writable by everyone."""
+    calls = []
+    monkeypatch.setattr(os, "umask", lambda mask: calls.append(mask) or 0o022)
+    write_json(tmp_path / "r.json", {"a": 1})
+    assert calls == [] and (tmp_path / "r.json").stat().st_mode & 0o777 == 0o666 & ~files._umask()
+
+
 def test_a_file_or_directory_of_the_longest_name_is_written_through_a_temporary_name_that_fits(tmp_path):
     """The temporary sibling's name was `.NAME.` + 8 characters + `.tmp`: a valid 245-character name made one
     too long for the file system, "File name too long" once the work was done."""

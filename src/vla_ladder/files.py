@@ -27,9 +27,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         yield Path(tmp)
         # mkstemp makes the file private (0600); results are for everyone the umask allows.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
+        os.chmod(tmp, 0o666 & ~_umask())
         _fsync(tmp)
         os.replace(tmp, path)
         with contextlib.suppress(OSError):  # the rename itself; some file systems cannot sync a directory
@@ -37,6 +35,18 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it: setting it to read it (os.umask) would, for that moment, give
+    files that another thread creates (the recorder's writers, LeRobot's encoders) permissions for everyone."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1], 8) for line in f if line.startswith("Umask:"))
+    except (OSError, StopIteration, ValueError):  # not Linux, or a kernel before 4.7
+        umask = os.umask(0o022)
+        os.umask(umask)
+        return umask
 
 
 def _temp_prefix(path: Path) -> str:
