@@ -195,6 +195,8 @@ def test_lerobot_env_config_refuses_what_the_simulator_or_the_first_episode_woul
         (dict(episode_metrics=str(tmp_path / "nowhere" / "e.jsonl")), "does not exist"),
         (dict(object_set="foo"), "--env.object_set: unknown object_set 'foo'; allowed: auto, ycb, standin"),
         (dict(sim_backend="gpu"), "--env.sim_backend: unknown sim_backend 'gpu'; allowed: physx_cpu, physx_cuda"),
+        (dict(robot_mesh="fancy"), "--env.robot_mesh: unknown robot_mesh 'fancy'; allowed: lite, full"),
+        (dict(instructions="klingon"), "--env.instructions: unknown instruction set 'klingon'; allowed: canonical,"),
     ]:
         with pytest.raises(ValueError, match=re.escape(says)):
             GraspObjectEnvConfig(**kwargs)
@@ -248,6 +250,30 @@ def test_lerobot_env_plugin_steps_and_scores_the_final_step(tmp_path):
     held_now = {"success": torch.tensor([True]), "grasp_any": torch.tensor([True]), "reach": torch.tensor([True])}
     assert LeRobotGraspObject._info(held_now)["is_success"] is False
     assert LeRobotGraspObject._info(held_now, final=True)["is_success"] is True
+
+
+def test_the_lerobot_env_plays_the_robot_mesh_and_instructions_asked(tmp_path):
+    """lerobot-eval could only play the lite mesh and the canonical wording: a policy recorded with `record
+    --robot-mesh full` or a paraphrase set met another robot or other words there than under `vla-ladder eval`."""
+    from lerobot.envs.factory import make_env_config
+
+    from vla_ladder.lerobot_env import LeRobotGraspObject
+    from vla_ladder.task.layouts import sample_layout
+    from vla_ladder.conditions import Condition
+
+    cfg = make_env_config("grasp_object", condition="small_jitter/canonical/2", robot_mesh="full",
+                          instructions="paraphrase-heldout")
+    assert {k: cfg.gym_kwargs[k] for k in ("robot_mesh", "instructions")} == \
+        {"robot_mesh": "full", "instructions": "paraphrase-heldout"}
+    env = LeRobotGraspObject(regime="small_jitter", num_objects=2, **{k: cfg.gym_kwargs[k]
+                                                                       for k in ("robot_mesh", "instructions")})
+    try:
+        env.reset(seed=11)
+        assert env.env.unwrapped.robot_mesh == "full"
+        expected = sample_layout(Condition("small_jitter", "canonical", 2), 11, instructions="paraphrase-heldout")
+        assert env.task_description == expected.instruction != sample_layout(expected.condition, 11).instruction
+    finally:
+        env.close()
 
 
 def test_the_lerobot_env_clamps_actions_as_vla_ladder_eval_does():

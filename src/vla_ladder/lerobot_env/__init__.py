@@ -51,11 +51,12 @@ class LeRobotGraspObject(gym.Env):
 
     def __init__(self, regime: str = "small_jitter", split: str = "canonical", num_objects: int = 5,
                  object_set: str = "auto", sim_backend: str = "physx_cpu", render_mode: str = "rgb_array",
-                 episode_metrics: str | None = None):
+                 episode_metrics: str | None = None, robot_mesh: str = "lite", instructions: str = "canonical"):
         import vla_ladder.task.env  # noqa: F401  (registers the ManiSkill env)
 
-        self.env = gym.make(ENV_ID, regime=regime, split=split, num_objects=num_objects,
-                            object_set=object_set, obs_mode="rgb", sim_backend=sim_backend, num_envs=1)
+        self.env = gym.make(ENV_ID, regime=regime, split=split, num_objects=num_objects, object_set=object_set,
+                            robot_mesh=robot_mesh, instructions=instructions, obs_mode="rgb",
+                            sim_backend=sim_backend, num_envs=1)
         self.render_mode = render_mode
         self.episode_metrics = episode_metrics
         self.observation_space = gym.spaces.Dict({
@@ -149,6 +150,10 @@ class GraspObjectEnvConfig(EnvConfig):
     sim_backend: str = "physx_cpu"
     episode_metrics: str | None = None
     """append each finished episode's seed, instruction, success, grasp_any and reach to this JSON-lines file"""
+    robot_mesh: str = "lite"
+    """the Panda's visual mesh, as the policy's recording had it: lite (vla-ladder's default) or full"""
+    instructions: str = "canonical"
+    """the instruction set: canonical ("grasp the mug"), or a paraphrase set (vla-ladder's --instructions)"""
     features: dict[str, PolicyFeature] = field(default_factory=lambda: {
         ACTION_KEY: PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,)),
         "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(STATE_DIM,)),
@@ -166,6 +171,14 @@ class GraspObjectEnvConfig(EnvConfig):
             raise ValueError(f"episode_length must be {EPISODE_STEPS} (GraspObject-v1 judges success at its final "
                              f"step), got {self.episode_length}")
         self._check_backend()
+        from vla_ladder.task.instructions import check_instruction_set
+        from vla_ladder.task.robot import check_robot_mesh
+        for flag, check, value in (("robot_mesh", check_robot_mesh, self.robot_mesh),
+                                   ("instructions", check_instruction_set, self.instructions)):
+            try:
+                check(value)
+            except ValueError as e:
+                raise ValueError(f"--env.{flag}: {e}") from None
         if self.episode_metrics is not None:
             self._check_episode_metrics()
 
@@ -204,4 +217,5 @@ class GraspObjectEnvConfig(EnvConfig):
         c = Condition.parse(self.condition)
         return {"regime": c.regime, "split": c.split, "num_objects": c.num_objects, "object_set": self.object_set,
                 "sim_backend": self.sim_backend, "episode_metrics": self.episode_metrics,
+                "robot_mesh": self.robot_mesh, "instructions": self.instructions,
                 "max_episode_steps": self.episode_length}
