@@ -59,14 +59,38 @@ def target_first_xy(condition: Condition, seed: int) -> tuple[tuple[str, ...], n
     return lay.objects, np.array(xy)
 
 
+class _Redraws:
+    """Counts the layouts in which `sample_layout` drew some object again (its draw collided with one placed before),
+    by watching the sampler's collision test while a layout is sampled."""
+
+    def __init__(self):
+        self.hit = False
+
+    def __enter__(self):
+        self.real = L._collides
+
+        def collides(*args):
+            hit = self.real(*args)
+            self.hit |= hit
+            return hit
+        L._collides = collides
+        return self
+
+    def __exit__(self, *exc):
+        L._collides = self.real
+
+
 def measure(condition: Condition, seeds: int, target_first: bool) -> dict:
     nearest, by_gripper, target_d, distractor_d = 0, 0, {n: [] for n in OBJECT_NAMES}, {n: [] for n in OBJECT_NAMES}
+    redrawn = 0
     target_nn, distractor_nn, nn_diff = {n: [] for n in OBJECT_NAMES}, {n: [] for n in OBJECT_NAMES}, []
     for seed in range(seeds):
         if target_first:
             names, xy = target_first_xy(condition, seed)
         else:
-            lay = L.sample_layout(condition, seed)
+            with _Redraws() as redraws:
+                lay = L.sample_layout(condition, seed)
+            redrawn += redraws.hit
             names, xy = lay.objects, np.asarray(lay.xy)
         d = np.linalg.norm(xy - L.WORKSPACE_CENTER, axis=1)
         nearest += int(np.argmin(d) == 0)
@@ -98,6 +122,8 @@ def measure(condition: Condition, seeds: int, target_first: bool) -> dict:
     return {"target_nearest_centre": round(nearest / seeds, 4), "ci95": [round(lo, 4), round(hi, 4)],
             "target_nearest_gripper": round(by_gripper / seeds, 4), "gripper_ci95": [round(lo_g, 4), round(hi_g, 4)],
             "chance": round(1 / condition.num_objects, 4),
+            # (the layouts in which some object was drawn again; None for the target-first reconstruction)
+            "layouts_redrawn": None if target_first else round(redrawn / seeds, 4),
             "target_nearer_cm": gap,  # per object: its mean distance as a distractor minus as the target
             "target_further_from_neighbours_cm": {n: round(100 * v, 2) for n, v in nn_gap.items()},
             "target_further_from_neighbours_cm_mean": round(100 * pooled, 3),
