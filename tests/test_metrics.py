@@ -8,7 +8,7 @@ import pytest
 from report_fixtures import make_run
 
 from vla_ladder.cli import main
-from vla_ladder.evaluation.compare import compare_runs, mcnemar_exact, two_proportion_z
+from vla_ladder.evaluation.compare import compare_runs, format_table, mcnemar_exact, two_proportion_z
 from vla_ladder.evaluation.metrics import confusion, outcomes, summarize
 from vla_ladder.stats import detectable_difference, mcnemar_power, paired_difference, rates, wilson
 from vla_ladder.evaluation.rundir import load_run
@@ -201,6 +201,7 @@ def test_compare_rejects_mismatched_runs_and_non_run_dirs(tmp_path, capsys):
     result = compare_runs(load_run(ladder), load_run(a), in_both=True)
     assert {r["condition"] for r in result["rows"]} == {"small_jitter/canonical/5"}
     assert result["rows"][0]["rate_a"] == 0.75 and result["rows"][0]["only_a"] == 0
+    assert result["other_target"] == 0 and "named another object" not in format_table(result)
 
     (tmp_path / "empty").mkdir()
     (tmp_path / "half").mkdir()
@@ -218,17 +219,22 @@ def test_compare_rejects_mismatched_runs_and_non_run_dirs(tmp_path, capsys):
     assert main(["compare", str(a), str(shifted)]) == 2
     assert "different seeds" in capsys.readouterr().err
 
-    # The same seeds with another object named (--instruct 1) or other objects on the table were paired as the same
-    # episodes; and --json into a run directory replaced its summary.json, after which the run no longer loaded.
+    # The same seeds with other objects on the table were paired as the same scenes; with another object named
+    # (a probe's variant, --instruct 1) they are the same scenes, paired, and the table says so. And --json into a
+    # run directory replaced its summary.json, after which the run no longer loaded.
     from vla_ladder.files import write_parquet
-    for column, value, says in (("target", "orange", "different targets"),
-                                ("object_set", "ycb", "different object sets")):
+    for column, value in (("target", "orange"), ("object_set", "ycb")):
         changed = make_run(tmp_path / f"c-{column}", "nearest", [SJ], ["success"] * 4)
         df = pd.read_parquet(changed / "episodes.parquet")
         df.loc[1, column] = value if df.loc[1, column] != value else "mug"
         write_parquet(changed / "episodes.parquet", df)
-        with pytest.raises(ValueError, match=f"1 of 4 episodes with {says} \\(e.g. small_jitter/canonical/5 episode 1"):
-            compare_runs(load_run(a), load_run(changed))
+        if column == "object_set":
+            with pytest.raises(ValueError, match="1 of 4 episodes with different object sets \\(e.g. "
+                                                 "small_jitter/canonical/5 episode 1"):
+                compare_runs(load_run(a), load_run(changed))
+        else:
+            result = compare_runs(load_run(a), load_run(changed))
+            assert result["other_target"] == 1 and "named another object than A in 1 of" in format_table(result)
     for inside in (a / "summary.json", a / "cmp.json"):
         assert main(["compare", str(a), str(ladder), "--conditions-in-both", "--json", str(inside)]) == 2
         assert "is inside the run directory" in capsys.readouterr().err

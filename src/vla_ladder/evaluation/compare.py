@@ -68,17 +68,15 @@ def pair_episodes(a: Run, b: Run, in_both: bool = False) -> pd.DataFrame:
         raise ValueError(f"the runs have different episodes: {len(unpaired)} episodes are in only one run "
                          f"(e.g. {_describe(unpaired.iloc[0])}); evaluate both with the same --episodes")
     check_same_seeds(a, b)
-    # The same seed is the same scene only with the same objects, and the same episode only with the same object
-    # named: a run with --instruct K (or of a probe) asked for another object on the same tables.
-    for column, what in (("object_set", "object sets"), ("target", "targets")):
-        if f"{column}_a" in merged and f"{column}_b" in merged:
-            bad = merged[merged[f"{column}_a"] != merged[f"{column}_b"]]
-            if len(bad):
-                r = bad.iloc[0]
-                raise ValueError(f"the runs played {len(bad)} of {len(merged)} episodes with different {what} (e.g. "
-                                 f"{_describe(r)}: {r[f'{column}_a']} in {a.path}, {r[f'{column}_b']} in {b.path}); "
-                                 "compare pairs the same episodes: evaluate both with the same --instruct and "
-                                 "--object-set (an instruction probe's variants are compared by `vla-ladder probe`)")
+    # The same seed is the same scene only with the same objects. (With another object named, as a probe's variants
+    # or `eval --instruct K` play, it is the same scene under another instruction: paired still, and said.)
+    if "object_set_a" in merged and "object_set_b" in merged:
+        bad = merged[merged["object_set_a"] != merged["object_set_b"]]
+        if len(bad):
+            r = bad.iloc[0]
+            raise ValueError(f"the runs played {len(bad)} of {len(merged)} episodes with different object sets (e.g. "
+                             f"{_describe(r)}: {r['object_set_a']} in {a.path}, {r['object_set_b']} in {b.path}), so "
+                             "the same seeds are other scenes; evaluate both with the same --object-set")
     return merged.drop(columns="_merge")
 
 
@@ -127,6 +125,8 @@ def compare_runs(a: Run, b: Run, alpha: float = 0.05, in_both: bool = False) -> 
                                          f"finds with probability {DETECT_POWER} when outcomes are independent "
                                          "draws (stats.detectable_difference)"},
             "rows": rows,
+            # The same scenes with another object named (a probe's variants, `eval --instruct K`): paired by scene.
+            "other_target": int((merged["target_a"] != merged["target_b"]).sum()) if "target_a" in merged else 0,
             "left_out": {"only_a": [c for c in played_a if c not in played_b],
                          "only_b": [c for c in played_b if c not in played_a]}}
 
@@ -144,6 +144,9 @@ def format_table(result: dict, alpha: float = 0.05) -> str:
         lines.append(f"{r['condition']:<28} {r['metric']:<9} {r['n']:>4} {100 * r['rate_a']:5.0f} "
                      f"{100 * r['rate_b']:5.0f} {100 * r['diff']:+6.0f} {ci:>11} {r['only_a']:>6} {r['only_b']:>6} "
                      f"{r['mcnemar_p']:10.4f} {z:>6} {r['z_p']:9.4f} {100 * r['detectable_diff']:5.0f}{star}")
+    if other := result.get("other_target"):
+        lines += ["", f"B named another object than A in {other} of the paired episodes (the same scenes under "
+                      "another instruction, as a probe's variants play them): the pairs are scenes, not tasks"]
     left = result.get("left_out", {})
     if left.get("only_a") or left.get("only_b"):
         lines += ["", f"left out, played by one run only: A {', '.join(left['only_a']) or 'none'}; "
