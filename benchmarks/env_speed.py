@@ -56,6 +56,17 @@ class Args:
     render_out: Path | None = None
     """render speed JSON (default: benchmarks/results/render_speed[_cuda].json)"""
 
+    def __post_init__(self):
+        # checked before measuring: ManiSkill refuses batched envs on the CPU only when one is made, after the
+        # earlier counts were measured, and nothing is written then
+        if not self.num_envs or min(self.num_envs) < 1:
+            raise ValueError(f"--num-envs: one or more counts >= 1, got {self.num_envs}")
+        if self.sim_backend in ("physx_cpu", "cpu") and max(self.num_envs) > 1:
+            raise ValueError(f"--num-envs above 1 needs --sim-backend physx_cuda (physx_cpu runs one env), "
+                             f"got {' '.join(map(str, self.num_envs))}")
+        if self.state_steps < 1 or self.rgb_steps < 1:
+            raise ValueError(f"--state-steps and --rgb-steps must be >= 1, got {self.state_steps} and {self.rgb_steps}")
+
 
 def make(args: Args, obs_mode: str, num_envs: int, robot_mesh: str):
     return gym.make(ENV_ID, obs_mode=obs_mode, num_envs=num_envs, sim_backend=args.sim_backend, regime=args.regime,

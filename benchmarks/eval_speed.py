@@ -36,7 +36,7 @@ from vla_ladder import files
 from vla_ladder.conditions import ConditionGrid
 from vla_ladder.contract import EPISODE_STEPS
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
-from vla_ladder.machine import cores
+from vla_ladder.machine import auto_workers, check_workers, cores
 
 RESULTS = Path(__file__).parent / "results"
 OUTCOMES = ["seed", "target", "held", "success", "grasp_any", "reach"]
@@ -51,7 +51,8 @@ class Args:
     filmed: int = 4
     """filmed episodes per measurement (0 skips the filmed runs)"""
     workers: tuple[int, ...] = (1, 2)
-    """worker counts to measure (each worker process with its own copy of the policy)"""
+    """worker counts to measure (each worker process with its own copy of the policy; 0: as many as `eval` starts
+    for --workers 0, one per core as memory allows)"""
     num_envs: tuple[int, ...] = (1, 2)
     """batch sizes to measure: one policy acting on N CPU env processes in lockstep (1: nothing extra)"""
     policy: str = "scripted"
@@ -66,6 +67,11 @@ class Args:
     """episode j plays seed first_seed + j"""
     out: Path | None = None
     """result JSON (default: benchmarks/results/eval_speed.json, eval_speed_cuda.json with a GPU)"""
+
+    def __post_init__(self):
+        # 0 resolved to the count `eval` starts for it, before measuring: the rows report the processes that ran,
+        # and the steady rate subtracts one start-up episode per process
+        self.workers = tuple(auto_workers(check_workers(n)) for n in self.workers)
 
 
 def timed(args: Args, episodes: int, workers: int, filmed: bool, num_envs: int = 1,

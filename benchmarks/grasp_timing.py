@@ -12,6 +12,7 @@ the first target before a switch at K exactly when its close action is < K.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +24,7 @@ import tyro
 from vla_ladder import files
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import ENV_ID, EPISODE_STEPS
+from vla_ladder.machine import cores
 from vla_ladder.policies import load_policy
 from vla_ladder.policies.scripted import CLOSE, DESCEND
 
@@ -39,6 +41,11 @@ class Args:
     """policies driven by the scripted controller (its phase machine is read after every action)"""
     out: Path = RESULT
     """result JSON"""
+
+    def __post_init__(self):
+        # checked before the env is made: no episode leaves nothing to summarise, after the work
+        if self.episodes < 1:
+            raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
 
 
 def phase_steps(policy, env, seed: int, condition: Condition) -> tuple[int | None, int | None, bool]:
@@ -66,7 +73,7 @@ def summary(values: list[int | None]) -> dict:
 def main(args: Args) -> None:
     import vla_ladder.task.env  # noqa: F401  (registers GraspObject-v1)
 
-    t0 = time.perf_counter()
+    t0, load_before = time.perf_counter(), os.getloadavg()[0]
     env = gym.make(ENV_ID, obs_mode="state_dict", object_set="standin", num_objects=5)
     results: dict = {}
     try:
@@ -83,7 +90,9 @@ def main(args: Args) -> None:
         env.close()
     files.write_json(args.out, {"benchmark": "grasp_timing", "device": "cpu", "object_set": "standin",
                               "num_objects": 5, "episodes": args.episodes, "first_seed": args.first_seed,
-                              "wall_s": round(time.perf_counter() - t0, 1), "results": results})
+                              "wall_s": round(time.perf_counter() - t0, 1), "results": results,
+                              "machine": {"cores": cores(), "load_average_1min": [load_before, os.getloadavg()[0]]},
+                              "provenance": files.provenance("standin")})
     print(args.out)
 
 

@@ -59,8 +59,9 @@ def main(args: Args) -> None:
                                  "ms_per_layout": round(best / n * 1e3, 4), "layouts_per_s": round(n / best)})
                     print(f"{condition.key:40s} {n:5d} envs: {best:6.3f} s a reset, "
                           f"{best / n * 1e3:.3f} ms a layout")
-    files.write_json(out, {"benchmark": "layout_speed", "cores": cores(),
-                           "load_average_1min": [load_before, os.getloadavg()[0]], "results": rows})
+    files.write_json(out, {"benchmark": "layout_speed", "results": rows,
+                           "machine": {"cores": cores(), "load_average_1min": [load_before, os.getloadavg()[0]]},
+                           "provenance": files.provenance()})
     print(f"wrote {out}")
 
 

@@ -48,6 +48,11 @@ class Args:
     out: Path = RESULTS / "openmp_wait_cpu.json"
     """result file"""
 
+    def __post_init__(self):
+        # checked before the first child loads the model: no timed chunk would leave an empty median after the load
+        if self.repeats < 1:
+            raise ValueError(f"--repeats must be >= 1, got {self.repeats}")
+
 
 def child(checkpoint: str, repeats: int, thread: str) -> None:
     """In the measuring process: the median chunk in ms, printed as JSON."""
@@ -59,7 +64,8 @@ def child(checkpoint: str, repeats: int, thread: str) -> None:
     from vla_ladder.policies import load_policy
     from vla_ladder.policies.serving import read_request
 
-    policy = load_policy(f"lerobot:{checkpoint}")
+    # on the CPU even where a GPU is visible (a spec without a device picks cuda then): this times CPU inference
+    policy = load_policy(f"lerobot:{checkpoint}?device=cpu")
     batch, prompt, _, _ = read_request(observation())
     times: list[float] = []
 
@@ -80,6 +86,7 @@ def child(checkpoint: str, repeats: int, thread: str) -> None:
 
 
 def main(args: Args) -> dict:
+    load_before = os.getloadavg()[0]
     rows = []
     for hogs in args.hogs:
         for policy in POLICIES:
@@ -98,8 +105,13 @@ def main(args: Args) -> dict:
                        **json.loads(done.stdout.strip().splitlines()[-1])}
                 rows.append(row)
                 print(row, flush=True)
+    import torch
+
+    # the GPU is not used (the child infers on the CPU) but says which machine this was
+    gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else None
     result = {"benchmark": "openmp_wait", "checkpoint": args.checkpoint, "repeats": args.repeats, "rows": rows,
-              "machine": {"cores": cores(), "gpu": None}, "provenance": files.provenance(),
+              "machine": {"cores": cores(), "gpu": gpu, "load_average_1min": [load_before, os.getloadavg()[0]]},
+              "provenance": files.provenance(),
               "note": "median ms of one chunk (batch 1) on the CPU with torch's default threads; hogs = busy-looping "
                       "processes beside it; thread = the thread that infers (other: a second thread of the process)"}
     files.write_json(args.out, result)

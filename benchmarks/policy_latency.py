@@ -11,7 +11,8 @@ with random weights (latency does not depend on them):
                                                   [--use-amp]
 
 Writes benchmarks/results/policy_latency_<device>.json (cpu or cuda; --out elsewhere). Rows of earlier runs with
-other models, batches or thread counts stay in the file; a re-measured one is replaced.
+other models, batches, thread counts or GPUs stay in the file; a re-measured one is replaced. Each row keeps its own
+run's cores, cpu_count and provenance; those at the top of the file are the latest run's.
 """
 
 from __future__ import annotations
@@ -137,6 +138,11 @@ class Args:
     out: Path | None = None
     """result JSON (default: benchmarks/results/policy_latency_<cpu|cuda>.json)"""
 
+    def __post_init__(self):
+        # checked before the models are built: no timed chunk would leave an empty median after the work
+        if self.repeats < 1 or self.full_repeats < 1:
+            raise ValueError(f"--repeats and --full-repeats must be >= 1, got {self.repeats} and {self.full_repeats}")
+
 
 def main(args: Args) -> None:
     if args.threads:
@@ -150,16 +156,20 @@ def main(args: Args) -> None:
             rows.append(time_chunks("smolvla-full", args.device, args.batch, args.full_repeats, Path(tmp),
                                     args.use_amp))
     gpu = torch.cuda.get_device_name(torch.device(args.device)) if args.device.startswith("cuda") else None
-    for row in rows:
+    provenance = files.provenance()
+    for row in rows:  # the machine and versions in each row: the file keeps rows of earlier runs beside them
         row.update(torch_threads=torch.get_num_threads(), load_average_1min=[load_before, os.getloadavg()[0]],
-                   gpu=gpu)
+                   gpu=gpu, cores=cores(), cpu_count=os.cpu_count(), provenance=provenance)
     out = args.out or Path(__file__).parent / "results" / f"policy_latency_{args.device.split(':')[0]}.json"
-    key = lambda r: (r["policy"], r["device"], r["batch"], r.get("torch_threads"), r.get("use_amp", False))  # noqa: E731
+    # the GPU too: a run on another GPU sits beside the earlier one's rows instead of replacing them
+    key = lambda r: (r["policy"], r["device"], r["batch"], r.get("torch_threads"), r.get("use_amp", False),  # noqa: E731
+                     r.get("gpu"))
     old = json.loads(out.read_text())["results"] if out.is_file() else []
     fresh = {key(r) for r in rows}
     rows = [r for r in old if key(r) not in fresh] + rows
+    # cpu_count, cores and provenance at the top: the latest run's (kept for readers of older files; rows have theirs)
     files.write_json(out, {"benchmark": "policy_latency", "cpu_count": os.cpu_count(), "cores": cores(),
-                           "results": rows, "provenance": files.provenance()})
+                           "results": rows, "provenance": provenance})
     print(f"wrote {out}")
 
 

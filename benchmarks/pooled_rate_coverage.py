@@ -1,8 +1,9 @@
 """How often a probe's pooled rate interval (grounding.pooled_rate: Wilson of the plays divided by their design
 effect over scenes) holds the true rate, on simulated scenes (no simulation of the robot): each of n scenes has its
 own rate q ~ Beta with mean p and intra-scene correlation rho (a = p (1 - rho) / rho, b = (1 - p) (1 - rho) / rho),
-and plays m times, k ~ Binomial(m, q). rho is how much a scene decides its plays: 0 every play independent, 1 a
-scene's plays all alike. grounding.pooled_rate is called on each draw as a probe calls it.
+and plays m times, k ~ Binomial(m, q). rho is how much a scene decides its plays: near 0 every play nearly
+independent, near 1 a scene's plays nearly all alike (the Beta needs 0 < rho < 1 and 0 < p < 1, so neither limit is
+a setting). grounding.pooled_rate is called on each draw as a probe calls it.
 
     python benchmarks/pooled_rate_coverage.py          # 4000 draws a setting, about 1 minute on 2 cores
 
@@ -28,15 +29,28 @@ class Args:
     draws: int = 4000
     """simulated probes per setting"""
     correlations: tuple[float, ...] = (0.05, 0.2, 0.5, 0.8)
-    """intra-scene correlations rho of the plays"""
+    """intra-scene correlations rho of the plays, each strictly between 0 and 1"""
     scenes: tuple[int, ...] = (10, 20, 50)
     """scenes per probe"""
     plays: tuple[int, ...] = (2, 3, 5)
     """plays per scene (the instruction swap plays each of its K objects once; the absent object 5 - K)"""
     rates: tuple[float, ...] = (0.1, 0.5, 0.9, 0.95)
-    """true pooled rates p"""
+    """true pooled rates p, each strictly between 0 and 1"""
     seed: int = 11
     out: Path = Path(__file__).parent / "results" / "pooled_rate_coverage.json"
+
+    def __post_init__(self):
+        # checked before any setting runs: the Beta's parameters divide by rho and vanish at rho = 1, p = 0 or 1,
+        # which failed only when that setting came, losing the ones before it
+        bad = [rho for rho in self.correlations if not 0 < rho < 1]
+        if bad:
+            raise ValueError(f"--correlations must each be strictly between 0 and 1, got {bad}")
+        bad = [p for p in self.rates if not 0 < p < 1]
+        if bad:
+            raise ValueError(f"--rates must each be strictly between 0 and 1, got {bad}")
+        if self.draws < 1 or min(self.scenes, default=0) < 1 or min(self.plays, default=0) < 1:
+            raise ValueError(f"--draws must be >= 1 and --scenes, --plays one or more values >= 1, got {self.draws}, "
+                             f"{self.scenes} and {self.plays}")
 
 
 def main(args: Args) -> None:

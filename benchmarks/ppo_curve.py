@@ -48,6 +48,14 @@ class Args:
             raise ValueError(f"not PPO runs with evaluations (no evals.json): {', '.join(missing)}")
         if self.labels and len(self.labels) != len(self.runs):
             raise ValueError(f"--labels needs one label per run: {len(self.runs)} runs, {len(self.labels)} labels")
+        # the runs are kept by label: a repeated one (a/ppo and b/ppo by default) would keep only the last run
+        repeated = sorted({x for x in self.run_labels() if self.run_labels().count(x) > 1})
+        if repeated:
+            raise ValueError(f"runs need different labels (--labels, one per run), repeated: {', '.join(repeated)}")
+
+    def run_labels(self) -> tuple[str, ...]:
+        """--labels, or each run directory's name."""
+        return self.labels or tuple(Path(r).name for r in self.runs)
 
 
 def changed_settings(config: dict) -> dict:
@@ -88,8 +96,7 @@ def machine() -> str:
 def main(args: Args) -> None:
     from vla_ladder.report.study import plot_curves
 
-    labels = args.labels or tuple(Path(r).name for r in args.runs)
-    runs = {label: curve(Path(r)) for label, r in zip(labels, args.runs)}
+    runs = {label: curve(Path(r)) for label, r in zip(args.run_labels(), args.runs)}
     for label, r in runs.items():
         print(f"{label}: {r['env_steps']} env steps in {r['train_loop_s']:.0f} s ({r['env_steps_per_s']}/s); "
               f"first success {r['first_success']}; best {r['best']}; last by target {r['last_by_target']}")

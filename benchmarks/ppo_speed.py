@@ -53,15 +53,21 @@ class Args:
     """result JSON (default: benchmarks/results/ppo_speed_<cpu|cuda>.json)"""
 
 
-def measure(args: Args, num_envs: int) -> dict:
-    """Train `iterations` PPO iterations from scratch with the paper's settings otherwise."""
-    with tempfile.TemporaryDirectory() as tmp:
-        ppo = PPOArgs(out=Path(tmp), sim_backend=args.sim_backend, num_envs=num_envs, cuda=args.cuda, progress=False,
-                      total_timesteps=args.iterations * num_envs * EPISODE_STEPS, eval_freq=10**9, eval_episodes=1,
-                      grid=ConditionGrid(regimes=("full_random",), num_objects=(5,)))
-        t0 = time.perf_counter()
-        state = train(ppo)
-        total = time.perf_counter() - t0
+def ppo_args(args: Args, num_envs: int, out: Path) -> PPOArgs:
+    """`iterations` PPO iterations from scratch with the paper's settings otherwise (checked as it is made), into
+    `out` (made empty)."""
+    out.mkdir()
+    return PPOArgs(out=out, sim_backend=args.sim_backend, num_envs=num_envs, cuda=args.cuda, progress=False,
+                   total_timesteps=args.iterations * num_envs * EPISODE_STEPS, eval_freq=10**9, eval_episodes=1,
+                   grid=ConditionGrid(regimes=("full_random",), num_objects=(5,)))
+
+
+def measure(args: Args, ppo: PPOArgs) -> dict:
+    """Train the run `ppo` describes."""
+    t0 = time.perf_counter()
+    state = train(ppo)
+    total = time.perf_counter() - t0
+    num_envs = ppo.num_envs
     row = {"sim_backend": args.sim_backend, "num_envs": num_envs, "iterations": args.iterations,
            "env_steps": state["global_step"], "train_loop_s": round(state["wall_s"], 2),
            "env_steps_per_s": round(state["global_step"] / state["wall_s"], 1),
@@ -85,7 +91,11 @@ def main(args: Args) -> None:
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else None
     load_before = os.getloadavg()[0]
     counts = args.num_envs or ((1, 2) if args.sim_backend == "physx_cpu" else (1024,))
-    rows = [measure(args, n) for n in counts]
+    with tempfile.TemporaryDirectory() as tmp:
+        # every count's settings checked before the first trains: a count this machine cannot run (more physx_cpu
+        # envs than cores) failed only after the smaller ones had trained, and nothing was written
+        runs = [ppo_args(args, n, Path(tmp) / f"envs-{n}") for n in counts]
+        rows = [measure(args, ppo) for ppo in runs]
     network = "cuda" if gpu and (args.cuda or args.sim_backend == "physx_cuda") else "cpu"
     result = {"benchmark": "ppo_speed", "network_device": network, "rows": rows,
               "machine": {"cores": cores(), "cpu_count": os.cpu_count(), "gpu": gpu,

@@ -90,6 +90,13 @@ class Args:
             raise SystemExit(f"--vcodec {self.vcodec!r}: allowed: {', '.join(VCODECS)}")
         if self.stage_episodes is None:
             self.stage_episodes = self.episodes
+        # checked before any work: 0 divides by zero (rates, seconds per demo) once every stage has run
+        for flag, n in (("--episodes", self.episodes), ("--stage-episodes", self.stage_episodes)):
+            if n < 1:
+                raise SystemExit(f"{flag} must be >= 1, got {n}")
+        for flag, values in (("--workers", self.workers), ("--writers", self.writers)):
+            if not values or min(values) < 1:
+                raise SystemExit(f"{flag}: one or more values >= 1, got {' '.join(map(str, values)) or 'none'}")
 
 
 def end_to_end(args: Args, workers: int, work: Path, writers: int = 1) -> dict:
@@ -399,21 +406,22 @@ def main(args: Args) -> None:
         video = encode_and_write(args, ok, work, video=True)
         video_lerobot_stats = encode_and_write(args, ok, work, video=True, lerobot_stats=True)
         images = encode_and_write(args, ok, work, video=False)
-    success = stages[False]["simulator"]["success_rate"] or 1 / args.stage_episodes
     n_cores = cores()
-    per_episode, bounds = {}, {}
+    per_episode, bounds, success = {}, {}, {}
     for rebuild, s in stages.items():
         # Physics: the simulator's own reset (the state-only env's differs: on the H100 it cost 0.65 s against the
         # simulator's 0.29, and episode minus state-only physics came out at -0.09 s of "render") and the state-only
         # env's steps; render: what the simulator's steps cost beyond those.
         sim, state_only = s["simulator"], s["physics_and_expert"]
         key = "rebuild" if rebuild else "no_rebuild"
+        # the expert success rate of this setting's own simulator run; none succeeded: as if one had
+        success[key] = sim["success_rate"] or 1 / args.stage_episodes
         per_episode[key] = {"physics": sim["reset_s"] + state_only["steps_s"],
                             "render": sim["steps_s"] - state_only["steps_s"],
                             "transfer": trans["s_per_episode"], "encode": video["encode_s_per_episode"],
                             "write": video["write_s_per_episode"]}
         stage = {**per_episode[key], "encode_cpu": video["encode_cpu_s_per_episode"]}
-        bounds[key] = [pipeline(stage, success, n, n_cores, k) for n in args.workers for k in args.writers
+        bounds[key] = [pipeline(stage, success[key], n, n_cores, k) for n in args.workers for k in args.writers
                        if k <= n]
     result.update({
         "stages": {"no_rebuild": stages[False], "rebuild": stages[True]}, "transfer": trans,
@@ -422,7 +430,8 @@ def main(args: Args) -> None:
         "writer_scaling": [],  # filled last
         "stage_s_per_episode": per_episode, "expert_success_rate": success,
         "steady_state_bounds": bounds,
-        "how": "s_per_demo: a stage's seconds per episode / expert success rate / workers for the simulation stages "
+        "how": "s_per_demo: a stage's seconds per episode / expert success rate (expert_success_rate: of the same "
+               "no_rebuild or rebuild run) / workers for the simulation stages "
                "(one server process each), / writers for transfer, encode and write (one process each). The "
                "pipeline runs at its slowest stage, and no faster than cores / the CPU seconds one demo costs in all "
                "stages (the writer's CPU seconds measured, its encoder threads included). writer_scaling: the "

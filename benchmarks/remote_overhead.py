@@ -51,6 +51,11 @@ class Args:
     out: Path | None = None
     """result file (default benchmarks/results/remote_overhead_<device>.json)"""
 
+    def __post_init__(self):
+        # checked before the server loads the model: no timed request would leave an empty median after the load
+        if self.repeats < 1:
+            raise ValueError(f"--repeats must be >= 1, got {self.repeats}")
+
 
 def observation(seed: int = 0) -> dict:
     g = np.random.default_rng(seed)

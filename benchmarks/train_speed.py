@@ -12,7 +12,8 @@ CUDA kernels) is reported apart. LeRobot's own per-step `updt_s` (forward + back
     .venv/bin/python benchmarks/train_speed.py --dataset DIR [--models act smolvla-500m] [--device cuda]
         [--batch-size 64] [--steps 100] [--keep DIR]
 
-Writes benchmarks/results/train_speed_<cpu|cuda>.json; rows of other models, batch sizes or devices stay.
+Writes benchmarks/results/train_speed_<cpu|cuda>.json; rows of other models, batch sizes or devices stay. Each row
+keeps its own run's cores, cpu_count and provenance; those at the top of the file are the latest run's.
 """
 
 from __future__ import annotations
@@ -134,7 +135,9 @@ def main(args: Args) -> None:
     import torch
 
     load_before = os.getloadavg()[0]
-    gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
+    # the GPU --device names (cuda:1 is not GPU 0; plain cuda is the current one)
+    gpu = torch.cuda.get_device_name(torch.device(args.device)) if args.device.startswith("cuda") else None
+    provenance = files.provenance()
     info = json.loads((args.dataset / "meta" / "info.json").read_text())
     out = args.out or Path(__file__).parent / "results" / f"train_speed_{args.device.split(':')[0]}.json"
     # A row per model, device, batch, loader workers and GPU: a re-run with other workers sits beside the baseline
@@ -143,11 +146,14 @@ def main(args: Args) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for model in args.models:  # the file written after each model: a time box keeps the models that finished
             row = measure(model, args, Path(tmp))
-            row.update(gpu=gpu, dataset_episodes=info.get("total_episodes"), load_average_1min=load_before)
+            # the machine and versions in each row: the file keeps rows of earlier runs beside them
+            row.update(gpu=gpu, dataset_episodes=info.get("total_episodes"), load_average_1min=load_before,
+                       cores=cores(), cpu_count=os.cpu_count(), provenance=provenance)
             old = json.loads(out.read_text())["results"] if out.is_file() else []
+            # cpu_count, cores and provenance at the top: the latest run's (kept for older readers; rows have theirs)
             files.write_json(out, {"benchmark": "train_speed", "cpu_count": os.cpu_count(), "cores": cores(),
                                    "results": [r for r in old if key(r) != key(row)] + [row],
-                                   "provenance": files.provenance()})
+                                   "provenance": provenance})
             print(f"wrote {out}")
 
 if __name__ == "__main__":

@@ -55,10 +55,12 @@ def episode_frames(seed: int = 0) -> list[np.ndarray]:
 
 
 def main(args: Args) -> None:
+    import torch
     from lerobot.configs.video import RGBEncoderConfig
     from lerobot.datasets.video_utils import concatenate_video_files
     from record_speed import encode_mp4
 
+    load_before = os.getloadavg()[0]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -80,7 +82,11 @@ def main(args: Args) -> None:
         result = {"benchmark": "video_append", "episode_kb": episode.stat().st_size / 1e3, "rows": rows,
                   "how": "LeRobot's concatenate_video_files([file, episode], file), as its writer appends each "
                          "episode within a session; fastest of `repeats` on a fresh copy of the file",
-                  "machine": {"cores": cores()}, "date": datetime.now().isoformat(timespec="seconds"),
+                  # the GPU is not used (remuxing runs on the CPU) but says which machine this was
+                  "machine": {"cores": cores(),
+                              "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+                              "load_average_1min": [load_before, os.getloadavg()[0]]},
+                  "date": datetime.now().isoformat(timespec="seconds"),
                   "provenance": files.provenance()}
     out = args.out or RESULTS / "video_append_cpu.json"
     files.write_json(out, result)
