@@ -404,6 +404,8 @@ def test_micro_study_survives_kills_mid_record_and_mid_train_and_reports_learned
     copy = tmp_path / "copied"
     shutil.copytree(out, copy, ignore=shutil.ignore_patterns("data", "models", "units", "logs", "blind"))
     (copy / "report.html").unlink()
+    assert not summary["replicates"]["cells"]  # one policy, one seed: a replicates table an earlier report left goes
+    (copy / "tables" / "replicates.md").write_text("| stale |")
     trimmed = {k: v for k, v in summary.items() if k != "displacement"}
     files.write_json(copy / "summary.json", trimmed)
     subprocess.run([*cmd[:4], str(copy / "study.json"), "--out", str(copy), "--report-only"], env=ENV, check=True,
@@ -412,3 +414,4 @@ def test_micro_study_survives_kills_mid_record_and_mid_train_and_reports_learned
     assert again["displacement"] == summary["displacement"] and again["cells"] == summary["cells"]
     assert "Study: where the models trained on sj stop finding the object" in (copy / "report.html").read_text()
     assert not (copy / "units").exists() and not (copy / "models").exists()
+    assert not (copy / "tables" / "replicates.md").exists()

@@ -165,10 +165,14 @@ def write_report(root: Path, summary: dict) -> Path:
     if probes:
         files.write_text(tables / "probes.md", present.probes_markdown(probes))
         sections.append(("Study: grounding probes", present.probes_html(probes)))
+    else:  # (a table an earlier report wrote would stand beside results that no longer hold it)
+        (tables / "probes.md").unlink(missing_ok=True)
     if replicates["cells"]:
         files.write_text(tables / "replicates.md", present.replicates_markdown(replicates["cells"]))
         sections.append(("Study: training replicates (the same recipe, other training seeds)",
                          present.replicates_html(replicates["cells"])))
+    else:
+        (tables / "replicates.md").unlink(missing_ok=True)
     pairings = present.pairings_html(cells)
     if pairings:
         sections.append(("Study: held-out object-region pairings", pairings))
