@@ -266,6 +266,11 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
                  "--train.batch-size", "4", "--train.chunk-size", "10", "--train.n-action-steps", "3"]) == 2
     assert ("the grid sets --train.batch-size, --train.chunk-size, --train.n-action-steps per model; give "
             "--batch-sizes, --chunk-sizes and --horizons instead") in capsys.readouterr().err
+    # (flags after -- rebuild the config with the batch and horizon it filled in: those were nobody's)
+    assert main(["grid", "--train.policy-type", "act", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
+                 "--train.print-command", "--batch-sizes", "8", "--chunk-sizes", "4", "--horizons", "4", "--",
+                 "--policy.dim_model=64"]) == 0
+    assert "--batch_size=8" in capsys.readouterr().out
     # train took --chunk-size there and changed nothing; and gave TD-MPC n_action_steps 16, which LeRobot refuses.
     assert main(base + ["--policy-type", "vqbet", "--chunk-size", "8"]) == 2
     assert "--chunk-size: vqbet has no action chunk to size" in capsys.readouterr().err

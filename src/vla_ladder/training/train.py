@@ -157,10 +157,6 @@ class TrainConfig:
         self.dataset = Path(self.dataset)
         self.out = None if self.out is None else Path(self.out)
         self.lerobot_args = joined_flags(self.lerobot_args)
-        # The flags given of those a grid sets per model (it refuses them), before batch and horizon are filled in.
-        self.given = tuple(flag for flag, given in (("--batch-size", self.batch_size is not None),
-                                                     ("--chunk-size", self.chunk_size != DEFAULT_CHUNK),
-                                                     ("--n-action-steps", self.n_action_steps is not None)) if given)
         chunk_flag = f"--policy.{self._chunk_name()}"
         for a in self.lerobot_args:  # flags that would move the run away from what vla-ladder keeps and resumes
             flag = a.split("=", 1)[0]
@@ -175,23 +171,32 @@ class TrainConfig:
             self.pretrained = None
         self.condition = dataset_condition(self.dataset)
         self.contract = dataset_contract(self.dataset)
-        if self.batch_size is None:
-            if self.condition is None:
-                raise ValueError(f"{str(self.dataset)!r} is not a vla-ladder recording, so its regime is unknown; "
-                                 "pass --batch-size (the paper: 128 for full_random, else 64)")
-            self.batch_size = BATCH_FOR_REGIME.get(self.condition.regime, DEFAULT_BATCH)
+        auto_batch = None if self.condition is None else BATCH_FOR_REGIME.get(self.condition.regime, DEFAULT_BATCH)
         chunked = self.chunk_field() is not None
         if not chunked and self.chunk_size != DEFAULT_CHUNK:  # it changed nothing, and the run was labelled with it
             raise ValueError(f"--chunk-size: {self.policy_type} has no action chunk to size (its config has no "
                              f"{self._chunk_name()}); leave --chunk-size out, and set its own fields after --")
         # Without a chunk, n_action_steps stays LeRobot's where the type has one (tdmpc's 1: it refuses more).
-        if chunked and self.n_action_steps is None and self.policy_type not in CHUNK_FIELD:
-            self.n_action_steps = self.chunk_size
-        elif chunked and self.n_action_steps is None:  # LeRobot's default, where the chunk of `horizon` steps holds
-            # it (diffusion runs actions n_obs_steps - 1 .. of its horizon: its default 32 of 64 queued 15 with a
-            # horizon of 16)
+        auto_steps = None
+        if chunked and self.policy_type not in CHUNK_FIELD:
+            auto_steps = self.chunk_size
+        elif chunked:  # LeRobot's default, where the chunk of `horizon` steps holds it (diffusion runs actions
+            # n_obs_steps - 1 .. of its horizon: its default 32 of 64 queued 15 with a horizon of 16)
             default = self._config_class()()
-            self.n_action_steps = min(default.n_action_steps, self.chunk_size - default.n_obs_steps + 1)
+            auto_steps = min(default.n_action_steps, self.chunk_size - default.n_obs_steps + 1)
+        # The flags that set what a grid sets per model (it refuses them): a value other than the one filled in. (A
+        # config rebuilt with dataclasses.replace holds the filled-in values, which nobody gave.)
+        self.given = tuple(flag for flag, given in (
+            ("--batch-size", self.batch_size is not None and self.batch_size != auto_batch),
+            ("--chunk-size", self.chunk_size != DEFAULT_CHUNK),
+            ("--n-action-steps", self.n_action_steps is not None and self.n_action_steps != auto_steps)) if given)
+        if self.batch_size is None:
+            if auto_batch is None:
+                raise ValueError(f"{str(self.dataset)!r} is not a vla-ladder recording, so its regime is unknown; "
+                                 "pass --batch-size (the paper: 128 for full_random, else 64)")
+            self.batch_size = auto_batch
+        if self.n_action_steps is None:
+            self.n_action_steps = auto_steps
         for name in ("batch_size", "chunk_size", "n_action_steps", "steps"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
