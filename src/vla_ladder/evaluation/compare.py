@@ -70,13 +70,12 @@ def pair_episodes(a: Run, b: Run, in_both: bool = False) -> pd.DataFrame:
     check_same_seeds(a, b)
     # The same seed is the same scene only with the same objects. (With another object named, as a probe's variants
     # or `eval --instruct K` play, it is the same scene under another instruction: paired still, and said.)
-    if "object_set_a" in merged and "object_set_b" in merged:
-        bad = merged[merged["object_set_a"] != merged["object_set_b"]]
-        if len(bad):
-            r = bad.iloc[0]
-            raise ValueError(f"the runs played {len(bad)} of {len(merged)} episodes with different object sets (e.g. "
-                             f"{_describe(r)}: {r['object_set_a']} in {a.path}, {r['object_set_b']} in {b.path}), so "
-                             "the same seeds are other scenes; evaluate both with the same --object-set")
+    bad = merged[merged["object_set_a"] != merged["object_set_b"]]
+    if len(bad):
+        r = bad.iloc[0]
+        raise ValueError(f"the runs played {len(bad)} of {len(merged)} episodes with different object sets (e.g. "
+                         f"{_describe(r)}: {r['object_set_a']} in {a.path}, {r['object_set_b']} in {b.path}), so "
+                         "the same seeds are other scenes; evaluate both with the same --object-set")
     return merged.drop(columns="_merge")
 
 
@@ -126,7 +125,7 @@ def compare_runs(a: Run, b: Run, alpha: float = 0.05, in_both: bool = False) -> 
                                          "draws (stats.detectable_difference)"},
             "rows": rows,
             # The same scenes with another object named (a probe's variants, `eval --instruct K`): paired by scene.
-            "other_target": int((merged["target_a"] != merged["target_b"]).sum()) if "target_a" in merged else 0,
+            "other_target": int((merged["target_a"] != merged["target_b"]).sum()),
             "left_out": {"only_a": [c for c in played_a if c not in played_b],
                          "only_b": [c for c in played_b if c not in played_a]}}
 

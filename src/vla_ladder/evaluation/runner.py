@@ -30,7 +30,6 @@ from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, check_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS, read_episodes, run_config
 from vla_ladder.policies import Policy, allowed_specs, check_spec, selection_episodes, weights_identity
-from vla_ladder.task.assets import OBJECT_SETS
 from vla_ladder.task.physx_gpu import SIM_BACKENDS
 from vla_ladder.task.robot import check_robot_mesh
 
@@ -125,10 +124,9 @@ class EvalConfig:
         if self.sim_backend == "physx_cuda":
             from vla_ladder.task.physx_gpu import check_physx_cuda
             check_physx_cuda("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")
-        if self.object_set not in OBJECT_SETS:
-            raise ValueError(f"unknown object_set {self.object_set!r}; allowed: {', '.join(OBJECT_SETS)}")
-        # YCB's meshes must be on disk, and $VLA_LADDER_OBJECT_SET (for auto) name a set: said here, not once the run
-        # directory is written and the workers are building their envs.
+        # A known set, YCB's meshes on disk, and $VLA_LADDER_OBJECT_SET (for auto) naming a set: said here, not once the
+        # run directory is written and the workers are building their envs. (task.assets loads SAPIEN: imported here,
+        # not when this module is.)
         from vla_ladder.task.assets import resolve_object_set
         resolve_object_set(self.object_set)
         check_robot_mesh(self.robot_mesh)
