@@ -718,3 +718,21 @@ def test_an_empty_path_is_refused_not_read_as_the_current_directory(tmp_path, mo
              (["study", "micro", "--out", " "], says),
              (["train-expert", "--out", ""], says)])
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["eval", "--polcy", "scripted"], "unknown flag --polcy (did you mean --policy?); `vla-ladder eval --help` lists"),
+    (["eval", "--policy", "scripted", "--num_episodes", "3", "--zzz"], "unknown flag --num_episodes (and 1 more) "
+                                                                       "(did you mean --episodes?)"),
+    (["eval", "--policy", "scripted", "--episodes"], "--episodes needs a value;"),
+    (["eval", "--policy", "scripted", "stray"], "unexpected argument 'stray' (a value must follow its flag)"),
+    (["compare", "a"], "missing RUN_B;"),
+    (["grid", "--out", "g", "--train.polcy-type", "act"], "unknown flag --train.polcy-type (did you mean "
+                                                          "--train.policy-type?)"),
+])
+def test_a_flag_tyro_does_not_know_is_named_in_one_line(argv, says, tmp_path, monkeypatch, capsys):
+    """An unknown or misspelt flag, a flag without its value, a stray value and a missing argument were drawn in
+    tyro's box (9 lines or more for `--polcy`); each is one line naming the nearest flag where there is one."""
+    monkeypatch.chdir(tmp_path)
+    _one_line_error(capsys, main(argv), f"vla-ladder {argv[0]}: error: {says}")
+    assert list(tmp_path.iterdir()) == []

@@ -19,7 +19,7 @@ def parse_config(cls: type[T], argv: list[str], prog: str, description: str | No
 
     check_no_repeated_flags(argv, cls)
     check_no_empty_paths(cls, argv)
-    with _one_line_value_errors():
+    with _one_line_value_errors(cls, prog):
         return tyro.cli(cls, args=argv, prog=prog, description=description, default=default)
 
 
@@ -124,10 +124,11 @@ def check_no_empty_paths(cls: type, argv: list[str]) -> None:
 
 
 @contextmanager
-def _one_line_value_errors():
+def _one_line_value_errors(cls: type | None = None, prog: str = ""):
     """A config's __post_init__ rejects bad values with a ValueError that names what is allowed; tyro would draw
-    it in a box. Hand it back as a ValueError so main() prints it on one line, like every other bad input.
-    (tyro's parse-error hook is marked experimental: without it, tyro's own box still says the same, exit 2.)"""
+    it, an unknown flag or a flag without its value in a box of 9 lines or more. Hand each back as a ValueError so
+    main() prints it on one line, like every other bad input. (tyro's parse-error hook is marked experimental:
+    without it, or for an event it does not name here, tyro's own box still says the same, exit 2.)"""
     import tyro
 
     errors = getattr(tyro, "_errors", None)
@@ -135,14 +136,50 @@ def _one_line_value_errors():
     if hook is None:
         yield
         return
+    help_hint = f"`{prog} --help` lists the flags" if prog else "--help lists the flags"
+
+    def flag_of(arg) -> str:
+        names = getattr(getattr(arg, "lowered", None), "name_or_flags", None)
+        return "/".join(names) if names else ""
 
     def handle(event):
-        if isinstance(event, errors.InstantiationFailure):
-            arg = event.argument
-            flag = "/".join(arg.lowered.name_or_flags) if arg is not None and arg.lowered.name_or_flags else ""
+        if isinstance(event, getattr(errors, "InstantiationFailure", ())):
+            flag = flag_of(event.argument) if event.argument is not None else ""
             # tyro's own failures go on with a list of the types it tried: their first line says it
             message = next((line.strip() for line in str(event.message).splitlines() if line.strip()), "bad value")
             raise ValueError(f"{flag}: {message}" if flag else message)
+        if isinstance(event, getattr(errors, "UnrecognizedArgs", ())):
+            raise ValueError(_unrecognized(list(event.tokens), cls, help_hint))
+        if isinstance(event, getattr(errors, "BadValue", ())):
+            flag = flag_of(event.argument) or "a flag"
+            if event.offending_value is None:
+                raise ValueError(f"{flag} needs a value; {help_hint}")
+            raise ValueError(f"{flag} takes no value, got {event.offending_value!r}; {help_hint}")
+        if isinstance(event, getattr(errors, "InvalidChoice", ())):
+            raise ValueError(f"{flag_of(event.argument) or 'a flag'}: {event.value!r} is not allowed; allowed: "
+                             f"{', '.join(event.choices)}")
+        if isinstance(event, getattr(errors, "MissingArgs", ())):
+            if event.unrecognized_tokens:  # a misspelt required flag is both: its spelling is the news
+                raise ValueError(_unrecognized(list(event.unrecognized_tokens), cls, help_hint))
+            names = [flag_of(a.arg) or a.arg.display_name() for a in event.missing_arguments]
+            names = [n if n.startswith("-") else n.upper().replace("-", "_") for n in names]  # positionals as usage
+            raise ValueError(f"missing {', '.join(names)}; {help_hint}")
 
     with hook(handle):
         yield
+
+
+def _unrecognized(tokens: list[str], cls: type | None, help_hint: str) -> str:
+    """One line for tokens tyro did not recognize: the first unknown flag and the field nearest its spelling
+    (`--polcy` -> `--policy`), or the stray value."""
+    import difflib
+
+    flags = [t for t in tokens if t.startswith("-")]
+    if not flags:
+        return f"unexpected argument {tokens[0]!r} (a value must follow its flag); {help_hint}"
+    flag = flags[0].split("=", 1)[0]
+    known = list(_flag_types(cls))
+    near = difflib.get_close_matches(_field_flag(flag, {}) if flag.startswith("--") else flag, known, n=1,
+                                     cutoff=0.6)
+    more = f" (and {len(flags) - 1} more)" if len(flags) > 1 else ""
+    return f"unknown flag {flag}{more}" + (f" (did you mean {near[0]}?)" if near else "") + f"; {help_hint}"
