@@ -736,3 +736,13 @@ def test_a_flag_tyro_does_not_know_is_named_in_one_line(argv, says, tmp_path, mo
     monkeypatch.chdir(tmp_path)
     _one_line_error(capsys, main(argv), f"vla-ladder {argv[0]}: error: {says}")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_every_command_names_the_sim_backends_alike(tmp_path, capsys):
+    """eval, train-expert and the LeRobot env check the backend with one function (three copies said it three ways:
+    `sim backend`, and the allowed ones in two orders)."""
+    for argv in (["eval", "--policy", "scripted", "--sim-backend", "gpu", "--out", str(tmp_path / "e")],
+                 ["train-expert", "--sim-backend", "gpu", "--out", str(tmp_path / "p")]):
+        _one_line_error(capsys, main(argv), f"vla-ladder {argv[0]}: error: --sim-backend: unknown sim_backend 'gpu'; "
+                                            "allowed: physx_cpu, physx_cuda")
+    assert list(tmp_path.iterdir()) == []

@@ -110,11 +110,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 import vla_ladder.task.env  # noqa: F401
-from vla_ladder.task import assets
+from vla_ladder.task import assets, object_sets
 from vla_ladder.task.objects import OBJECTS
 
-out = {"available": assets.ycb_available(), "auto": assets.resolve_object_set("auto"),
-       "ycb_dir": str(assets.ycb_dir())}
+out = {"available": object_sets.ycb_available(), "auto": object_sets.resolve_object_set("auto"),
+       "ycb_dir": str(object_sets.ycb_dir())}
 geo = assets.object_geometry("ycb")
 out["half_extents"] = geo["half_extents"].tolist()
 env = gym.make("GraspObject-v1", regime="small_jitter", split="canonical", num_objects=5, obs_mode="rgb",
@@ -168,21 +168,21 @@ def test_missing_ycb_files_are_named(ycb_assets, tmp_path, monkeypatch):
 
     import mani_skill
 
-    from vla_ladder.task import assets
+    from vla_ladder.task import object_sets
 
     partial = tmp_path / "partial"
     shutil.copytree(ycb_assets, partial)
     monkeypatch.delenv("VLA_LADDER_OBJECT_SET", raising=False)
     monkeypatch.setattr(mani_skill, "ASSET_DIR", partial / "data")
-    assert assets.resolve_object_set("auto") == "ycb"
+    assert object_sets.resolve_object_set("auto") == "ycb"
     (partial / "data/assets/mani_skill2_ycb/models/025_mug/textured.obj").unlink()
-    assert assets.resolve_object_set("auto") == "standin"
+    assert object_sets.resolve_object_set("auto") == "standin"
     with pytest.raises(ValueError, match=r"025_mug/textured\.obj.*standin"):
-        assets.resolve_object_set("ycb")
+        object_sets.resolve_object_set("ycb")
     info = partial / "data/assets/mani_skill2_ycb/info_pick_v0.json"
     info.write_text(json.dumps({k: v for k, v in json.loads(info.read_text()).items() if k != "013_apple"}))
     with pytest.raises(ValueError, match="entry 013_apple and 1 more"):
-        assets.resolve_object_set("ycb")
+        object_sets.resolve_object_set("ycb")
 
 
 def test_vla_ladder_eval_reports_the_ycb_set(ycb_assets, tmp_path):
@@ -197,3 +197,22 @@ def test_vla_ladder_eval_reports_the_ycb_set(ycb_assets, tmp_path):
     summary = json.loads((run / "summary.json").read_text())
     assert summary["provenance"]["object_set"] == "ycb"
     assert episodes["success"].all(), episodes[["seed", "target", "held", "reach_dist"]]
+
+
+def test_the_object_set_is_resolved_without_the_simulator(ycb_assets):
+    """Config checks resolve the object set before any work: without importing SAPIEN or ManiSkill (4 s, all its
+    tasks), and to the directory ManiSkill's loader will read ($MS_ASSET_DIR/data, read when it is imported)."""
+    code = """
+import json, sys
+from vla_ladder.task import object_sets
+before = (str(object_sets.ycb_dir()), object_sets.resolve_object_set("auto"))
+loaded = sorted(m for m in ("sapien", "mani_skill", "torch") if m in sys.modules)
+import mani_skill
+from vla_ladder.task import assets  # noqa: F401
+print("RESULT " + json.dumps({"before": before, "loaded": loaded, "maniskill": str(mani_skill.ASSET_DIR),
+                             "after": str(object_sets.ycb_dir())}))
+"""
+    r = _result(_run(code, ycb_assets))
+    assert r["loaded"] == []
+    assert r["before"] == [r["after"], "ycb"]
+    assert r["after"] == str(Path(r["maniskill"]) / "assets" / "mani_skill2_ycb")

@@ -30,7 +30,8 @@ from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, check_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS, read_episodes, run_config
 from vla_ladder.policies import Policy, allowed_specs, check_spec, selection_episodes, weights_identity
-from vla_ladder.task.physx_gpu import SIM_BACKENDS
+from vla_ladder.task.object_sets import resolve_object_set
+from vla_ladder.task.physx_gpu import check_sim_backend
 from vla_ladder.task.robot import check_robot_mesh
 
 FLUSH_SECONDS = 10.0
@@ -113,8 +114,7 @@ class EvalConfig:
         if self.first_seed < 0 or self.first_seed + self.episodes > 2**32:
             raise ValueError(f"--first-seed must be >= 0 and --first-seed + --episodes <= 2**32 (episode j plays "
                              f"numpy seed first_seed + j), got {self.first_seed} + {self.episodes}")
-        if self.sim_backend not in SIM_BACKENDS:
-            raise ValueError(f"unknown sim_backend {self.sim_backend!r}; allowed: {', '.join(SIM_BACKENDS)}")
+        check_sim_backend(self.sim_backend)
         if self.sim_backend == "physx_cpu" and self.num_envs > cores():
             raise ValueError(f"--sim-backend physx_cpu runs one process per env: --num-envs must be at most the "
                              f"{cores()} CPU cores here, got {self.num_envs}")
@@ -125,9 +125,7 @@ class EvalConfig:
             from vla_ladder.task.physx_gpu import check_physx_cuda
             check_physx_cuda("sim_backend=physx_cuda needs a CUDA GPU; allowed here: physx_cpu")
         # A known set, YCB's meshes on disk, and $VLA_LADDER_OBJECT_SET (for auto) naming a set: said here, not once the
-        # run directory is written and the workers are building their envs. (task.assets loads SAPIEN: imported here,
-        # not when this module is.)
-        from vla_ladder.task.assets import resolve_object_set
+        # run directory is written and the workers are building their envs.
         resolve_object_set(self.object_set)
         check_robot_mesh(self.robot_mesh)
         from vla_ladder.task.appearance import check_appearance
@@ -232,7 +230,6 @@ def open_run_dir(cfg: EvalConfig, weights: dict | None = None) -> list[dict]:
     if not path.is_file():
         return []
     rows = read_episodes(path).to_dict("records")
-    from vla_ladder.task.assets import resolve_object_set
     played_with, here = {r.get("object_set") for r in rows} - {None}, resolve_object_set(cfg.object_set)
     if played_with and played_with != {here}:  # "auto" resolves per machine: a resume elsewhere may not match
         raise ValueError(f"{path} holds episodes played with the {'/'.join(sorted(played_with))} objects, and "

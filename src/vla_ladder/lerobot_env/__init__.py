@@ -38,7 +38,8 @@ from vla_ladder.conditions import Condition
 from vla_ladder.contract import (ACTION_DIM, ACTION_KEY, CAMERAS, CONTROL_HZ, ENV_ID, EPISODE_STEPS, METRICS,
                                  STATE_DIM, STATE_KEY)
 from vla_ladder.task.objects import OBJECT_NAMES
-from vla_ladder.task.physx_gpu import SIM_BACKENDS
+from vla_ladder.task.object_sets import resolve_object_set
+from vla_ladder.task.physx_gpu import check_sim_backend
 
 GYM_ID = f"vla_ladder/{ENV_ID}"
 log = logging.getLogger(__name__)
@@ -185,15 +186,11 @@ class GraspObjectEnvConfig(EnvConfig):
     def _check_backend(self) -> None:
         """What the simulator would refuse only once it starts, after LeRobot has loaded the policy: an unknown
         object set or backend, YCB without its meshes."""
-        from vla_ladder.task.assets import resolve_object_set  # (imports SAPIEN: here, not when LeRobot lists envs)
-
         try:
             resolve_object_set(self.object_set)
         except ValueError as e:
             raise ValueError(f"--env.object_set: {e}") from None
-        if self.sim_backend not in SIM_BACKENDS:
-            raise ValueError(f"--env.sim_backend: unknown sim_backend {self.sim_backend!r}; allowed: "
-                             f"{', '.join(SIM_BACKENDS)}")
+        check_sim_backend(self.sim_backend, "--env.sim_backend")
 
     def _check_episode_metrics(self) -> None:
         """A file the adapter appends to at each episode's end: a directory there failed after the first episode."""

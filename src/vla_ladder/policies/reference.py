@@ -25,7 +25,7 @@ from mani_skill.utils.geometry.rotation_conversions import quaternion_apply
 from vla_ladder.policies.scripted import ScriptedPolicy
 from vla_ladder.contract import ACTION_DIM
 from vla_ladder.policies import Policy
-from vla_ladder.task import assets
+from vla_ladder.task import assets, object_sets
 from vla_ladder.task.layouts import REGION_CENTERS
 from vla_ladder.task.instructions import parse_instruction
 from vla_ladder.task.objects import NUM_OBJECTS, object_index
@@ -47,7 +47,7 @@ def _retarget(obs: dict, obj: torch.Tensor, site: torch.Tensor, quat: torch.Tens
 
 
 def _geometry(object_set: str, device) -> dict[str, torch.Tensor]:
-    geo = assets.object_geometry(assets.resolve_object_set(object_set))
+    geo = assets.object_geometry(object_sets.resolve_object_set(object_set))
     return {k: torch.as_tensor(v, dtype=torch.float32, device=device) for k, v in geo.items()}
 
 

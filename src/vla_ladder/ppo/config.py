@@ -16,11 +16,11 @@ from vla_ladder.checks import check_output_dir, check_seed
 from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.contract import EPISODE_STEPS
 from vla_ladder.machine import cores
+from vla_ladder.task.physx_gpu import check_sim_backend
 
 # Training episodes take seeds in [TRAIN_SEED_MIN, 2**32) (numpy's seed limit); evaluation seeds stay
 # below, so `vla-ladder eval --first-seed S` with any S + episodes <= TRAIN_SEED_MIN is held out.
 TRAIN_SEED_MIN = 2**30
-SIM_BACKENDS = ("physx_cuda", "physx_cpu")
 
 
 RUN_FILES = ("config.json", "state.json", "checkpoints", "evals.json", "tb")
@@ -109,8 +109,7 @@ class Args:
         self.hidden_sizes = tuple(self.hidden_sizes)
         if not isinstance(self.grid, ConditionGrid):
             self.grid = ConditionGrid(**self.grid)
-        if self.sim_backend not in SIM_BACKENDS:
-            raise ValueError(f"unknown sim backend {self.sim_backend!r}; allowed: {', '.join(SIM_BACKENDS)}")
+        check_sim_backend(self.sim_backend)
         for f in fields(self):  # inf or nan trained a first rollout, then failed in torch with a tensor dump
             if f.type == "float" and not math.isfinite(getattr(self, f.name)):
                 raise ValueError(f"--{f.name.replace('_', '-')} must be a finite number, got {getattr(self, f.name)}")

@@ -24,6 +24,7 @@ from vla_ladder.recording.card import missing_targets, target_counts
 from vla_ladder.recording.client import Episode, EpisodeClient, EpisodeSource, ServerError
 from vla_ladder.recording.serve import setup_logging
 from vla_ladder.recording.server import TOKEN_ENV
+from vla_ladder.task.object_sets import resolve_object_set
 from vla_ladder.task.robot import check_robot_mesh
 from vla_ladder.recording.store import DatasetStore, Recording
 from vla_ladder.recordings import DEFAULT_VCODEC, VCODECS, read_provenance
@@ -105,7 +106,6 @@ class RecordConfig:
             check_physx_cuda("--num-envs > 1 batches each local server on physx_cuda (a CUDA GPU); on a CPU use "
                              "--num-envs 1 and --workers N")
         if not self.server:  # the local servers' objects ($VLA_LADDER_OBJECT_SET), before any of them starts
-            from vla_ladder.task.assets import resolve_object_set
             resolve_object_set("auto")
         if self.give_up_after < 0:
             raise ValueError(f"--give-up-after must be >= 0 (0: never), got {self.give_up_after}")

@@ -30,6 +30,7 @@ from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, CONTROL_HZ, EPISODE_ST
 from vla_ladder.policies import check_spec
 from vla_ladder.recording import protocol as P
 from vla_ladder.task.instructions import check_instruction_set
+from vla_ladder.task.object_sets import resolve_object_set
 from vla_ladder.task.robot import check_robot_mesh
 from vla_ladder.task.objects import OBJECT_NAMES
 
@@ -229,7 +230,6 @@ class EpisodeServer:
         self.episodes_served = 0
         # Resolved here, before the simulation thread exists: importing mani_skill from two threads at
         # once trips over its circular imports.
-        from vla_ladder.task.assets import resolve_object_set
         self.object_set = resolve_object_set("auto")
 
     # ------------------------------------------------------------------ simulation thread

@@ -14,70 +14,16 @@ Both object sets get the same contact material, so the set changes shapes and lo
 from __future__ import annotations
 
 import json
-import os
-from pathlib import Path
 
 import numpy as np
 import sapien
 import sapien.render
 
+from vla_ladder.task.object_sets import ycb_dir
 from vla_ladder.task.objects import OBJECTS, ObjectSpec
 
-# Which objects a scene holds: ManiSkill's YCB meshes, vla-ladder's stand-ins, or "auto" (YCB when on disk).
-OBJECT_SETS = ("auto", "ycb", "standin")
 # Rubik's cube sticker colours: white, yellow, red, orange, blue, green.
 _STICKERS = ((1, 1, 1), (1, 0.85, 0), (0.8, 0, 0), (1, 0.45, 0), (0, 0.3, 0.9), (0, 0.6, 0.2))
-
-
-def ycb_dir() -> Path:
-    from mani_skill import ASSET_DIR
-    return Path(ASSET_DIR) / "assets" / "mani_skill2_ycb"
-
-
-YCB_MODEL_FILES = ("collision.ply", "textured.obj")
-"""What ManiSkill's YCB loader opens for a model: the collision mesh, and the visual mesh when it renders."""
-
-
-def ycb_missing() -> list[str]:
-    """What ManiSkill's YCB loader would need for the five objects and cannot find (empty: all there)."""
-    root = ycb_dir()
-    info_path = root / "info_pick_v0.json"
-    if not info_path.is_file():
-        return [str(info_path)]
-    try:
-        info = json.loads(info_path.read_text())
-    except ValueError:
-        return [f"{info_path} (not valid JSON)"]
-    missing = [f"{info_path}: entry {o.ycb_id}" for o in OBJECTS if "bbox" not in info.get(o.ycb_id, {})]
-    return missing + [str(root / "models" / o.ycb_id / f) for o in OBJECTS for f in YCB_MODEL_FILES
-                      if not (root / "models" / o.ycb_id / f).is_file()]
-
-
-def ycb_available() -> bool:
-    """True when ManiSkill's YCB models for all five objects are on disk (never downloads)."""
-    return not ycb_missing()
-
-
-def resolve_object_set(object_set: str = "auto") -> str:
-    """"auto" picks "ycb" when the meshes are on disk, else "standin"."""
-    if object_set not in OBJECT_SETS:
-        raise ValueError(f"unknown object_set {object_set!r}; allowed: {', '.join(OBJECT_SETS)}")
-    if object_set == "auto":
-        object_set = os.environ.get("VLA_LADDER_OBJECT_SET", "auto")
-        if object_set == "auto":
-            return "ycb" if ycb_available() else "standin"
-        try:
-            return resolve_object_set(object_set)
-        except ValueError as e:  # said of the variable, which the command line did not show
-            raise ValueError(f"$VLA_LADDER_OBJECT_SET: {e}") from None
-    if object_set == "ycb":
-        missing = ycb_missing()
-        if missing:
-            more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
-            raise ValueError(f"object_set='ycb' but ManiSkill's YCB models are incomplete: missing {missing[0]}{more}"
-                             "; run `python -m mani_skill.utils.download_asset ycb` on a machine with network, "
-                             "point $MS_ASSET_DIR at a copy, or use object_set='standin'")
-    return object_set
 
 
 def _material(rgba) -> sapien.render.RenderMaterial:

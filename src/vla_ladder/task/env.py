@@ -28,7 +28,7 @@ from vla_ladder import contract
 from vla_ladder.checks import SEED_LIMIT
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import CAMERAS, CONTROL_HZ, EPISODE_STEPS, REACH_THRESHOLD, SIM_HZ
-from vla_ladder.task import appearance, assets, robot
+from vla_ladder.task import appearance, assets, object_sets, robot
 from vla_ladder.task.appearance import check_appearance
 from vla_ladder.task.instructions import check_instruction_set
 from vla_ladder.task.layouts import WORKSPACE_CENTER, Layout, sample_layout
@@ -144,7 +144,7 @@ class GraspObjectEnv(BaseEnv):
         self.target = target
         self.instruction_set = check_instruction_set(instructions)
         self.appearance = check_appearance(appearance)
-        self.object_set = assets.resolve_object_set(object_set)
+        self.object_set = object_sets.resolve_object_set(object_set)
         robot.check_robot_mesh(robot_mesh)
         self.robot_mesh = robot_mesh
         if robot_uids is None:

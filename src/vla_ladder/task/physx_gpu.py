@@ -19,6 +19,12 @@ SIM_BACKENDS = ("physx_cpu", "physx_cuda")
 RELEASES = "https://github.com/sapien-sim/physx-precompiled/releases/download"
 
 
+def check_sim_backend(sim_backend: str, flag: str = "--sim-backend", allowed: tuple[str, ...] = SIM_BACKENDS) -> None:
+    """ValueError naming the backends for one vla-ladder does not run (eval, train-expert, the LeRobot env)."""
+    if sim_backend not in allowed:
+        raise ValueError(f"{flag}: unknown sim_backend {sim_backend!r}; allowed: {', '.join(allowed)}")
+
+
 def library() -> tuple[Path, str]:
     """Where SAPIEN looks for the PhysX GPU library, and the URL of the archive it downloads it from."""
     from sapien.physx import version
