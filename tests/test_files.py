@@ -50,6 +50,22 @@ def test_a_file_or_directory_of_the_longest_name_is_written_through_a_temporary_
     assert list(tmp_path.iterdir()) == []
 
 
+
+def test_an_output_of_the_longest_name_is_locked_by_a_sibling_that_fits(tmp_path):
+    """The lock beside an output was `.NAME.lock`: a valid 250-byte directory name made one too long to open, and
+    every command refused that --out with "File name too long". Long names are cut and told apart by a hash."""
+    long_a, long_b = tmp_path / ("r" * 240 + "a" * 10), tmp_path / ("r" * 240 + "b" * 10)
+    assert files.lock_path(long_a) != files.lock_path(long_b)
+    assert len(os.fsencode(files.lock_path(long_a).name)) <= 255
+    assert files.lock_path(tmp_path / "run").name == ".run.lock"  # a name that fits is kept whole
+    with files.writing(long_a, "test"):
+        with pytest.raises(ValueError, match="another test is writing"):
+            with files.writing(long_a, "test"):
+                pass
+        with files.writing(long_b, "test"):  # another output, another lock
+            pass
+    assert list(tmp_path.iterdir()) == []
+
 def test_atomic_write_syncs_the_data_before_the_rename_and_the_rename_after(tmp_path, monkeypatch):
     """What a host crash needs (a kill does not): the temp file's bytes on disk before it takes the name, then the
     directory entry. Watched through the calls the kernel gets, since a crash cannot be staged in a test."""

@@ -321,6 +321,19 @@ def test_a_long_recordings_episode_metadata_is_joined_into_one_file(tmp_path):
         assert first["episode_index"].item() == ep and first["observation.state"][0].item() == prov["seed"][ep]
 
 
+
+def test_a_dataset_of_the_longest_name_is_recorded(tmp_path):
+    """The recorder's work directory beside the dataset was `.NAME.recording`: a valid 250-byte dataset name made
+    it too long, and `record` failed before its first demo. A long name is cut and told apart by a hash."""
+    root = tmp_path / ("d" * 250)
+    store = DatasetStore(root, Recording(**CONFIG, video=False), commit_every=1)
+    for seed in store.reserve_seeds(1):
+        store.add(synthetic_episode(seed))
+    store.close()
+    again = DatasetStore(root, Recording(**CONFIG, video=False))  # the same work directory, found again
+    assert again.next_seed == 1
+    again.close()
+
 def test_parallel_writers_start_after_the_datasets_seeds(tmp_path):
     """The work directory (and the ledger and seed book in it) may be deleted between runs: the ledger of parallel
     writers starts from the dataset's own state (they replayed seeds from --first-seed, recording episodes twice)."""

@@ -22,7 +22,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     under the name (a killed process cannot: what it wrote is in the page cache either way)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
         yield Path(tmp)
@@ -49,10 +49,22 @@ def _umask() -> int:
         return umask
 
 
-def _temp_prefix(path: Path) -> str:
+def temp_prefix(path: Path) -> str:
     """A hidden temporary sibling's name start: `path`'s name, cut short so that the temporary name stays within
     the file system's 255 bytes however long the name it stands in for (tempfile adds 8 characters and a suffix)."""
     return f".{os.fsencode(path.name)[:100].decode(errors='ignore')}."
+
+
+def sibling_name(path: str | os.PathLike, suffix: str) -> str:
+    """The name of `path`'s hidden sibling that every process must find (`.NAME.lock`, a recorder's
+    `.NAME.recording`): a name too long for the file system's 255 bytes with the dot and `suffix` is cut, and told
+    apart from the other names it is cut from by a hash of the whole."""
+    import hashlib
+
+    name = os.fsencode(Path(path).name)
+    if len(name) + 1 + len(suffix.encode()) <= 255:
+        return os.fsdecode(b"." + name) + suffix
+    return f".{name[:100].decode(errors='ignore')}~{hashlib.sha256(name).hexdigest()[:16]}{suffix}"
 
 
 def _fsync(path: str | os.PathLike, flags: int = 0) -> None:
@@ -69,7 +81,7 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
     there is whole or absent. Where another process built `path` first (from the same inputs), theirs is kept."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), dir=path.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(path), dir=path.parent))
     try:
         yield tmp
         try:
@@ -88,7 +100,7 @@ def remove_dir(path: str | os.PathLike) -> None:
     if Path.cwd().resolve().is_relative_to(path):
         raise ValueError(f"{path} holds the current directory, which it cannot remove; run the command from "
                          "elsewhere, or give another --out")
-    aside = Path(tempfile.mkdtemp(prefix=_temp_prefix(path) + "removing.", dir=path.parent))
+    aside = Path(tempfile.mkdtemp(prefix=temp_prefix(path) + "removing.", dir=path.parent))
     path.rename(aside / path.name)
     shutil.rmtree(aside)
 
@@ -96,7 +108,7 @@ def remove_dir(path: str | os.PathLike) -> None:
 def lock_path(directory: str | os.PathLike) -> Path:
     """The lock file of an output directory: beside it, so that nothing a run removes or lists inside takes it."""
     directory = Path(directory).resolve()  # (one lock whichever path or link names the directory)
-    return directory.parent / f".{directory.name}.lock"
+    return directory.parent / sibling_name(directory, ".lock")
 
 
 @contextmanager

@@ -77,7 +77,7 @@ class DatasetStore:
         self.commit_every, self.commit_seconds = commit_every, commit_seconds
         self.encoder_threads = encoder_threads  # per camera encoder (SVT-AV1's lp); None: the codec's choice
         self.repo_id = repo_id or f"vla-ladder/{self.root.name}"
-        self.work = self.root.parent / f".{self.root.name}.recording"
+        self.work = self.root.parent / files.sibling_name(self.root, ".recording")
         self.staging = self.work / "staging"
         made = not self.work.exists()
         self.work.mkdir(parents=True, exist_ok=True)
@@ -635,7 +635,7 @@ def wait_for_writer(shard: Path, timeout_s: float = 300.0) -> None:
     """Return once no writer holds `shard`'s lock. A writer commits what it holds when its recorder dies (it gets
     SIGINT), and a rerun started at once would otherwise merge the shard while it commits, losing what that writer
     commits later or merging it twice; ValueError when it still holds it after `timeout_s`."""
-    lock = shard.parent / f".{shard.name}.recording" / "lock"
+    lock = shard.parent / files.sibling_name(shard, ".recording") / "lock"
     if not lock.exists():
         return
     deadline, said = time.monotonic() + timeout_s, False
@@ -658,7 +658,7 @@ def wait_for_writer(shard: Path, timeout_s: float = 300.0) -> None:
 def _remove_shard(shard: Path) -> None:
     """A shard and its writer's work directory, and the work directories of writers that never committed."""
     shutil.rmtree(shard, ignore_errors=True)
-    shutil.rmtree(shard.parent / f".{shard.name}.recording", ignore_errors=True)
+    shutil.rmtree(shard.parent / files.sibling_name(shard, ".recording"), ignore_errors=True)
     for work in shard.parent.glob(".*.recording"):
         if not (shard.parent / work.name[1:-len(".recording")]).exists():
             shutil.rmtree(work, ignore_errors=True)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from vla_ladder import files
 from vla_ladder.contract import BLIND_INSTRUCTION
 
 STAMP = "meta/vla_ladder_blind.json"
@@ -29,7 +30,7 @@ def blind_copy(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
     if (dst / STAMP).is_file() and json.loads((dst / STAMP).read_text()) == stamp:
         return dst
     dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=files.temp_prefix(dst), dir=dst.parent))
     try:
         for dirpath, _, names in os.walk(src):
             rel = Path(dirpath).relative_to(src)
