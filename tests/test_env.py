@@ -209,6 +209,8 @@ def test_an_env_picks_the_gpu_renderer_wherever_cuda_is(make_env):
     (dict(num_objects=6), "1 to 5"),
     (dict(target="banana"), "apple, orange, rubiks_cube, mug, large_marker"),
     (dict(object_set="shapenet"), "auto, ycb, standin"),
+    (dict(robot_init_qpos_noise=-0.1), "finite standard deviation >= 0"),
+    (dict(robot_init_qpos_noise=float("nan")), "finite standard deviation >= 0"),
 ])
 def test_bad_input_lists_what_is_allowed(kwargs, allowed):
     import gymnasium as gym

@@ -147,6 +147,11 @@ class GraspObjectEnv(BaseEnv):
         self.object_set = object_sets.resolve_object_set(object_set)
         robot.check_robot_mesh(robot_mesh)
         self.robot_mesh = robot_mesh
+        # Checked now, not by numpy at the first reset: a negative one failed there with "scale < 0" once the scene
+        # was built, and nan or inf gave every episode a robot at nan joint positions without a word.
+        if not 0 <= robot_init_qpos_noise < float("inf"):
+            raise ValueError(f"robot_init_qpos_noise must be a finite standard deviation >= 0 (radians), got "
+                             f"{robot_init_qpos_noise!r}")
         if robot_uids is None:
             robot_uids = robot.register_lite_panda() if robot_mesh == "lite" else contract.ROBOT
         self.robot_init_qpos_noise = robot_init_qpos_noise
