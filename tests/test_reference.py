@@ -72,3 +72,17 @@ def test_bad_specs_and_experiment_arguments(tmp_path, capsys):
     assert main(["experiment", "ladder", "--policy", "nearest", "--num-envs", "4096", "--out", str(tmp_path)]) == 2
     assert "--num-envs must be at most the" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing ran, nothing written
+
+
+@pytest.mark.parametrize("spec", ["nearest", "committed", "layout-prior"])
+def test_reference_policies_act_on_the_device_of_the_observations(spec, make_env):
+    """Under physx_cuda the observations are CUDA tensors; built on the CPU, these policies subtracted their sites
+    from them (a device error at the first step) where the scripted expert moves itself. This machine has one
+    device, so a policy built for `cpu:0` stands in for one built elsewhere: it must adopt the observations'."""
+    env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=5)
+    policy = load_policy(spec, device="cpu:0")
+    obs, _ = env.reset(seed=0)
+    policy.reset([0])
+    action = policy.act(obs, env.unwrapped.instructions)
+    assert policy.device == obs["extra"]["tcp_pose"].device == action.device
+    assert action.shape == (1, 7)

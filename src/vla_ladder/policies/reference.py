@@ -46,6 +46,17 @@ def _retarget(obs: dict, obj: torch.Tensor, site: torch.Tensor, quat: torch.Tens
     return {**obs, "extra": extra}
 
 
+def _follow(policy: Policy, obs: dict) -> None:
+    """Move `policy`'s tensors to the device the simulator keeps its state on (a CUDA GPU under physx_cuda), as
+    the scripted expert does: built on the CPU, the sites were subtracted from CUDA observations."""
+    device = obs["extra"]["tcp_pose"].device
+    if device != policy.device:
+        for name, value in vars(policy).items():
+            if torch.is_tensor(value):
+                setattr(policy, name, value.to(device))
+        policy.device = device
+
+
 def _geometry(object_set: str, device) -> dict[str, torch.Tensor]:
     geo = assets.object_geometry(object_sets.resolve_object_set(object_set))
     return {k: torch.as_tensor(v, dtype=torch.float32, device=device) for k, v in geo.items()}
@@ -79,6 +90,7 @@ class NearestObjectPolicy(Policy):
         return poses[..., :3] + quaternion_apply(poses[..., 3:], self._site_local.expand(n, -1, -1))
 
     def act(self, obs: Any, instructions: Sequence[str] | None = None) -> torch.Tensor:
+        _follow(self, obs)
         extra = obs["extra"]
         n = extra["tcp_pose"].shape[0]
         sites = self.sites(extra)
@@ -103,6 +115,7 @@ class CommittedPolicy(NearestObjectPolicy):
     name = "committed"
 
     def act(self, obs: Any, instructions: Sequence[str] | None = None) -> torch.Tensor:
+        _follow(self, obs)
         extra = obs["extra"]
         now = extra["target_onehot"].to(self.device).argmax(dim=1)
         self.choice = torch.where(self.choice < 0, now, self.choice)
@@ -145,6 +158,7 @@ class LayoutPriorPolicy(Policy):
         return torch.as_tensor(idx, dtype=torch.long, device=self.device)
 
     def act(self, obs: Any, instructions: Sequence[str]) -> torch.Tensor:
+        _follow(self, obs)
         tgt = self.target_from(instructions)
         quat = torch.tensor([1.0, 0, 0, 0], device=self.device).expand(len(tgt), 4)
         return self.expert.act(_retarget(obs, tgt, self.sites[tgt], quat), instructions)
