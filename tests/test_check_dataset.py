@@ -60,6 +60,8 @@ def test_a_recorded_dataset_passes(recorded, tmp_path, capsys):
     assert checks["leakage"]["checked"] and checks["leakage"]["episodes_with_held_out_pairs"] == 0
     assert sum(checks["balance"]["counts"].values()) == 3 and checks["balance"]["p_value"] is None
     assert all(-1 <= v <= 1 for v in checks["actions"]["min"] + checks["actions"]["max"])
+    assert checks["quantiles"]["differing"] == 0 and "action" in checks["quantiles"]["features"]
+    assert checks["quantiles"]["checked"] >= 10  # q01..q99 of the action and the state at least
     # `record` rebuilds every scene, so each episode's seed and actions give back its states to the last bit.
     replay = checks["replay"]
     assert replay["replayed"] == replay["bit_exact"] == 3 and replay["max_state_diff"] == 0.0
@@ -69,6 +71,29 @@ def test_a_recorded_dataset_passes(recorded, tmp_path, capsys):
 def _provenance(root: Path) -> tuple[Path, pd.DataFrame]:
     path = sorted((root / PROVENANCE_DIR).glob("*.parquet"))[0]
     return path, pd.read_parquet(path)
+
+
+@pytest.mark.slow
+def test_quantiles_that_are_not_those_of_every_frame_are_flagged(recorded, tmp_path, capsys):
+    """pi0.5 normalises state and action with stats.json's q01/q99: LeRobot's average of per-episode quantiles (an
+    edit by LeRobot's tools) or those of a stopped recording's first frames would change what the model sees."""
+    edited = tmp_path / "edited"
+    shutil.copytree(recorded, edited)
+    stats = json.loads((edited / "meta/stats.json").read_text())
+    stats["action"]["q01"][0] += 0.1
+    write_json(edited / "meta/stats.json", stats)
+    rc, summary, lines = check(edited, tmp_path, capsys, "--replay", "0")
+    assert rc == 1 and lines == summary["violations"] and len(lines) == 1
+    assert lines[0].startswith(f"quantiles: 1 quantiles in stats.json are not those of the {3 * EPISODE_STEPS} "
+                               "frames (the furthest, action q01, by 0.1;")
+    assert "rebuild-provenance" in lines[0]
+    state = read_recording_state(edited)
+    state["quantile_frames"] = 2 * EPISODE_STEPS
+    write_json(edited / RECORDING_FILE, state)
+    rc, summary, lines = check(edited, tmp_path, capsys, "--replay", "0")
+    assert rc == 1 and f"they are of its first {2 * EPISODE_STEPS} frames" in lines[0]
+    assert "rerun its `record`" in lines[0]
+    assert summary["checks"]["quantiles"]["differing"] == 1
 
 
 @pytest.mark.slow

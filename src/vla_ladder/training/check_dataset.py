@@ -10,6 +10,8 @@ command checks, from LeRobot's files and the provenance the recorder writes (vla
   wording) in the recording's condition, and LeRobot's task is its instruction;
 - frames: every episode has contract.EPISODE_STEPS frames, numbered 0..T-1, as many as its provenance says;
 - actions: finite and inside the normalised action box [-1, 1]; states finite;
+- quantiles: stats.json's q01...q99 of every numeric feature are those over all frames (pi0.5 normalises state and
+  action with q01/q99), not LeRobot's average of per-episode quantiles or those of a recording's first frames;
 - balance: every object instructed about equally often (chi-square against uniform, when at least five
   episodes per object are expected);
 - coverage: every object-region pair the recording's condition produces (expected >= --min-expected times)
@@ -54,6 +56,8 @@ ACTION_TOLERANCE = 1e-5
 REPLAY_DRIFT_TOLERANCE = 0.25
 """largest |recorded - replayed| state (rad, rad/s, m) accepted from an episode that does not promise bit-exact
 replay: scene reuse drifted 0.0002-0.022 in four episodes; shifting actions by one frame moved them 1.3-2.8"""
+QUANTILE_TOLERANCE = 1e-6
+"""largest |stats.json - exact| quantile accepted (both are float64 over the same frames; JSON keeps 17 digits)"""
 COVERAGE_SEEDS = 2000
 """layouts sampled to estimate how often the recording's condition puts each object in each region"""
 
@@ -129,8 +133,8 @@ class Checker:
         self.violations.append(f"{check}: {message}")
 
     def run(self) -> dict:
-        for check in (self.structure, self.seeds, self.layouts_regenerate, self.frames, self.actions, self.balance,
-                      self.coverage, self.leakage, self.replay):
+        for check in (self.structure, self.seeds, self.layouts_regenerate, self.frames, self.actions, self.quantiles,
+                      self.balance, self.coverage, self.leakage, self.replay):
             check()
         return {"dataset": str(self.root), "recording": self.recording.to_dict(), "episodes": int(len(self.prov)),
                 "frames": int(self.info.get("total_frames", 0)), "ok": not self.violations,
@@ -235,6 +239,34 @@ class Checker:
             self.flag("actions", f"episode {ep}: {len(g)} frames with a non-finite state")
         self.summary["actions"] = {"min": action.min(axis=0).tolist() if len(action) else [],
                                    "max": action.max(axis=0).tolist() if len(action) else []}
+
+    def quantiles(self) -> None:
+        from vla_ladder.recording import stats
+
+        try:
+            exact = stats.exact_quantiles(self.root)
+            saved = json.loads((self.root / stats.STATS_FILE).read_text())
+        except (OSError, ValueError, KeyError) as e:
+            self.flag("quantiles", f"cannot compare stats.json's quantiles with the frames': {e}")
+            return
+        over = read_recording_state(self.root).get("quantile_frames")
+        total = int(self.info.get("total_frames", 0))
+        worst = {}
+        for key, qs in exact.items():
+            for q, values in qs.items():
+                diff = float(np.max(np.abs(np.asarray(saved[key][q], dtype=float) - np.asarray(values)), initial=0))
+                if not diff <= QUANTILE_TOLERANCE:  # (nan too)
+                    worst[f"{key} {q}"] = diff
+        if worst:
+            name, diff = max(worst.items(), key=lambda kv: kv[1])
+            why = (f"they are of its first {over} frames: the recording stopped before it computed them again; rerun "
+                   "its `record` command, which does when it stops" if over is not None and over < total else
+                   "LeRobot's average of per-episode quantiles, after an edit by LeRobot's tools? "
+                   "`vla-ladder rebuild-provenance` writes them over all frames (docs/datasets.md)")
+            self.flag("quantiles", f"{len(worst)} quantiles in stats.json are not those of the {total} frames (the "
+                                   f"furthest, {name}, by {diff:.3g}; {why})")
+        self.summary["quantiles"] = {"checked": sum(len(qs) for qs in exact.values()), "differing": len(worst),
+                                     "features": sorted(exact), "state_quantile_frames": over}
 
     def balance(self) -> None:
         from scipy.stats import chisquare
