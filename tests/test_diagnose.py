@@ -188,3 +188,19 @@ def test_an_answer_or_reference_without_plays_resembles_nothing_by_it():
     nan = float("nan")
     assert _resembles({"value": nan}, {"nearest": 0.1, "layout-prior": 0.5}) is None
     assert _resembles({"value": 0.2}, {"nearest": nan, "layout-prior": 0.5, "scripted": 0.1}) == "scripted"
+
+
+def test_every_difference_is_shown_in_signed_points():
+    """by_colour is the change the swap makes (swapped minus as the scene is), like the other differences: its answer
+    and the references' were shown unsigned ("10 [-5, 25]"), as if the swapped share it once was."""
+    from vla_ladder.experiments.diagnose import QUESTIONS
+    from vla_ladder.report.diagnosis import answer_lines, diagnosis_html
+
+    differences = [key for key, _, measure in QUESTIONS if "minus" in measure]
+    assert "by_colour" in differences
+    for key in differences:
+        q = {"id": key, "question": "Q?", "measure": "m", "references": {"scripted": 0.0, "nearest": 0.05},
+             "answers": {"p": {"answer": {"value": 0.1, "ci95": [-0.05, 0.25]}, "resembles": None}}}
+        data = {"questions": [q], "references": ["scripted", "nearest"]}
+        assert answer_lines(data) == ["Q? +10 [-5, +25] (m); scripted +0, nearest +5"], key
+        assert "+10 <span class=ci>[-5, +25]</span>" in diagnosis_html(data), key

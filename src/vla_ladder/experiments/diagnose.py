@@ -1,8 +1,8 @@
 """`vla-ladder diagnose --policy SPEC [SPEC ...] --out DIR`: a policy (or several, side by side) through the ladder
 and seven grounding probes, beside the reference policies on the same seeded scenes, and one page of answers.
 
-The questions, each answered by one rate with its 95% interval (or, for the first, the sixth, the eighth and the
-ninth, a difference of two rates):
+The questions, each answered by one rate with its 95% interval (or, for the first and the sixth to the ninth, a
+difference of two rates):
 
 1. Does it hold up as the objects move? Success in the ladder's farthest regime minus success in the policy's own
    (the ladder of its training condition's split and object count; the same seeds in every regime, so a paired

@@ -7,8 +7,9 @@ import html
 
 from vla_ladder.report.displacement import odds_text
 
-DIFFERENCES = ("holds_up", "reworded", "distracted", "goes_to_place")
-"""Questions answered by a difference of two rates: shown in signed points."""
+DIFFERENCES = ("holds_up", "reworded", "by_colour", "distracted", "goes_to_place")
+"""Questions answered by a difference of two rates: shown in signed points (by_colour too since it became the change
+the swap makes: unsigned, "10" read as the swapped share it was before)."""
 
 
 def _pct(x: float | None, signed: bool = False) -> str:
