@@ -428,3 +428,19 @@ def test_paired_variants_refuse_scenes_played_in_one_only():
     assert grounding.paired(df, df)["small_jitter/canonical/5"]["n"] == len(df) * 5
     with pytest.raises(ValueError, match="the variants played different object sets"):  # resumed on another machine
         grounding.paired(df.assign(object_set="standin"), df.assign(object_set="ycb"))
+
+
+def test_probes_pooling_several_variants_refuse_plays_of_both_object_sets():
+    """The two-play probes refused variants played with different object sets (same_scenes); the instruction swap
+    and the absent object, which pool more variants, compared stand-in plays with YCB ones without a word (a resume
+    on another machine with object_set auto plays the remaining variants with the other set)."""
+    from test_absent_probe import absent_plays, grounded
+
+    df = plays(lambda lay, r, j: lay.target)
+    assert metrics(df.assign(object_set="ycb"))["scenes"] == 12
+    with pytest.raises(ValueError, match="the variants played different object sets"):
+        metrics(df.assign(object_set=np.where(df["instruct"] < 2, "standin", "ycb")))
+    present, absent = absent_plays(grounded)
+    assert grounding.absent_object(present.assign(object_set="ycb"), absent.assign(object_set="ycb"))
+    with pytest.raises(ValueError, match="the variants played different object sets"):
+        grounding.absent_object(present.assign(object_set="standin"), absent.assign(object_set="ycb"))

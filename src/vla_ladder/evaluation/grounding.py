@@ -176,6 +176,7 @@ def instruction_swap(plays: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
         if ((per_scene["seeds"] > 1) | (per_scene["targets"] != per_scene["plays"])).any():
             raise ValueError("the variants played different seeds or instructed an object twice; a probe compares "
                              "the same scenes")
+        one_object_set(g)
         full = g.groupby("episode").filter(lambda s: s["instruct"].nunique() == ranks)
         scenes = [s.sort_values("instruct") for _, s in full.groupby("episode", sort=True)]
         n = len(scenes)
@@ -261,9 +262,21 @@ def same_scenes(a: pd.DataFrame, b: pd.DataFrame, suffixes: tuple[str, str], sam
         raise ValueError(f"the variants played different seeds{' or instructions' if same_target else ''}; a probe "
                          "compares the same scenes")
     if f"object_set{first}" in merged and (merged[f"object_set{first}"] != merged[f"object_set{second}"]).any():
-        raise ValueError("the variants played different object sets (ycb and standin: resumed on another machine?); "
-                         "a probe compares the same scenes")
+        raise ValueError(DIFFERENT_OBJECT_SETS)
     return merged
+
+
+DIFFERENT_OBJECT_SETS = ("the variants played different object sets (ycb and standin: resumed on another machine?); "
+                         "a probe compares the same scenes")
+
+
+def one_object_set(*plays: pd.DataFrame) -> None:
+    """ValueError when the plays (of one condition, from several variants) hold both object sets: what same_scenes
+    checks for the probes that play each scene twice, here for those that pool more variants (instruction swap,
+    absent object), whose variants a resume on another machine (object_set auto) can play with the other set."""
+    sets = {s for p in plays if "object_set" in p for s in p["object_set"].dropna()}  # (older runs: none kept)
+    if len(sets) > 1:
+        raise ValueError(DIFFERENT_OBJECT_SETS)
 
 
 def paired(a: pd.DataFrame, b: pd.DataFrame, metrics=METRICS) -> dict:
@@ -387,6 +400,7 @@ def absent_object(present: pd.DataFrame, absent: pd.DataFrame) -> dict:
         own = own.loc[sorted(set(full["episode"]))]
         if (own["seed"].reindex(full["episode"]).to_numpy() != full["seed"].to_numpy()).any():
             raise ValueError("the variants played different seeds; a probe compares the same scenes")
+        one_object_set(full, own)
         n = len(own)
         # (scenes, absent plays) arrays: the rows are sorted by scene, then by rank.
         held = (full["held"] != NONE).to_numpy().reshape(n, missing)
