@@ -275,3 +275,17 @@ def test_absent_object_calibration_layout_prior_and_nearest(tmp_path):
     assert len(widths) >= 2 and min(widths) > 300
     assert cells["condition"] == "small_jitter/canonical/3", cells
     assert next(v for k, v in cells.items() if k.startswith("shortcut reach")).startswith("100"), cells
+
+
+def test_the_table_says_why_shortcut_reach_is_undefined():
+    """Shortcut reach is None under full random (no usual place) and for a run that kept no TCP; the table said "no
+    usual place" for both, also beside a small-jitter condition's usual places."""
+    from vla_ladder.report.probes import table_html
+
+    present, absent = absent_plays(shortcut)
+    old = grounding.absent_object(present, absent.assign(tcp_x=np.nan))["small_jitter/canonical/3"]
+    table = table_html({"probe": "absent-object", "conditions": {"x": old}})
+    assert table.count("n/a (no TCP recorded)") == 2 and "no usual place" not in table
+    f = grounding.absent_object(*absent_plays(shortcut, "full_random"))["full_random/canonical/3"]
+    table = table_html({"probe": "absent-object", "conditions": {"x": f}})
+    assert table.count("n/a (no usual place)") == 2 and "TCP" not in table

@@ -208,7 +208,9 @@ def _absent_table(conds: dict) -> tuple[list[str], list[list[str]]]:
             "Δ grasp", "shortcut reach", "usual place empty", "same grasp as present"]
     return head, [[html.escape(k), f"{c['scenes']} ({c['absent_plays']})", _cell(c["success_present"]),
                    f"{_cell(c['grasp_present'])} → {_cell(c['grasp_absent'])}", _delta(c["grasp_change"]),
-                   *(["n/a (no usual place)"] * 2 if c["shortcut_reach"] is None else
+                   # (None in full random, where no place is usual, or for a run that kept no TCP: say which)
+                   *([f"n/a (no {'usual place' if c.get('usual_regions') is None else 'TCP recorded'})"] * 2
+                     if c["shortcut_reach"] is None else
                      [_cell(c["shortcut_reach"]), _cell(c["usual_place_empty"])]), _cell(c["same_grasp"])]
                   for k, c in conds.items()]
 
