@@ -154,6 +154,21 @@ def test_one_writer_per_two_servers_unless_asked():
     assert auto_writers(16, 3) == 3 and auto_writers(2, 2) == 2
 
 
+def test_an_eta_of_days_says_its_days(monkeypatch):
+    """The progress line's ETA of a long recording (100k demos at 0.5 demos/s: 2 days 7 h) read 07:33:20."""
+    import time
+    from types import SimpleNamespace
+
+    from vla_ladder.recording import record
+
+    lines = []
+    monkeypatch.setattr(record.log, "info", lambda fmt, *args: lines.append(fmt % args))
+    progress = record.Progress(100_001, 0, started=time.monotonic() - 2.0)
+    progress.report(SimpleNamespace(saved=0, pending=1))  # one demo in 2 s, 100000 to go
+    assert "ETA 2d 07:33:" in lines[-1], lines[-1]
+    assert record.eta_text(59) == "00:00:59" and record.eta_text(86400 + 61) == "1d 00:01:01"
+
+
 def _fill(store: DatasetStore, n: int) -> list[int]:
     seeds = store.reserve_seeds(n)
     for seed in seeds:

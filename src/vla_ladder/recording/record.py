@@ -328,11 +328,18 @@ class Progress:
         done = store.saved + store.pending - self.start_saved
         rate = done / elapsed
         left = self.target - store.saved - store.pending
-        eta = time.strftime("%H:%M:%S", time.gmtime(left / rate)) if rate > 0 else "?"
+        eta = eta_text(left / rate) if rate > 0 else "?"
         log.info("%s %d/%d saved (+%d pending) | attempted %d, expert success %.0f%% | %.1f frames/s simulated, "
                  "%.3f demos/s saved | ETA %s", "done:" if final else "progress:", store.saved, self.target,
                  store.pending, self.attempted, 100 * self.successes / max(self.attempted, 1),
                  self.frames / elapsed, rate, eta)
+
+
+def eta_text(seconds: float) -> str:
+    """HH:MM:SS, with the days in front from one day on: "%H:%M:%S" of gmtime wraps at 24 h, and a recording toward
+    100k demos on a few cores runs for days (its ETA read 07:33:20 where 2 days 07:33:20 were left)."""
+    days, rest = divmod(int(seconds), 86400)
+    return (f"{days}d " if days else "") + time.strftime("%H:%M:%S", time.gmtime(rest))
 
 
 class LocalServer:

@@ -19,7 +19,7 @@ from vla_ladder.checks import SEED_LIMIT
 from vla_ladder.machine import signal_on_parent_death
 from vla_ladder.recording.client import EpisodeSource, ServerError
 from vla_ladder.recording.ledger import STOP, WAIT, Ledger
-from vla_ladder.recording.record import RecordConfig, check_server, report_targets
+from vla_ladder.recording.record import RecordConfig, check_server, eta_text, report_targets
 from vla_ladder.recording.server import TOKEN_ENV
 from vla_ladder.recording.store import DatasetStore
 from vla_ladder.recordings import Recording
@@ -107,7 +107,7 @@ def _interrupt(procs: list[subprocess.Popen]) -> None:
 def _report(ledger: Ledger, target: int, before: int, started: float) -> None:
     kept, played, blocks = ledger.tally()
     rate = (kept - before) / max(time.monotonic() - started, 1e-9)
-    eta = time.strftime("%H:%M:%S", time.gmtime((target - kept) / rate)) if rate > 0 else "?"
+    eta = eta_text((target - kept) / rate) if rate > 0 else "?"
     log.info("progress: %d/%d saved | %d seeds played in %d blocks | %.3f demos/s saved | ETA %s", kept, target,
              played, blocks, rate, eta)
 
