@@ -169,6 +169,14 @@ def test_an_eta_of_days_says_its_days(monkeypatch):
     assert record.eta_text(59) == "00:00:59" and record.eta_text(86400 + 61) == "1d 00:01:01"
 
 
+def test_an_out_that_is_a_file_leaves_no_work_directory_beside_it(tmp_path):
+    """`record --out FILE` said the path is not a directory, and left .FILE.recording/ (its lock) beside the file."""
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(NotADirectoryError):
+        DatasetStore(tmp_path / "notes.txt", Recording(**CONFIG))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
 def _fill(store: DatasetStore, n: int) -> list[int]:
     seeds = store.reserve_seeds(n)
     for seed in seeds:

@@ -97,7 +97,7 @@ class DatasetStore:
         self._batch_started = time.monotonic()
         try:
             state = self._load_committed()
-        except ValueError:  # another dataset, or none: leave no work directory beside it
+        except (ValueError, OSError):  # another dataset, or none (a file: NotADirectoryError): leave no work directory
             self._lock_file.close()
             if made:
                 shutil.rmtree(self.work, ignore_errors=True)
