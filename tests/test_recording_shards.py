@@ -177,6 +177,52 @@ def test_an_out_that_is_a_file_leaves_no_work_directory_beside_it(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
 
 
+def test_record_refuses_servers_of_other_objects_before_recording(tmp_path, monkeypatch):
+    """Servers simulate the object set their machine has (auto: ycb where the YCB models are on disk, else standin).
+    Servers of two object sets, or of another one than the dataset's, were found at the first demo of the other set
+    (its batch lost) or, with --writers, by the merge, which refused the shards at that and at every rerun."""
+    import functools
+    import threading
+
+    from test_reconnect import LoopThread, _greeting_server
+    from vla_ladder.recording import record
+
+    monkeypatch.setattr(record, "setup_logging", lambda prefix: None)
+    serves = dict(policy="scripted", condition="small_jitter/canonical/2", robot_mesh="lite", instructions="canonical",
+                  num_envs=1)
+
+    def run(cfg):  # in a thread: a recorder that does not refuse waits for episodes the servers never send
+        out = []
+        worker = threading.Thread(target=lambda: out.append(_raised(record.run, cfg)), daemon=True)
+        worker.start()
+        worker.join(60)
+        assert out, "the recorder did not refuse the servers"
+        return out[0]
+
+    ycb = functools.partial(_greeting_server, serves={**serves, "object_set": "ycb"})
+    standin = functools.partial(_greeting_server, serves={**serves, "object_set": "standin"})
+    with LoopThread(ycb) as a, LoopThread(standin) as b:
+        error = run(record.RecordConfig(out=tmp_path / "new", episodes=2, server=(a.url, b.url)))
+        assert isinstance(error, ValueError) and "object set ycb" in str(error) and "object set standin" in str(error)
+        root = tmp_path / "data"
+        store = DatasetStore(root, Recording(**CONFIG))
+        store.add(synthetic_episode(store.reserve_seeds(1)[0], FRAMES))  # a standin demo
+        store.close()
+        error = run(record.RecordConfig(out=root, episodes=2, server=(a.url,)))
+        assert isinstance(error, ValueError) and "holds episodes of object set 'standin'" in str(error)
+        assert "servers simulate 'ycb'" in str(error), error
+        assert not (tmp_path / ".data.recording" / "staging").exists()
+        store = DatasetStore(root, Recording(**CONFIG))  # (the lock was let go)
+        store.close()
+
+
+def _raised(fn, *args):
+    try:
+        return fn(*args)
+    except Exception as e:
+        return e
+
+
 def _fill(store: DatasetStore, n: int) -> list[int]:
     seeds = store.reserve_seeds(n)
     for seed in seeds:

@@ -149,12 +149,13 @@ class RecordConfig:
             check_expert(self.policy, f"--policy {self.policy}")
 
 
-def recording_of(cfg: RecordConfig) -> Recording:
+def recording_of(cfg: RecordConfig) -> tuple[Recording, str | None]:
     """What the dataset will be a recording of: the local server's settings, or what the servers say they
-    serve (from their welcome messages)."""
+    serve (from their welcome messages); and the object set they simulate (None: a server that does not say)."""
     if not cfg.server:
+        from vla_ladder.task.assets import resolve_object_set
         return Recording(cfg.policy, cfg.condition, cfg.first_seed, cfg.video, cfg.robot_mesh, cfg.instructions,
-                         cfg.vcodec)
+                         cfg.vcodec), resolve_object_set("auto")  # (the local servers' environment is ours)
     from vla_ladder.policies import check_expert
     served = {url: asyncio.run(_welcome(url, cfg.token)) for url in cfg.server}
     for url, info in served.items():
@@ -162,12 +163,15 @@ def recording_of(cfg: RecordConfig) -> Recording:
             raise ValueError(f"--server {url}: its welcome does not say what it serves (server.policy and "
                              f"server.condition, strings): {str(info)[:200]}")
         check_expert(info["policy"], f"--server {url} serves {info['policy']!r}, which")
-    kinds = {(info["policy"], info["condition"], info.get("robot_mesh", "full"), info.get("instructions", "canonical"))
-             for info in served.values()}
+    # The object set too ("auto" is ycb where the YCB models are on disk, else standin): a dataset holds one, and
+    # writers' shards of two could never merge (each rerun refused the merge anew).
+    kinds = {(info["policy"], info["condition"], info.get("robot_mesh", "full"), info.get("instructions", "canonical"),
+              info.get("object_set")) for info in served.values()}
     if len(kinds) > 1:
         raise ValueError("the servers serve different things: " + "; ".join(
-            f"{url}: {info['policy']} on {info['condition']}" for url, info in served.items()))
-    policy, key, robot_mesh, instructions = kinds.pop()
+            f"{url}: {info['policy']} on {info['condition']}, object set {info.get('object_set')}"
+            for url, info in served.items()))
+    policy, key, robot_mesh, instructions, object_set = kinds.pop()
     condition = Condition.parse(key)
     if cfg.condition not in (Condition(), condition):
         raise ValueError(f"--server {cfg.server[0]} serves {condition} but the command asks for {cfg.condition}; "
@@ -180,7 +184,7 @@ def recording_of(cfg: RecordConfig) -> Recording:
             raise ValueError(f"--server {cfg.server[0]} serves {name.replace('_', '-')} {served_value!r} but the "
                              f"command asks for {given!r}; drop --{name.replace('_', '-')} (the servers' is recorded) "
                              "or start matching servers")
-    return Recording(policy, condition, cfg.first_seed, cfg.video, robot_mesh, instructions, cfg.vcodec)
+    return Recording(policy, condition, cfg.first_seed, cfg.video, robot_mesh, instructions, cfg.vcodec), object_set
 
 
 async def _welcome(url: str, token: str | None) -> dict:
@@ -195,7 +199,7 @@ def run(cfg: RecordConfig) -> int:
     setup_logging(f"writer {os.getpid()}" if cfg.ledger else "record")
     os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its whole configuration per video otherwise
     try:
-        recording = recording_of(cfg)
+        recording, object_set = recording_of(cfg)
     except ServerError as e:
         raise ValueError(f"cannot reach the server: {e}") from None
     if cfg.ledger:
@@ -210,6 +214,13 @@ def run(cfg: RecordConfig) -> int:
         log.info("%s already holds %d episodes (asked for %d); nothing to do", cfg.out, store.saved, cfg.episodes)
         store.close()
         return 0
+    # Before, the first demo of other objects failed the batch it was in, and writers' shards of them never merged.
+    if object_set and store.object_set not in (None, object_set):
+        store.close(commit=False)
+        raise ValueError(f"{cfg.out} holds episodes of object set {store.object_set!r} but the "
+                         f"{'servers simulate' if cfg.server else 'local servers would simulate'} {object_set!r}; "
+                         "record with the same objects (ycb: ManiSkill's YCB models on disk, $MS_ASSET_DIR; "
+                         "$VLA_LADDER_OBJECT_SET picks one) or into a new --out")
     if store.saved:
         log.info("resuming %s at %d/%d episodes, next seed %d", cfg.out, store.saved, cfg.episodes,
                  store.next_seed)
