@@ -72,6 +72,30 @@ async def _greeting_server(ready, serves: dict | None = None, limits: dict | Non
         await asyncio.Future()
 
 
+def test_a_server_that_never_greets_is_not_waited_for_forever():
+    """A WebSocket server that reads the hello and answers pings but sends no welcome (not a `vla-ladder serve`):
+    connect() waited for the welcome forever, and so did `record --server` at its start."""
+
+    async def silent(ready):
+        from websockets.asyncio.server import serve
+
+        async def handle(ws):
+            await ws.recv()
+            await ws.wait_closed()
+
+        async with serve(handle, "127.0.0.1", 0) as server:
+            ready(f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}")
+            await asyncio.Future()
+
+    async def connect(url):
+        client = EpisodeClient(url, **PING)
+        with pytest.raises(ServerError, match="no welcome within 1 s of the hello"):
+            await asyncio.wait_for(client.connect(open_timeout=1.0), 30)
+
+    with LoopThread(silent) as server:
+        asyncio.run(connect(server.url))
+
+
 def test_a_server_that_stops_answering_is_a_lost_connection_not_a_refusal():
     async def receive_while_frozen(server: LoopThread) -> ServerError:
         client = EpisodeClient(server.url, **PING)

@@ -141,7 +141,12 @@ class EpisodeClient:
         except (OSError, TimeoutError, WebSocketException) as e:
             raise ServerError(self.url, f"cannot connect: {e}") from None
         await self._send(P.hello(self.token, self.max_message))
-        msg = await self._recv()
+        try:  # open_timeout covers the HTTP upgrade only: a server that answers pings but never greets was waited for
+            msg = await asyncio.wait_for(self._recv(), open_timeout)  # forever (`record --server` hung at its start)
+        except TimeoutError:
+            await self.close()
+            raise ServerError(self.url, f"no welcome within {open_timeout:g} s of the hello; is it a `vla-ladder "
+                                        "serve`?") from None
         if msg.type != "welcome" or msg.header.get("protocol") != P.PROTOCOL_VERSION:
             await self.close()
             raise ServerError(self.url, f"expected a protocol {P.PROTOCOL_VERSION} welcome, got {msg.header}")
