@@ -153,7 +153,6 @@ def recording_of(cfg: RecordConfig) -> tuple[Recording, str | None]:
     """What the dataset will be a recording of: the local server's settings, or what the servers say they
     serve (from their welcome messages); and the object set they simulate (None: a server that does not say)."""
     if not cfg.server:
-        from vla_ladder.task.assets import resolve_object_set
         return Recording(cfg.policy, cfg.condition, cfg.first_seed, cfg.video, cfg.robot_mesh, cfg.instructions,
                          cfg.vcodec), resolve_object_set("auto")  # (the local servers' environment is ours)
     from vla_ladder.policies import check_expert
