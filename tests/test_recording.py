@@ -337,7 +337,9 @@ def test_malformed_episode_frames_are_rejected_by_the_client():
                         ({"metrics": {k: v for k, v in metrics.items() if k != "grasp_any"}}, "grasp_any"),
                         ({"expert": {}}, "expert['spec']"), ({"target": None}, "'target'"),
                         ({"condition": "small_jitter/canonical/9"}, "num_objects"),
-                        ({"has_frames": False}, "a successful episode sent without its frames")):
+                        ({"has_frames": False}, "a successful episode sent without its frames"),
+                        ({"layout": {"positions": b"\x00"}}, "layout is not JSON"),
+                        ({"expert": {"spec": "scripted", "weights": b"\x00"}}, "expert is not JSON")):
         with pytest.raises(P.ProtocolError, match=re.escape(words)):
             Episode.from_message(P.decode(P.encode({**header, **edit}, {})), "test")
     failed = Episode.from_message(P.decode(P.encode({**header, "metrics": {**metrics, "success": False},

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import heapq
+import json
 import logging
 import math
 import queue
@@ -16,6 +17,7 @@ from typing import Callable
 
 import numpy as np
 
+from vla_ladder import files
 from vla_ladder.checks import refusal_body
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
@@ -90,6 +92,11 @@ class Episode:
                 raise P.ProtocolError(f"episode {seed}: metrics[{key!r}] missing or not {what}")
         if not isinstance(h["expert"].get("spec"), str):
             raise P.ProtocolError(f"episode {seed}: expert['spec'] missing or not str")
+        for key in ("layout", "expert"):  # kept as JSON in the provenance: bytes there failed in the writer
+            try:
+                json.dumps(h[key], default=files.json_default)
+            except (TypeError, ValueError) as e:
+                raise P.ProtocolError(f"episode {seed}: {key} is not JSON ({e})") from None
         try:
             Condition.parse(h["condition"])
         except ValueError as e:
