@@ -167,6 +167,15 @@ def test_bad_specs_fail_before_loading(smolvla_run):
         load_policy("lerobot")
 
 
+def test_every_option_may_be_given_as_a_keyword(smolvla_run):
+    """load_policy(spec, **kwargs) takes a spec's options as keywords: instruction= and noise_seed= were dropped
+    unsaid (only the config's options were taken), so the episode's own instruction and stream 0 played."""
+    policy = load_policy(f"lerobot:{smolvla_run}?n_action_steps=2", device="cpu", noise_seed=3,
+                         instruction="grasp the thing")
+    assert {k: policy.describe()[k] for k in ("n_action_steps", "device", "noise_seed", "instruction")} == \
+        {"n_action_steps": 2, "device": "cpu", "noise_seed": 3, "instruction": "grasp the thing"}
+
+
 def test_mismatched_checkpoint_features_are_rejected(smolvla_run, tmp_path):
     bad = tmp_path / "bad"
     shutil.copytree(smolvla_run / "checkpoints" / "last" / "pretrained_model", bad)

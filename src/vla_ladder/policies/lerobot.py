@@ -369,5 +369,7 @@ def make_policy(arg: str | None, **kwargs) -> LeRobotPolicy:
     if not arg:
         raise ValueError("policy 'lerobot' needs a checkpoint: lerobot:CHECKPOINT_DIR[?n_action_steps=H]")
     path, options = parse_arg(arg)
-    options.update({k: v for k, v in kwargs.items() if k in CONFIG_OPTIONS and v is not None})
+    # Every option the spec may give may be given as a keyword too (load_policy(spec, noise_seed=1)); only
+    # CONFIG_OPTIONS were taken, so instruction= and noise_seed= were dropped unsaid and the default played.
+    options.update({k: v for k, v in kwargs.items() if k in QUERY_KEYS and v is not None})
     return LeRobotPolicy(path, **options)
