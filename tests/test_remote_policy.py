@@ -238,6 +238,18 @@ def test_a_bad_answer_is_one_clear_error(answer, says):
         server.shutdown()
 
 
+def test_every_option_may_be_given_as_a_keyword(monkeypatch):
+    """load_policy("remote:URL", **kwargs) takes the spec's options as keywords; instruction= was dropped unsaid."""
+    from vla_ladder.policies import load_policy, remote
+
+    made = {}
+    monkeypatch.setattr(remote, "RemotePolicy", lambda url, **options: made.update(options, url=url))
+    load_policy("remote:ws://127.0.0.1:9?n_action_steps=3", instruction="grasp the thing", device="cpu")
+    assert made == {"url": "ws://127.0.0.1:9", "n_action_steps": 3, "instruction": "grasp the thing"}
+    load_policy("remote:ws://127.0.0.1:9?n_action_steps=3", n_action_steps=5)
+    assert made["n_action_steps"] == 5
+
+
 @pytest.mark.parametrize("depth", [None, 2])
 def test_a_batch_of_envs_pipelines_its_requests_only_to_servers_that_say_so(depth):
     """With --num-envs N, `remote:` sends up to the server's "max_pipelined" requests before it reads an answer, and

@@ -370,7 +370,9 @@ def make_policy(arg: str | None, **kwargs) -> RemotePolicy:
     if not arg:
         raise ValueError("policy 'remote' needs a server: remote:ws://HOST:PORT[?n_action_steps=H]")
     url, options = parse_arg(arg)
-    if kwargs.get("n_action_steps") is not None:
-        options["n_action_steps"] = int(kwargs["n_action_steps"])
+    # Every option the spec may give may be given as a keyword too, as for lerobot: (instruction= was dropped unsaid)
+    options.update({k: v for k, v in kwargs.items() if k in QUERY_KEYS and v is not None})
+    if "n_action_steps" in options:
+        options["n_action_steps"] = int(options["n_action_steps"])
     return RemotePolicy(url, **options)
 
