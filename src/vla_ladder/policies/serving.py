@@ -57,8 +57,8 @@ class ServePolicyConfig:
     """Serve a LeRobot checkpoint to remote clients (`vla-ladder serve-policy`; `eval --policy remote:URL`)."""
 
     policy: str = ""
-    """lerobot:CHECKPOINT[?device=D&n_action_steps=H&use_amp=B&noise_seed=K]: the checkpoint to serve; its
-    n_action_steps is the default horizon clients run (they may ask for another)"""
+    """lerobot:CHECKPOINT[?device=D&n_action_steps=H&use_amp=B&noise_seed=K&instruction=TEXT]: the checkpoint to
+    serve; its n_action_steps is the default horizon clients run (they may ask for another)"""
     host: str = "127.0.0.1"
     """address to listen on; anything but loopback needs --api-key"""
     port: int = 8000
