@@ -336,3 +336,32 @@ def test_a_run_directory_refuses_a_checkpoint_retrained_at_the_same_path(tmp_pat
     again = EvalConfig(f"ppo:{ckpt}", out=tmp_path / "run", episodes=2, overwrite=True)
     assert open_run_dir(again, retrained) == [] and not (tmp_path / "run" / "episodes.parquet").exists()
     assert weights_identity("scripted") is None
+
+
+def test_the_player_clamps_every_policys_actions_to_the_action_space():
+    """A plugin's action past 1 reached ManiSkill, which clips only the rotation's norm: the wrist turned otherwise
+    than under lerobot-eval (whose env clamps) or for the same action clamped by the policy itself."""
+    import torch
+
+    from vla_ladder.conditions import Condition
+    from vla_ladder.evaluation.player import EnvSettings, Job, Player
+    from vla_ladder.policies import Policy
+
+    class Constant(Policy):
+        def __init__(self, action):
+            self.action, self.qpos = torch.tensor([action]), []
+
+        def act(self, obs, instructions):
+            self.qpos.append(obs["agent"]["qpos"].clone())
+            return self.action.numpy()  # (a plugin may hand back numpy)
+
+    seen = []
+    for action in ([0.0, 0.0, 0.0, 1.5, 0.5, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0, 0.5, 0.0, 1.0]):
+        policy = Constant(action)
+        player = Player(policy, EnvSettings())
+        try:
+            player.play([Job(Condition("small_jitter", num_objects=2), 0, 3)])
+        finally:
+            player.close()
+        seen.append(torch.stack(policy.qpos))
+    assert torch.equal(seen[0], seen[1])

@@ -179,7 +179,10 @@ class Player:
         horizon = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else EPISODE_STEPS
         for _ in range(horizon):
             with watch("policy"):
-                action = self.policy.act(obs, instructions)
+                # Clamped to the action space here, for every policy (a plugin's included), as the LeRobot env does
+                # under lerobot-eval: ManiSkill clips only the rotation's norm, so a component past 1 turned the
+                # wrist otherwise. An action inside [-1, 1] is unchanged, bit for bit.
+                action = torch.as_tensor(self.policy.act(obs, instructions)).clamp(-1, 1)
             with watch("env"):
                 obs, _, _, truncated, info = env.step(action)
             steps += 1
