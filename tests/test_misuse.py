@@ -414,6 +414,8 @@ def test_overwrite_replaces_only_a_directory_of_its_own_kind(command, tmp_path, 
 
 @pytest.mark.parametrize("query, says", [("n_action_steps=0", "expected an integer >= 1"),
                                          ("n_action_steps=-1", "expected an integer >= 1"),
+                                         ("n_action_steps=٣", "expected an integer >= 1, got '٣'"),
+                                         ("n_action_steps=²", "expected an integer >= 1, got '²'"),
                                          ("device=foo", "expected cpu, cuda, cuda:N or mps"),
                                          ("noise_seed=99999999999999999999999", "2**63 - 1"),
                                          ("n_action_steps=2&n_action_steps=3", "given twice")])

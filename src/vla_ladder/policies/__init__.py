@@ -144,7 +144,7 @@ def allowed_specs() -> str:
 
 def positive_int(value: str) -> int:
     """An option's parser: an integer >= 1 (an execution horizon, say)."""
-    if not value.isdigit() or int(value) < 1:
+    if not (value.isascii() and value.isdigit()) or int(value) < 1:  # (str.isdigit takes '٣' and '²' too)
         raise ValueError(f"expected an integer >= 1, got {value!r}")
     return int(value)
 
