@@ -142,3 +142,28 @@ def test_a_directory_is_built_whole_or_not_at_all_and_removed_the_same_way(tmp_p
     (tmp_path / "run").mkdir()
     files.remove_dir(tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+def strict_json(text: str):
+    """`text` parsed as JSON.parse, jq and most languages' parsers read it: NaN and Infinity refused."""
+    return json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(f"not strict JSON: {c}")))
+
+
+def test_results_are_strict_json_with_undefined_numbers_as_null(tmp_path):
+    """Python's json wrote NaN (a rate over no scenes) as a bare NaN token, which JSON.parse, jq and most other
+    languages' parsers refuse: write_json writes null for every non-finite number, numpy's and those in arrays too;
+    number() reads null back as the NaN it was."""
+    import numpy as np
+
+    from vla_ladder.files import dumps, number, plain
+
+    data = {"value": float("nan"), "ci95": (np.float64("nan"), float("inf")), "f32": np.float32("nan"),
+            "neg": -np.inf, "array": np.array([0.5, np.nan]), "nested": [{"x": np.float32(0.25)}], "n": np.int64(3),
+            "ok": True, "path": Path("a/b"), "none": None}
+    expected = {"value": None, "ci95": [None, None], "f32": None, "neg": None, "array": [0.5, None],
+                "nested": [{"x": 0.25}], "n": 3, "ok": True, "path": "a/b", "none": None}
+    assert strict_json(write_json(tmp_path / "r.json", data).read_text()) == expected
+    assert strict_json(dumps(data)) == expected and plain(data) == expected
+    assert np.isnan(number(None)) and number(0.5) == 0.5 and number("x") == "x"
+    # Files written before hold NaN itself, which Python's json still reads.
+    assert np.isnan(json.loads('{"value": NaN}')["value"])

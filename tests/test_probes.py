@@ -444,3 +444,61 @@ def test_probes_pooling_several_variants_refuse_plays_of_both_object_sets():
     assert grounding.absent_object(present.assign(object_set="ycb"), absent.assign(object_set="ycb"))
     with pytest.raises(ValueError, match="the variants played different object sets"):
         grounding.absent_object(present.assign(object_set="standin"), absent.assign(object_set="ycb"))
+
+
+def _nan_everywhere(data):
+    """`data` with every float undefined (NaN), as a probe of conditions without scenes writes them."""
+    if isinstance(data, dict):
+        return {k: _nan_everywhere(v) for k, v in data.items()}
+    if isinstance(data, list):
+        return [_nan_everywhere(v) for v in data]
+    return float("nan") if isinstance(data, float) else data
+
+
+def test_a_probe_with_undefined_metrics_writes_strict_json_and_reports_them_as_before(tmp_path):
+    """probe.json held bare NaN tokens for the rates of a condition without one complete scene, which JSON.parse,
+    jq and most languages' parsers refuse: it holds null now, and the report, the terminal's lines, the study's
+    table and diagnose read it as they read NaN ("–" in the tables, "nan" in the lines)."""
+    from test_files import strict_json
+
+    from vla_ladder.experiments.diagnose import _rate
+    from vla_ladder.report import study as study_report
+
+    df = plays(lambda lay, r, j: lay.target, k=2, scenes=3)
+    swap = grounding.instruction_swap(df[df["instruct"] == 0], resamples=300)  # no scene has both plays
+    ordinary = df[df["instruct"] == 0].assign(absent=np.nan, tcp_x=0.0, tcp_y=0.0)
+    absent = grounding.absent_object(ordinary, ordinary.assign(absent=0, target="mug"))
+    a = plays(lambda lay, r, j: lay.target)
+    a = a[a["instruct"] == 0].drop(columns="instruct")
+    rows = []
+    for j in range(12):
+        lay = sample_layout(Condition("small_jitter"), j, appearance="swap")
+        rows.append(dict(regime="small_jitter", split="canonical", num_objects=5, episode=j, seed=j,
+                         target=lay.target, held=lay.target, layout=json.dumps(lay.to_dict())))
+    swapped = pd.DataFrame(rows)
+    original = swapped.assign(layout=[json.dumps(sample_layout(Condition("small_jitter"), j).to_dict())
+                                      for j in range(12)])
+    appearance = _nan_everywhere(grounding.appearance_swap(original, swapped))
+    cases = {"instruction-swap": swap, "absent-object": absent, "appearance-swap": appearance,
+             "nan-swap": _nan_everywhere(grounding.instruction_swap(df, resamples=300))}
+    for name, conditions in cases.items():
+        probe = "instruction-swap" if name == "nan-swap" else name
+        data = {"probe": probe, "policy": {"spec": "nearest"}, "complete": True, "conditions": conditions}
+        path = tmp_path / name
+        write_json(path / "probe.json", data)
+        text = (path / "probe.json").read_text()
+        assert "NaN" not in text and "null" in text
+        strict_json(text)
+        loaded = probe_report.load_probe(path)
+        assert probe_report.table_html(loaded) == probe_report.table_html(data)
+        assert "–" in probe_report.table_html(loaded)
+        assert probe_report.summary_lines(loaded) == probe_report.summary_lines(data)
+        assert any("nan" in line for line in probe_report.summary_lines(loaded))
+        assert probe_report.section(loaded, [], "here") == probe_report.section(data, [], "here")
+        assert all(p.is_file() for p in probe_report.plot_probe(loaded, tmp_path / f"{name}.png"))
+        shown = {f"m-{probe}": loaded}
+        assert study_report.probes_markdown(shown) == study_report.probes_markdown({f"m-{probe}": data})
+    key = "small_jitter/canonical/2"
+    entry = probe_report.load_probe(tmp_path / "instruction-swap")["conditions"][key]["instruction_sensitivity"]
+    assert entry["value"] is None and np.isnan(_rate(entry)["value"]) and np.isnan(_rate(entry)["ci95"]).all()
+    assert probe_report.load_probe(tmp_path / "absent-object")["conditions"][key]["grasp_absent"]["value"] is None

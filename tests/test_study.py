@@ -339,6 +339,34 @@ def _kill(proc) -> None:
     proc.wait()
 
 
+def test_a_study_summary_with_undefined_rates_is_strict_json_and_its_tables_read_as_before(tmp_path):
+    """A rate over no episodes was NaN in summary.json's cells and curves, which strict JSON parsers refuse: it is
+    null there now, and --report-only's tables and curves, which read that file back, show it as they showed NaN."""
+    from test_files import strict_json
+
+    from vla_ladder.report import study as present
+
+    nan = float("nan")
+    rates = {"success": nan, "grasp_any": 0.5, "reach": nan}
+    ci = {"success": [nan, nan], "grasp_any": [0.2, 0.8], "reach": [nan, nan]}
+    cells = [{"policy": p, "train_dataset": d, "train_condition": t, "eval_condition": e, "n": 0, **rates, "ci95": ci,
+              "run": "eval/x"}
+             for p, d, t, e in (("SmolVLA", "sj", "small_jitter/canonical/5", "small_jitter/canonical/5"),
+                                ("SmolVLA", "sj", "small_jitter/canonical/5", "small_jitter/pairings_ood/5"),
+                                ("nearest", None, None, "small_jitter/canonical/5"))]
+    curves = {"SmolVLA on sj": [{"step": 10, "n": 0, **rates, "ci95": ci}, {"step": 20, "n": 2, **rates, "ci95": ci}]}
+    files.write_json(tmp_path / "summary.json", {"cells": cells, "curves": curves})
+    saved = strict_json((tmp_path / "summary.json").read_text())
+    assert saved["cells"][0]["success"] is None and saved["curves"]["SmolVLA on sj"][0]["ci95"]["reach"] == [None, None]
+    paper = {"ladder": {"SmolVLA": {"small_jitter/canonical/5": {"n": 100, "success": 0.5, "grasp_any": 0.6,
+                                                                 "reach": 0.7}}}}
+    for table in (present.matrix_markdown, present.matrix_latex, present.matrix_html, present.pairings_html,
+                  lambda c: present.paper_comparison_markdown(c, paper)):
+        assert table(saved["cells"]) == table(cells)
+    assert "– / 50 / –" in present.matrix_markdown(saved["cells"])
+    assert present.plot_curves(saved["curves"], tmp_path / "curves.png").is_file()
+
+
 @pytest.mark.slow
 def test_micro_study_survives_kills_mid_record_and_mid_train_and_reports_learned_rows(tmp_path):
     out = tmp_path / "study"

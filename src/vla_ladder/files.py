@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -184,9 +185,47 @@ def claim_dir(out: Path, previous: dict | None, request: dict, overwrite: bool, 
 
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:
+    """`data` as strict JSON at `path` (atomically): an undefined number (NaN, a rate over no scenes; an infinity)
+    is written as null, which every JSON parser reads, where Python's json would write NaN, which JSON.parse, jq and
+    most other languages' parsers refuse. A reader that computes with such a value reads null as NaN
+    (`number`)."""
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=json_default) + "\n")
+        tmp.write_text(dumps(data, indent=2) + "\n")
     return Path(path)
+
+
+def dumps(data: Any, **kwargs) -> str:
+    """`data` as strict JSON text: non-finite numbers as null (`finite`), numpy values and paths as plain ones
+    (`json_default`). What every JSON that vla-ladder writes for others to read goes through; a non-finite number
+    that `finite` did not reach fails here (allow_nan=False) rather than write a file strict parsers refuse."""
+    return json.dumps(finite(data), default=json_default, allow_nan=False, **kwargs)
+
+
+def finite(data: Any) -> Any:
+    """`data` with every non-finite float (NaN, +-inf; numpy's and those inside numpy arrays too) replaced by None,
+    numpy scalars and arrays as Python values, tuples as lists: what strict JSON can hold."""
+    import numpy as np
+
+    def walk(o):
+        if isinstance(o, float):  # (numpy's float64 is one)
+            return float(o) if math.isfinite(o) else None
+        if isinstance(o, dict):
+            return {k: walk(v) for k, v in o.items()}
+        if isinstance(o, (list, tuple)):
+            return [walk(v) for v in o]
+        if isinstance(o, np.ndarray):
+            return walk(o.tolist())
+        if isinstance(o, np.generic):  # float32, int64, bool_ ...
+            return walk(o.item())
+        return o
+
+    return walk(data)
+
+
+def number(x: Any) -> Any:
+    """A number as a result file holds it, for a reader that computes or formats with it: NaN for null, which
+    write_json writes for an undefined number (files written before it hold NaN itself, which json reads as NaN)."""
+    return float("nan") if x is None else x
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
@@ -215,8 +254,8 @@ def json_default(o):
 
 def plain(data):
     """`data` as write_json stores it and json.load gives it back (tuples as lists, paths as strings, numpy values
-    as Python ones): what a config compares equal to once saved."""
-    return json.loads(json.dumps(data, default=json_default))
+    as Python ones, non-finite numbers as None): what a config compares equal to once saved."""
+    return json.loads(dumps(data))
 
 
 def first_difference(a, b, where: str = "") -> str:

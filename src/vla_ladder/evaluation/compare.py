@@ -21,7 +21,7 @@ from vla_ladder.checks import check_output_file
 from vla_ladder.contract import METRICS
 from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
 from vla_ladder.evaluation.rundir import EPISODE_KEY, Run, check_same_seeds, load_run
-from vla_ladder.files import write_json
+from vla_ladder.files import number, write_json
 from vla_ladder.stats import detectable_difference, paired_difference, wilson
 
 
@@ -136,9 +136,10 @@ def format_table(result: dict, alpha: float = 0.05) -> str:
            f"{'A only':>6} {'B only':>6} {'McNemar p':>10} {'z':>6} {'z-test p':>9} {'MDD':>5}"
     lines += [head, "-" * len(head)]
     for r in result["rows"]:
+        r = {k: number(v) for k, v in r.items()}  # (a result read back from --json holds null for NaN)
         star = " *" if r["mcnemar_p"] < alpha else ""
         z = "" if math.isnan(r["z"]) else f"{r['z']:6.2f}"
-        lo, hi = r["ci95_diff"]
+        lo, hi = map(number, r["ci95_diff"])
         ci = f"[{100 * lo:+.0f}, {100 * hi:+.0f}]"
         lines.append(f"{r['condition']:<28} {r['metric']:<9} {r['n']:>4} {100 * r['rate_a']:5.0f} "
                      f"{100 * r['rate_b']:5.0f} {100 * r['diff']:+6.0f} {ci:>11} {r['only_a']:>6} {r['only_b']:>6} "

@@ -373,7 +373,7 @@ def _evaluate(cfg: EvalConfig, policy: Policy | None, spec: str, overlap: int, w
             add_timing(timing, row.pop("timing"))
             c = job.condition
             rows.append(dict(policy=spec, regime=c.regime, split=c.split, num_objects=c.num_objects,
-                             episode=job.episode, **{**row, "layout": json.dumps(row["layout"])},
+                             episode=job.episode, **{**row, "layout": files.dumps(row["layout"])},
                              video=job.video and str(Path(job.video).relative_to(cfg.out))))
             bar.update(1)
             bar.set_postfix(condition=c.key, success=f"{np.mean([r['success'] for r in rows]):.2f}")

@@ -215,7 +215,9 @@ def open_diagnosis_dir(cfg: DiagnoseConfig) -> None:
 
 # ---------------------------------------------------------------------- the answers
 def _rate(entry: dict | None) -> dict | None:
-    return None if entry is None else {"value": entry["value"], "ci95": list(entry["ci95"]), "n": entry.get("n")}
+    """A probe.json metric as an answer; an undefined value (null in the file: a rate over no scenes) is NaN."""
+    return None if entry is None else {"value": files.number(entry["value"]),
+                                       "ci95": [files.number(x) for x in entry["ci95"]], "n": entry.get("n")}
 
 
 def ladder_drop(run: Run, condition: str) -> dict | None:

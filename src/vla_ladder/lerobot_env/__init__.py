@@ -23,7 +23,6 @@ eval_info.json's per_episode on the seed. LeRobot's loop has no place for them i
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 from dataclasses import dataclass, field
@@ -34,6 +33,7 @@ import torch
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 
+from vla_ladder import files
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import (ACTION_DIM, ACTION_KEY, CAMERAS, CONTROL_HZ, ENV_ID, EPISODE_STEPS, METRICS,
                                  STATE_DIM, STATE_KEY)
@@ -121,7 +121,7 @@ class LeRobotGraspObject(gym.Env):
             # One write of one line with O_APPEND: whole lines even from several async env processes.
             fd = os.open(self.episode_metrics, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
             try:
-                os.write(fd, (json.dumps(record) + "\n").encode())
+                os.write(fd, (files.dumps(record) + "\n").encode())  # (strict JSON: a NaN distance as null)
             finally:
                 os.close(fd)
 

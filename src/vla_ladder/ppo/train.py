@@ -268,6 +268,6 @@ def cli_config(argv: list[str]) -> Args:
 def run(args: Args) -> int:
     result = train(args)
     ev = result["eval"]["all"] if result.get("eval") else {}
-    print(json.dumps({"out": str(args.out), "global_step": result["global_step"], "sps": round(result["sps"], 1),
+    print(files.dumps({"out": str(args.out), "global_step": result["global_step"], "sps": round(result["sps"], 1),
                       **{m: ev.get(m) for m in ("success", "grasp_any", "reach")}}))
     return 0

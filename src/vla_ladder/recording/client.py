@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import heapq
-import json
 import logging
 import math
 import queue
@@ -94,7 +93,7 @@ class Episode:
             raise P.ProtocolError(f"episode {seed}: expert['spec'] missing or not str")
         for key in ("layout", "expert"):  # kept as JSON in the provenance: bytes there failed in the writer
             try:
-                json.dumps(h[key], default=files.json_default)
+                files.dumps(h[key])
             except (TypeError, ValueError) as e:
                 raise P.ProtocolError(f"episode {seed}: {key} is not JSON ({e})") from None
         try:

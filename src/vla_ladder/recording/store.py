@@ -669,8 +669,8 @@ def _provenance_row(index: int, episode) -> dict[str, Any]:
     return {
         "episode_index": index, "seed": int(episode.seed), "policy": h["expert"]["spec"],
         **_condition_columns(Condition.parse(h["condition"])), "target": h["target"],
-        "instruction": h["instruction"], "layout": json.dumps(h["layout"], default=files.json_default),
-        "expert": json.dumps(h["expert"], default=files.json_default), "object_set": h["object_set"],
+        "instruction": h["instruction"], "layout": files.dumps(h["layout"]),
+        "expert": files.dumps(h["expert"]), "object_set": h["object_set"],
         "robot_mesh": h.get("robot_mesh", "full"), "instructions": h.get("instructions", "canonical"),
         "success": bool(m["success"]), "grasp_any": bool(m["grasp_any"]), "reach": bool(m["reach"]),
         "lifted": bool(m["lifted"]), "held": m["held"], "reach_dist": float(m["reach_dist"]),

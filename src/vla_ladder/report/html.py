@@ -30,7 +30,7 @@ from vla_ladder.evaluation.displacement import by_displacement
 from vla_ladder.evaluation.metrics import OUTCOME_TEXT, OUTCOMES, outcomes
 from vla_ladder.checks import check_output_file
 from vla_ladder.evaluation.rundir import EPISODE_KEY, Run, load_runs
-from vla_ladder.files import write_text
+from vla_ladder.files import number, write_text
 from vla_ladder.report import plots, tables
 from vla_ladder.report import probes as probe_report
 from vla_ladder.report.displacement import CAPTION as DISPLACEMENT_CAPTION
@@ -143,8 +143,8 @@ def results_by_label(runs: list[Run], labels: list[str] | None = None) -> dict[s
 
 
 def _rate_cell(cond: dict, m: str) -> str:
-    lo, hi = cond["ci95"][m]
-    return f"{100 * cond[m]:.0f}<span class=ci> [{100 * lo:.0f}, {100 * hi:.0f}]</span>"
+    lo, hi = map(number, cond["ci95"][m])  # (null: an undefined rate, as summary.json holds it)
+    return f"{100 * number(cond[m]):.0f}<span class=ci> [{100 * lo:.0f}, {100 * hi:.0f}]</span>"
 
 
 def _conditions_table(results: dict[str, dict]) -> str:

@@ -34,8 +34,9 @@ def _save(fig, path: str | Path) -> Path:
 
 def _err(conds: list[dict], metric: str) -> tuple[np.ndarray, np.ndarray]:
     """Rates (%) and asymmetric error bars (2, k) of one metric over a list of conditions."""
-    v = np.array([c[metric] for c in conds]) * 100
-    ci = np.array([c["ci95"][metric] for c in conds]).reshape(-1, 2) * 100
+    # (dtype float: an undefined rate, null in a summary.json, is NaN as it was when written as NaN)
+    v = np.array([c[metric] for c in conds], dtype=float) * 100
+    ci = np.array([c["ci95"][metric] for c in conds], dtype=float).reshape(-1, 2) * 100
     return v, np.abs(np.stack([v - ci[:, 0], ci[:, 1] - v]))
 
 
@@ -85,9 +86,9 @@ def plot_pairings(results: dict[str, dict], path: str | Path, regime: str = "sma
     fig, ax = plt.subplots(figsize=(max(5.0, 1.6 * len(bars)), 3.4))
     width = 0.8 / max(1, len(bars))
     for j, (model, split, c) in enumerate(bars):
-        vals = np.array([c[m] for m in METRICS]) * 100
-        errs = np.abs(np.array([[c[m] * 100 - c["ci95"][m][0] * 100, c["ci95"][m][1] * 100 - c[m] * 100]
-                                for m in METRICS]).T)
+        vals = np.array([c[m] for m in METRICS], dtype=float) * 100
+        ci = np.array([c["ci95"][m] for m in METRICS], dtype=float).reshape(-1, 2) * 100
+        errs = np.abs(np.stack([vals - ci[:, 0], ci[:, 1] - vals]))
         label = SPLIT_NAMES[split] if len(results) == 1 else f"{model}: {SPLIT_NAMES[split]}"
         ax.bar(np.arange(len(METRICS)) + (j - (len(bars) - 1) / 2) * width, vals, width, yerr=errs, capsize=3,
                label=label, hatch="//" if split == "pairings_ood" else None, alpha=0.85)

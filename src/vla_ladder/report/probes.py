@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from vla_ladder.contract import CONTROL_HZ, EPISODE_STEPS
+from vla_ladder.files import number
 from vla_ladder.report.plots import _plt, _save, plot_confusion
 
 PROBE_FILE = "probe.json"
@@ -119,13 +120,23 @@ def probe_dirs(run_paths) -> list[Path]:
                               if (Path(p).resolve().parent / PROBE_FILE).is_file()))
 
 
+def _undefined(x) -> bool:
+    """NaN, or null: how probe.json stores an undefined number (a rate over no scenes) since it is strict JSON."""
+    return x is None or x != x
+
+
+def _num(x, spec: str) -> str:
+    """`x` formatted by `spec`, "nan" where it is undefined (NaN or null) as it always showed."""
+    return format(number(x), spec)
+
+
 def _pct(x) -> str:
-    return "–" if x is None or x != x else f"{100 * x:.0f}"
+    return "–" if _undefined(x) else f"{100 * x:.0f}"
 
 
 def _cell(entry: dict, scale: str = "pct") -> str:
     """"value [lo, hi]" of a {value, ci95} entry, in % or (scale="unit") with two decimals."""
-    fmt = _pct if scale == "pct" else (lambda x: "–" if x != x else f"{x:.2f}")
+    fmt = _pct if scale == "pct" else (lambda x: "–" if _undefined(x) else f"{x:.2f}")
     lo, hi = entry["ci95"]
     return f"{fmt(entry['value'])}<span class=ci> [{fmt(lo)}, {fmt(hi)}]</span>"
 
@@ -137,8 +148,8 @@ def _nmi(entry: dict) -> str:
     cell = _cell(entry, "unit")
     if "null_mean" not in entry:
         return cell
-    shuffled = "" if "plug_in" in entry else f"shuffled {entry['null_mean']:.2f}, "
-    return cell + f"<span class=ci> ({shuffled}p={entry['permutation_p']:.2g})</span>"
+    shuffled = "" if "plug_in" in entry else f"shuffled {_num(entry['null_mean'], '.2f')}, "
+    return cell + f"<span class=ci> ({shuffled}p={_num(entry['permutation_p'], '.2g')})</span>"
 
 
 def _rate(cond: dict, metric: str) -> str:
@@ -148,13 +159,13 @@ def _rate(cond: dict, metric: str) -> str:
 def _signed(entry: dict, note: str = "") -> str:
     """"+value [lo, hi]" of a difference, in points, with an optional note inside the interval's span."""
     lo, hi = entry["ci95"]
-    sign = lambda x: "–" if x != x else f"{100 * x:+.0f}"  # noqa: E731
+    sign = lambda x: "–" if _undefined(x) else f"{100 * x:+.0f}"  # noqa: E731
     return f"{sign(entry['value'])}<span class=ci> [{sign(lo)}, {sign(hi)}]{note}</span>"
 
 
 def _delta(entry: dict) -> str:
     """A paired change with McNemar's p where it has one (a share change over several plays a scene has none)."""
-    return _signed(entry, f", p={entry['mcnemar_p']:.2g}" if "mcnemar_p" in entry else "")
+    return _signed(entry, f", p={_num(entry['mcnemar_p'], '.2g')}" if "mcnemar_p" in entry else "")
 
 
 def _table(head: list[str], rows: list[list[str]]) -> str:
@@ -435,43 +446,47 @@ def _plot_outcomes(data: dict, path: Path, names: dict[str, str], plays: tuple[s
     return _save(fig, path)
 
 
+def _v(entry: dict) -> str:
+    """A {value, ci95} entry's value for the terminal, "nan" where it is undefined."""
+    return _num(entry["value"], ".2f")
+
+
 def _swap_lines(key: str, c: dict) -> list[str]:
-    return [f"{key}: scenes={c['scenes']} sensitivity={c['instruction_sensitivity']['value']:.2f} "
-            f"grounded_accuracy={c['grounded_accuracy']['value']:.2f} nmi={c['nmi']['value']:.2f} "
-            f"success={c['success']['value']:.2f}"]
+    return [f"{key}: scenes={c['scenes']} sensitivity={_v(c['instruction_sensitivity'])} "
+            f"grounded_accuracy={_v(c['grounded_accuracy'])} nmi={_v(c['nmi'])} success={_v(c['success'])}"]
 
 
 def _paraphrase_lines(key: str, c: dict) -> list[str]:
-    return [f"{key}: success " + ", ".join(f"{w} {c[w]['success']:.2f}" for w in WORDINGS if w in c)]
+    return [f"{key}: success " + ", ".join(f"{w} {_num(c[w]['success'], '.2f')}" for w in WORDINGS if w in c)]
 
 
 def _appearance_lines(key: str, c: dict) -> list[str]:
-    return [f"{key}: swapped={c['swapped']} follows_shape={c['follows_shape']['value']:.2f} "
-            f"(no swap {c['original']['instructed']['value']:.2f}) follows_colour={c['follows_colour']['value']:.2f}"]
+    return [f"{key}: swapped={c['swapped']} follows_shape={_v(c['follows_shape'])} "
+            f"(no swap {_v(c['original']['instructed'])}) follows_colour={_v(c['follows_colour'])}"]
 
 
 def _absent_lines(key: str, c: dict) -> list[str]:
-    reach = "n/a" if c["shortcut_reach"] is None else f"{c['shortcut_reach']['value']:.2f}"
-    return [f"{key}: scenes={c['scenes']} grasp present={c['grasp_present']['value']:.2f} "
-            f"absent={c['grasp_absent']['value']:.2f} shortcut_reach={reach} same_grasp={c['same_grasp']['value']:.2f}"]
+    reach = "n/a" if c["shortcut_reach"] is None else _v(c["shortcut_reach"])
+    return [f"{key}: scenes={c['scenes']} grasp present={_v(c['grasp_present'])} "
+            f"absent={_v(c['grasp_absent'])} shortcut_reach={reach} same_grasp={_v(c['same_grasp'])}"]
 
 
 def _position_lines(key: str, c: dict) -> list[str]:
     return [f"{key}: swapped={c['swapped']}/{c['scenes']} follows_object "
-            f"{c['follows_object_original']['value']:.2f} -> {c['follows_object_swapped']['value']:.2f} "
-            f"follows_place {c['follows_place_original']['value']:.2f} -> {c['follows_place_swapped']['value']:.2f}"]
+            f"{_v(c['follows_object_original'])} -> {_v(c['follows_object_swapped'])} "
+            f"follows_place {_v(c['follows_place_original'])} -> {_v(c['follows_place_swapped'])}"]
 
 
 def _removal_lines(key: str, c: dict) -> list[str]:
-    return [f"{key}: scenes={c['scenes']} success {c['success_original']['value']:.2f} -> alone "
-            f"{c['success_alone']['value']:.2f} distractor_failures={c['distractor_failures']['value']:.2f} "
-            f"failures_alone_too={c['failures_alone_too']['value']:.2f}"]
+    return [f"{key}: scenes={c['scenes']} success {_v(c['success_original'])} -> alone "
+            f"{_v(c['success_alone'])} distractor_failures={_v(c['distractor_failures'])} "
+            f"failures_alone_too={_v(c['failures_alone_too'])}"]
 
 
 def _switch_lines(key: str, c: dict) -> list[str]:
     return [f"{key} switch@{k}: scenes={e['scenes']} follows_new "
-            f"{e['follows_new_original']['value']:.2f} -> {e['follows_new_switched']['value']:.2f} "
-            f"stays_old {e['stays_old_original']['value']:.2f} -> {e['stays_old_switched']['value']:.2f}"
+            f"{_v(e['follows_new_original'])} -> {_v(e['follows_new_switched'])} "
+            f"stays_old {_v(e['stays_old_original'])} -> {_v(e['stays_old_switched'])}"
             for k, e in c["by_step"].items()]
 
 

@@ -13,13 +13,13 @@ from typing import Sequence
 
 from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.contract import METRICS
-from vla_ladder.files import atomic_path
+from vla_ladder.files import atomic_path, number
 from vla_ladder.report.probes import VIEWS
 from vla_ladder.report.tables import METRIC_NAMES, REGIME_NAMES, SPLIT_NAMES, tex_escape
 
 
-def _pct(x: float) -> str:
-    return "–" if x != x else f"{100 * x:.0f}"
+def _pct(x: float | None) -> str:
+    return "–" if x is None or x != x else f"{100 * x:.0f}"  # (None: an undefined rate as summary.json holds it)
 
 
 def _cell(c: dict) -> str:
@@ -186,9 +186,9 @@ def plot_curves(curves: dict[str, list[dict]], path: str | Path, xlabel: str = "
     for ax, (model, points) in zip(axes[0], curves.items()):
         steps = [p["step"] for p in points]
         for m in METRICS:
-            ax.plot(steps, [100 * p[m] for p in points], marker="o", label=METRIC_NAMES[m])
-            ax.fill_between(steps, [100 * p["ci95"][m][0] for p in points], [100 * p["ci95"][m][1] for p in points],
-                            alpha=0.15)
+            ax.plot(steps, [100 * number(p[m]) for p in points], marker="o", label=METRIC_NAMES[m])
+            ax.fill_between(steps, [100 * number(p["ci95"][m][0]) for p in points],
+                            [100 * number(p["ci95"][m][1]) for p in points], alpha=0.15)
         ax.set_title(model, fontsize=9)
         ax.set_xlabel(xlabel)
         ax.xaxis.set_major_formatter(EngFormatter(sep=""))  # 200k, not 200000 running into its neighbours
@@ -211,15 +211,14 @@ def _probe_value(metric: str, m: dict) -> str:
     """A probe metric's cell: % with its interval, and the p of its test where it has one; the NMI is a share of
     the instruction's entropy, not a rate, and stays one (0.25), with its permutation p."""
     if metric != "nmi":
-        p = m.get("mcnemar_p")
-        return _metric(m) + ("" if p is None else f", p={p:.2g}")
-    lo, hi = m["ci95"]
-    cell = f"{m['value']:.2f} [{lo:.2f}, {hi:.2f}]"
+        return _metric(m) + (f", p={number(m['mcnemar_p']):.2g}" if "mcnemar_p" in m else "")
+    lo, hi = map(number, m["ci95"])
+    cell = f"{number(m['value']):.2f} [{lo:.2f}, {hi:.2f}]"
     if "permutation_p" not in m:
         return cell
     # Probes from before 2026-11-27 hold the plug-in value (biased up): the shuffles' mean is what to compare it with.
-    shuffled = "" if "plug_in" in m else f"shuffled {m['null_mean']:.2f}, "
-    return f"{cell} ({shuffled}p={m['permutation_p']:.2g})"
+    shuffled = "" if "plug_in" in m else f"shuffled {number(m['null_mean']):.2f}, "
+    return f"{cell} ({shuffled}p={number(m['permutation_p']):.2g})"
 
 
 def probe_rows(probes: dict[str, dict]) -> list[list[str]]:

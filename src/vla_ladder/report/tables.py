@@ -105,8 +105,8 @@ class Table:
         return "\n".join(out) + "\n"
 
 
-def _pct(x: float) -> str:
-    return "–" if x != x else f"{100 * x:.0f}"
+def _pct(x: float | None) -> str:
+    return "–" if x is None or x != x else f"{100 * x:.0f}"  # (None: an undefined rate as summary.json holds it)
 
 
 _TEX = {"\\": "\\textbackslash{}", "_": "\\_", "%": "\\%", "&": "\\&", "#": "\\#", "$": "\\$", "{": "\\{",

@@ -435,7 +435,7 @@ def run(cfg: CheckDatasetConfig) -> int:
         files.write_json(cfg.out, summary)
         print(f"wrote {cfg.out}")
     else:
-        print(json.dumps(summary, indent=2, default=files.json_default))
+        print(files.dumps(summary, indent=2))
     state = "ok" if summary["ok"] else f"{len(summary['violations'])} violation(s)"
     print(f"{cfg.dataset}: {summary['episodes']} episodes, {summary['frames']} frames: {state}", file=sys.stderr)
     return 0 if summary["ok"] else 1
