@@ -240,13 +240,14 @@ def test_a_growing_datasets_quantiles_are_refreshed_by_a_tenth_and_exact_when_it
     import json
 
     from vla_ladder.contract import ACTION_KEY, STATE_KEY
+    from vla_ladder import recordings
     from vla_ladder.recording import card, stats
 
     def check(root: Path) -> tuple[int, int]:
         over = read_recording_state(root)["quantile_frames"]
         total = json.loads((root / "meta/info.json").read_text())["total_frames"]
         assert total <= over * (1 + stats.REFRESH_GROWTH)
-        values = stats.frames(root, [STATE_KEY, ACTION_KEY])
+        values = recordings.frames(root, [STATE_KEY, ACTION_KEY])
         written = json.loads((root / stats.STATS_FILE).read_text())
         for key in (STATE_KEY, ACTION_KEY):
             for q in ("q01", "q10", "q50", "q90", "q99"):

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from vla_ladder.conditions import Condition
@@ -118,3 +120,60 @@ def played_to(state: dict) -> int:
     """Where a recording whose state this is plays on: the seed after the last one written or counted failed
     (recordings before it was kept: the next seed reserved, which skips the seeds a kill left in flight)."""
     return int(state.get("played_to", state["next_seed"]))
+
+
+# ---------------------------------------------------------------------- stats.json's quantiles
+STATS_FILE = "meta/stats.json"
+_QUANTILE = re.compile(r"^q(\d{2})$")
+_NOT_NUMERIC = ("image", "video", "string", "language")
+
+
+def quantile_keys(feature_stats: dict) -> list[str]:
+    """The quantile entries LeRobot wrote for a feature (q01, q10, q50, q90, q99 in LeRobot 0.6)."""
+    return [k for k in feature_stats if _QUANTILE.match(k)]
+
+
+def numeric_features(info: dict) -> list[str]:
+    """Features stored as numbers in data/*.parquet (not cameras, not text)."""
+    return [k for k, f in info["features"].items() if f["dtype"] not in _NOT_NUMERIC]
+
+
+def frames(root: str | Path, keys: list[str]) -> dict[str, np.ndarray]:
+    """Every frame's value of each key, as (frames, dim) float64 arrays, read from the dataset's Parquet files."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    paths = sorted(Path(root, "data").glob("*/*.parquet"))
+    if not paths:
+        raise ValueError(f"{root}: no data/*/*.parquet files; is it a LeRobotDataset v3?")
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+    for path in paths:  # (one file at a time: LeRobot writes vectors as list or, after a merge, fixed-size list)
+        table = pq.read_table(path, columns=keys)
+        for k in keys:
+            col = table[k].combine_chunks()
+            if pa.types.is_list(col.type) or pa.types.is_fixed_size_list(col.type):
+                # A vector per frame, all of one length: its values flat, without a numpy object per frame (stacking
+                # those took longer than the quantiles themselves).
+                parts[k].append(col.flatten().to_numpy(zero_copy_only=False).reshape(len(col), -1))
+            else:
+                parts[k].append(col.to_numpy(zero_copy_only=False)[:, None])
+    return {k: np.concatenate(v).astype(np.float64) for k, v in parts.items()}
+
+
+def exact_quantiles(root: str | Path) -> dict[str, dict[str, list[float]]]:
+    """{feature: {q01: [...], ...}} over all frames, for every numeric feature stats.json has quantiles of."""
+    root = Path(root)
+    info = json.loads((root / "meta/info.json").read_text())
+    stats = json.loads((root / STATS_FILE).read_text())
+    keys = [k for k in numeric_features(info) if k in stats and quantile_keys(stats[k])]
+    values = frames(root, keys)
+    out = {}
+    for k in keys:
+        qkeys = quantile_keys(stats[k])
+        qs = np.quantile(values[k], [int(_QUANTILE.match(q).group(1)) / 100 for q in qkeys], axis=0)
+        for q, v in zip(qkeys, qs):
+            if np.shape(stats[k][q]) != v.shape:
+                raise ValueError(f"{root}: stats.json {k}/{q} has shape {np.shape(stats[k][q])} but the data "
+                                 f"gives {v.shape}")
+        out[k] = {q: v.tolist() for q, v in zip(qkeys, qs)}
+    return out

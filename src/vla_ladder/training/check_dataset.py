@@ -46,7 +46,8 @@ from vla_ladder import files
 from vla_ladder.checks import check_output_file
 from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.contract import ACTION_KEY, EPISODE_STEPS, STATE_KEY, contract_changes
-from vla_ladder.recordings import read_provenance, read_recording, read_recording_state
+from vla_ladder.recordings import (STATS_FILE, exact_quantiles, read_provenance, read_recording,
+                                  read_recording_state)
 from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, condition_of, layout_from_dict
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
 from vla_ladder.task.replay import Replayer
@@ -241,11 +242,9 @@ class Checker:
                                    "max": action.max(axis=0).tolist() if len(action) else []}
 
     def quantiles(self) -> None:
-        from vla_ladder.recording import stats
-
         try:
-            exact = stats.exact_quantiles(self.root)
-            saved = json.loads((self.root / stats.STATS_FILE).read_text())
+            exact = exact_quantiles(self.root)
+            saved = json.loads((self.root / STATS_FILE).read_text())
         except (OSError, ValueError, KeyError) as e:
             self.flag("quantiles", f"cannot compare stats.json's quantiles with the frames': {e}")
             return
