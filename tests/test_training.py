@@ -400,3 +400,22 @@ def test_grid_2x2_keeps_every_run_and_picks_the_best(data, tmp_path_factory, tmp
     other[other.index("--train.steps") + 1] = "2"
     assert main(other) == 2
     assert "other settings" in (err := capsys.readouterr().err) and "its train.steps differs" in err
+
+
+@pytest.mark.slow
+def test_the_grid_refuses_to_evaluate_on_the_scenes_it_trains_on(data, tmp_path, capsys):
+    """`data` was recorded on seeds 0 and 1: a seed is a scene (its layout, target and instruction, and nearly the
+    same scene in every jitter regime), so a grid evaluating on them measured the models on their training demos."""
+    base = ["grid", "--train.policy-type", "act", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
+            "--batch-sizes", "2", "--chunk-sizes", "4", "--horizons", "4", "--eval.episodes", "1",
+            "--eval.num-objects", "2", "--eval.workers", "1", "--train.steps", "1", "--train.num-workers", "0",
+            "--train.device", "cpu"]
+    tiny = ["--", *H.tiny_policy_flags("act")]
+    assert main([*base, "--eval.regimes", "small_jitter", *tiny]) == 2  # --eval.first-seed 0, the default, as record's
+    err = capsys.readouterr().err.strip()
+    assert "the training data" in err and "seeds 0-1" in err and "--eval.first-seed 2 or above" in err, err
+    assert len(err.splitlines()) == 1 and not (tmp_path / "g").exists()
+    # In another regime seed 0 is nearly the same scene; from seed 1 on, the grid plays a training scene itself.
+    assert main([*base, "--eval.regimes", "medium_jitter", *tiny]) == 2
+    assert main([*base, "--eval.regimes", "small_jitter", "--eval.first-seed", "1", *tiny]) == 2
+    assert capsys.readouterr().err.count("--eval.first-seed 2 or above") == 2

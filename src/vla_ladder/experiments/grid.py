@@ -29,6 +29,7 @@ from vla_ladder.checks import check_ray_address, check_output_dir
 from vla_ladder.contract import METRICS
 from vla_ladder.evaluation.runner import EvalConfig, saved_request
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
+from vla_ladder.recordings import read_provenance
 from vla_ladder.training.train import TrainConfig, check_offline_assets, checkpoint_dir
 
 log = logging.getLogger(__name__)
@@ -165,6 +166,26 @@ def run_grid(cfg: GridConfig) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def check_unseen_seeds(cfg: GridConfig) -> None:
+    """ValueError when the grid's episodes, or the held-out ones after them (held_out_command), play a seed its
+    training data were recorded on. A seed is a scene: in the data's condition the very layout, target and
+    instruction of a demonstration, and in the other jitter regimes nearly the same one (the same draws, scaled),
+    so a model scored there is scored on what it was trained on; a study keeps the two apart the same way
+    (study_config._check_seeds). Record's and eval's first seed are both 0 by default."""
+    e = cfg.eval
+    played = range(e.first_seed, e.first_seed + 2 * e.episodes)
+    seeds = read_provenance(cfg.train.dataset).get("seed", pd.Series(dtype=int)).astype(int)
+    if not len(seeds) or not seeds.between(played.start, played.stop - 1).any():
+        return
+    lo, hi = int(seeds.min()), int(seeds.max())
+    below = f", or one that ends below {lo}" if lo >= 2 * e.episodes else ""
+    raise ValueError(f"--eval.first-seed {e.first_seed}: the grid plays seeds {played.start}-"
+                     f"{played.start + e.episodes - 1} and its best's held-out evaluation the next {e.episodes}, "
+                     f"and the training data {str(cfg.train.dataset)!r} were recorded on seeds {lo}-{hi}: the same "
+                     f"scenes (a seed's layout and target, nearly alike in every jitter regime); give "
+                     f"--eval.first-seed {hi + 1} or above{below}")
+
+
 def run(cfg: GridConfig) -> int:
     out = cfg.out  # (a file there was refused with the config: check_output_dir)
     if cfg.train.print_command:  # a dry run: each model's lerobot-train command, nothing written
@@ -172,6 +193,7 @@ def run(cfg: GridConfig) -> int:
             for cs in cfg.chunk_sizes:
                 print(shlex.join(model_train(cfg, bs, cs).lerobot_command()))
         return 0
+    check_unseen_seeds(cfg)
     # LeRobot's side of the training config (policy flags, tokenizer) is checked once, before the first training.
     probe = replace(cfg.train, out=out / "runs" / ".check")
     check_offline_assets(probe.build_config().policy)
