@@ -172,11 +172,20 @@ def checked_config(path: str | Path, n_action_steps: int | None = None, device: 
     from lerobot.configs.policies import PreTrainedConfig
 
     path = resolve_checkpoint(path)
-    chunk = read_saved_config(path).get("chunk_size")
+    saved = read_saved_config(path)
+    chunk = saved.get("chunk_size")
     if n_action_steps is not None and isinstance(chunk, int) and not 1 <= n_action_steps <= chunk:
         # draccus would say only "Couldn't instantiate class ...Config using the given arguments"
         raise ValueError(f"n_action_steps must be from 1 to the checkpoint's chunk size ({chunk}), got "
                          f"{n_action_steps}")
+    horizon, n_obs, steps = (saved.get(k) for k in ("horizon", "n_obs_steps", "n_action_steps"))
+    steps = steps if n_action_steps is None else n_action_steps
+    if saved.get("type") == "diffusion" and all(isinstance(v, int) for v in (horizon, n_obs, steps)) and \
+            not 1 <= steps <= horizon - n_obs + 1:
+        # Diffusion's chunk of `horizon` actions starts n_obs_steps - 1 steps back, and LeRobot queues the rest,
+        # unchecked: more would play fewer actions a chunk than the run says (15 a chunk for 16, horizon 16)
+        raise ValueError(f"n_action_steps must be from 1 to {horizon - n_obs + 1} for this diffusion checkpoint "
+                         f"(horizon {horizon} - n_obs_steps {n_obs} + 1), got {steps}")
     overrides = [] if n_action_steps is None else [f"--n_action_steps={int(n_action_steps)}"]
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     if device.startswith("cuda") and not torch.cuda.is_available():
