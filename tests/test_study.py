@@ -65,6 +65,11 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
                                           "evaluation.probe_episodes": 5000, "datasets.0.first_seed": 1000}),
         "policies[x].datasets: unknown dataset 'fr'": {**_micro(), "policies": [
             {"name": "x", "type": "act", "steps": 1, "datasets": ["fr"]}]},
+        # data/sj-blind held both the recording of sj-blind and the blind copy of sj, which replaced it: the models
+        # of sj-blind trained on sj's demonstrations without their instructions.
+        "datasets[sj-blind]: name taken by the instruction-blind copy of sj": {**_micro(), "datasets": [
+            *_micro()["datasets"], {**_micro()["datasets"][0], "name": "sj-blind", "first_seed": 2_000_000}],
+            "policies": [*_micro()["policies"], {**_micro()["policies"][0], "name": "blind", "blind": True}]},
         # JSON of another type: a string seed ended in a TypeError naming no field, a string for a list was read
         # letter by letter ("unknown regime 'a'"), a boolean counted as a step count.
         'datasets[0].first_seed: expected an integer, got "5"': _micro(**{"datasets.0.first_seed": "5"}),

@@ -216,6 +216,13 @@ class StudyConfig:
             if len(set(names)) != len(names):
                 raise ValueError(f"{what}: names must be unique, got {names}")
         names = [d.name for d in self.datasets]
+        # A blind policy's copy of dataset D is data/D-blind (Study.blind_dir): a dataset of that name was recorded
+        # there and then replaced by the copy, its models trained on D's demonstrations.
+        blinded = {d for p in self.policies if p.blind for d in (p.datasets or names)}
+        for name in names:
+            if name.endswith("-blind") and name.removesuffix("-blind") in blinded:
+                raise ValueError(f"datasets[{name}]: name taken by the instruction-blind copy of "
+                                 f"{name.removesuffix('-blind')} (data/{name}); rename the dataset")
         for p in self.policies:
             for name in p.datasets:
                 if name not in names:
