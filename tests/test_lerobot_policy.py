@@ -14,6 +14,7 @@ import torch
 
 import lerobot_helpers as H
 from vla_ladder.policies.lerobot import LeRobotPolicy, parse_arg, resolve_checkpoint
+from vla_ladder.recordings import read_provenance
 from vla_ladder.policies import load_policy
 
 pytestmark = pytest.mark.slow  # the real simulator, rendering, recording or training
@@ -342,8 +343,12 @@ def test_one_policy_acts_on_cpu_envs_in_lockstep(smolvla_run, tmp_path):
     for n in (1, 2):
         cfg = EvalConfig(f"lerobot:{smolvla_run}?device=cpu", out=tmp_path / f"n{n}", workers=1, num_envs=n,
                          grid=ConditionGrid(("small_jitter",), num_objects=(2,)), episodes=3)
-        run_evaluation(cfg, progress=False)
+        summary = run_evaluation(cfg, progress=False)
         runs[n] = pd.read_parquet(cfg.out / "episodes.parquet")
+    # The tiny model was trained on a recording from seed 0 (its train_config.json names it): the episodes played
+    # on its demonstrations' seeds are counted, and said (a seed is a scene).
+    trained_on = set(read_provenance(H.dataset(None))["seed"])
+    assert summary.get("episodes_on_training_seeds", 0) == len(trained_on & {0, 1, 2}) > 0
     same = ["episode", "seed", "target", "instruction", "layout", "held", "success", "grasp_any", "reach"]
     pd.testing.assert_frame_equal(runs[1][same], runs[2][same])
     assert len(runs[2]) == 3 and runs[2]["reach_dist"].between(0, 2).all()

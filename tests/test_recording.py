@@ -424,3 +424,21 @@ def test_a_ctrl_c_at_the_terminal_is_the_recorders_alone_to_act_on(tmp_path):
     text = log.read_text()
     assert _saved(root) == 8 and "reconnecting" not in text and "connection lost" not in text, text
     _wait_for(lambda: not any(_alive(p) for p in servers), 30, "the servers to exit")
+
+
+def test_a_recording_starts_far_from_the_evaluation_seeds_and_resumes_at_its_own(tmp_path):
+    """record, eval and the grid all began at seed 0, and a seed is a scene: a model recorded and evaluated with
+    the defaults was scored on its own demonstrations. A new recording starts at RECORD_FIRST_SEED; one resumed
+    without --first-seed goes on from the seed it was recorded from (an older recording's 0)."""
+    from vla_ladder.conditions import Condition
+    from vla_ladder.files import write_json
+    from vla_ladder.recording.record import RecordConfig
+    from vla_ladder.recordings import FORMAT_VERSION, RECORD_FIRST_SEED, RECORDING_FILE, Recording
+
+    assert RecordConfig(out=tmp_path / "new", episodes=10).first_seed == RECORD_FIRST_SEED == 1_000_000
+    old = tmp_path / "old"
+    state = {"format": FORMAT_VERSION, "config": Recording("scripted", Condition("small_jitter"), 0).to_dict(),
+             "counters": {"saved": 0, "attempted": 0, "failed": 0, "commits": 0}, "next_seed": 0}
+    write_json(old / RECORDING_FILE, state)
+    assert RecordConfig(out=old, episodes=10).first_seed == 0
+    assert RecordConfig(out=old, episodes=10, first_seed=5).first_seed == 5  # given: as given (and refused later)

@@ -589,9 +589,9 @@ def test_writers_finish_when_a_block_ends_in_a_seed_the_servers_failed(tmp_path)
     with contextlib.ExitStack() as stack:
         urls = [stack.enter_context(LoopThread(s.serve)).url for s in servers]
         for writers, out in (("2", tmp_path / "two"), ("1", tmp_path / "one")):
-            r = subprocess.run(_cli("record", "--episodes", "4", "--writers", writers, "--encoder-threads", "1",
-                                    "--out", str(out), "--server", *urls), env=ENV, capture_output=True, text=True,
-                               timeout=300)
+            r = subprocess.run(_cli("record", "--episodes", "4", "--writers", writers, "--first-seed", "0",
+                                    "--encoder-threads", "1", "--out", str(out), "--server", *urls), env=ENV,
+                               capture_output=True, text=True, timeout=300)
             assert r.returncode == 0, r.stderr[-3000:]
             assert read_provenance(out)["seed"].tolist() == [0, 1, 2, 4], writers
             assert read_recording_state(out)["counters"]["saved"] == 4

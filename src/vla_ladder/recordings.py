@@ -20,6 +20,11 @@ import pandas as pd
 from vla_ladder.conditions import Condition
 
 FORMAT_VERSION = 2
+RECORD_FIRST_SEED = 1_000_000
+"""Where recordings start by default (`record`, a study's datasets): far from the evaluation seeds (0...) and the
+grid's validation seeds (500,000...), so that no scene a model is evaluated on is one of its demonstrations. A seed
+is a scene: in the recorded condition its very layout, target and instruction, in the other jitter regimes nearly
+the same one."""
 RECORDING_FILE = "meta/vla_ladder_recording.json"
 PROVENANCE_DIR = "meta/vla_ladder_episodes"
 # Video codecs a recording may use, by LeRobot's names: SVT-AV1 is LeRobot's default; H.264 costs the writer a

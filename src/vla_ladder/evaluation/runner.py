@@ -29,7 +29,8 @@ from vla_ladder.contract import EPISODE_STEPS, contract_changes, fingerprint
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, check_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS, read_episodes, run_config
-from vla_ladder.policies import Policy, allowed_specs, check_spec, selection_episodes, weights_identity
+from vla_ladder.policies import (Policy, allowed_specs, check_spec, selection_episodes, training_seeds,
+                                 weights_identity)
 from vla_ladder.task.object_sets import resolve_object_set
 from vla_ladder.task.physx_gpu import check_sim_backend
 from vla_ladder.task.robot import check_robot_mesh
@@ -311,6 +312,22 @@ def selection_overlap(cfg: EvalConfig) -> int:
     return overlap
 
 
+def training_overlap(cfg: EvalConfig) -> int:
+    """How many of the run's episodes play a seed the checkpoint's training demonstrations were recorded on (said
+    before the run, and kept in summary.json as episodes_on_training_seeds): a seed is a scene, in the data's
+    condition its very layout, target and instruction, in the other jitter regimes nearly the same one, so its rates
+    there lean high. `record` starts at RECORD_FIRST_SEED for that reason; a recording made from seed 0 and
+    evaluated from 0 played the model's own demonstrations."""
+    seeds = training_seeds(cfg.policy)
+    overlap = sum(j.seed in seeds for j in cfg.jobs())
+    if overlap:
+        print(f"[eval] warning: {overlap} of the {len(cfg.jobs())} episodes here play seeds that {cfg.policy}'s "
+              f"training data were recorded on ({min(seeds)} to {max(seeds)}): the same scenes in the data's "
+              f"condition, nearly the same in the other jitter regimes, so its rates lean high; --first-seed "
+              f"{max(seeds) + 1} or above plays unseen ones")
+    return overlap
+
+
 def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool = True) -> dict:
     """Evaluate cfg.policy (or `policy`, an instance labelled cfg.policy, played in this process) on every
     condition and return the summary dict; with cfg.out, also write (or resume) the run directory, holding its
@@ -325,13 +342,14 @@ def run_evaluation(cfg: EvalConfig, policy: Policy | None = None, progress: bool
                                                                            max(len(cfg.jobs()), 1)))
     spec = cfg.policy or policy.name
     overlap = selection_overlap(cfg) if policy is None else 0
+    seen = training_overlap(cfg) if policy is None else 0
     weights = weights_identity(cfg.policy) if policy is None and cfg.out is not None else None
     with files.writing(cfg.out, "evaluation") if cfg.out is not None else contextlib.nullcontext():
-        return _evaluate(cfg, policy, spec, overlap, weights, progress, started)
+        return _evaluate(cfg, policy, spec, overlap, weights, progress, started, seen)
 
 
 def _evaluate(cfg: EvalConfig, policy: Policy | None, spec: str, overlap: int, weights: dict | None,
-              progress: bool, started: float) -> dict:
+              progress: bool, started: float, seen: int = 0) -> dict:
     from tqdm.auto import tqdm
 
     rows = open_run_dir(cfg, weights) if cfg.out is not None else []
@@ -362,6 +380,8 @@ def _evaluate(cfg: EvalConfig, policy: Policy | None, spec: str, overlap: int, w
         df, summary = summarize_run(rows, cfg, policy_info, timing)
         if overlap:
             summary["episodes_seen_in_selection"] = overlap
+        if seen:
+            summary["episodes_on_training_seeds"] = seen
         if cfg.out is not None:
             files.write_parquet(cfg.out / "episodes.parquet", df)
             files.write_json(cfg.out / "summary.json", summary)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from vla_ladder.checks import SEED_LIMIT, check_count, check_seed
 from vla_ladder.conditions import Condition, ConditionGrid
+from vla_ladder.recordings import RECORD_FIRST_SEED
 
 PRESETS_PACKAGE = "vla_ladder.configs.study"
 REFERENCE_POLICIES = ("scripted", "committed", "nearest", "layout-prior", "random")
@@ -34,7 +35,7 @@ class DatasetSpec:
     """successful demonstrations the dataset holds"""
     expert: str = "scripted"
     """the expert recorded: scripted or ppo:PATH"""
-    first_seed: int = 1_000_000
+    first_seed: int = RECORD_FIRST_SEED
     """first episode seed; far from the evaluation seeds (0...) so no evaluation layout is trained on"""
 
     def __post_init__(self):

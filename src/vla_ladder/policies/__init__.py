@@ -231,6 +231,17 @@ def selection_episodes(spec: str) -> dict[str, range]:
     return ppo.selection_episodes(ppo.checkpoint_state(ppo.checkpoint_dir(arg)))
 
 
+def training_seeds(spec: str) -> set[int]:
+    """The seeds of the demonstrations a lerobot: spec's checkpoint was trained on (a seed is a scene: played again,
+    its rates lean high), where its training config names a vla-ladder recording on this machine; empty for the
+    others."""
+    kind, arg = parse_spec(spec)
+    if kind != "lerobot":
+        return set()
+    from vla_ladder.policies import lerobot
+    return lerobot.training_seeds(lerobot.resolve_checkpoint(lerobot.parse_arg(arg)[0]))
+
+
 @functools.lru_cache(maxsize=32)
 def _sha256(path: str, inode: int, size: int, mtime_ns: int) -> str:
     # Keyed by inode, size and mtime too: a probe's variants evaluate one checkpoint several times (a 450M model's

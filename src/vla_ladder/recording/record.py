@@ -27,7 +27,7 @@ from vla_ladder.recording.server import TOKEN_ENV
 from vla_ladder.task.object_sets import resolve_object_set
 from vla_ladder.task.robot import check_robot_mesh
 from vla_ladder.recording.store import DatasetStore, Recording
-from vla_ladder.recordings import DEFAULT_VCODEC, VCODECS, read_provenance
+from vla_ladder.recordings import DEFAULT_VCODEC, RECORD_FIRST_SEED, VCODECS, read_provenance, read_recording
 
 log = logging.getLogger(__name__)
 SERVER_START_TIMEOUT_S = 900
@@ -61,8 +61,10 @@ class RecordConfig:
     instructions: str = "canonical"
     """how the local servers word instructions: canonical, paraphrase-train (record these to evaluate on held-out
     paraphrases) or paraphrase-heldout"""
-    first_seed: int = 0
-    """first episode seed; later ones follow and never repeat, across servers and resumes"""
+    first_seed: int | None = None
+    """first episode seed; later ones follow and never repeat, across servers and resumes (default: the dataset's
+    own when resuming it, else 1000000, far from the evaluation seeds 0... so that no evaluated scene is a
+    demonstration's)"""
     video: bool = True
     """store camera frames as MP4 video (LeRobot's default); --no-video stores PNG images"""
     vcodec: str = DEFAULT_VCODEC
@@ -112,6 +114,9 @@ class RecordConfig:
         check_count(self.commit_every, "--commit-every")
         if not self.commit_seconds > 0:  # (nan too)
             raise ValueError(f"--commit-seconds must be > 0, got {self.commit_seconds}")
+        if self.first_seed is None:  # (record, eval and the grid all began at seed 0: models were scored on demos)
+            made = read_recording(self.out) if self.out.is_dir() else None
+            self.first_seed = made.first_seed if made is not None else RECORD_FIRST_SEED
         if self.first_seed < 0 or self.first_seed + self.episodes > SEED_LIMIT:
             raise ValueError(f"--first-seed must be >= 0 and --first-seed + --episodes <= 2**32 (each demo takes "
                              f"a seed of its own, a numpy seed), got {self.first_seed} + {self.episodes}")
