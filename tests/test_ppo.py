@@ -263,7 +263,7 @@ def test_bad_input_errors(tmp_path, run_dir):
         train(Args(out=str(run_dir), **TINY))
     with pytest.raises(ValueError, match="allowed: small_jitter"):
         Args(out="x", grid=ConditionGrid(("nowhere",)))
-    with pytest.raises(ValueError, match="allowed: physx_cuda, physx_cpu"):
+    with pytest.raises(ValueError, match="--sim-backend: unknown sim_backend .gpu.; allowed: physx_cpu, physx_cuda"):
         Args(out="x", sim_backend="gpu")
     with pytest.raises(ValueError, match="at least one batch"):
         Args(out="x", num_envs=4, total_timesteps=10)
