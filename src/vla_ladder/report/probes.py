@@ -21,6 +21,7 @@ import numpy as np
 from vla_ladder.contract import CONTROL_HZ, EPISODE_STEPS
 from vla_ladder.files import number
 from vla_ladder.report.plots import _plt, _save, plot_confusion
+from vla_ladder.report.tables import pct
 
 PROBE_FILE = "probe.json"
 SWAP_METRICS = {"instruction_sensitivity": "instruction sensitivity", "scene_accuracy": "scene accuracy",
@@ -130,13 +131,10 @@ def _num(x, spec: str) -> str:
     return format(number(x), spec)
 
 
-def _pct(x) -> str:
-    return "–" if _undefined(x) else f"{100 * x:.0f}"
-
 
 def _cell(entry: dict, scale: str = "pct") -> str:
     """"value [lo, hi]" of a {value, ci95} entry, in % or (scale="unit") with two decimals."""
-    fmt = _pct if scale == "pct" else (lambda x: "–" if _undefined(x) else f"{x:.2f}")
+    fmt = pct if scale == "pct" else (lambda x: "–" if _undefined(x) else f"{x:.2f}")
     lo, hi = entry["ci95"]
     return f"{fmt(entry['value'])}<span class=ci> [{fmt(lo)}, {fmt(hi)}]</span>"
 
@@ -199,7 +197,7 @@ def _paraphrase_table(conds: dict) -> tuple[list[str], list[list[str]]]:
     for key, variants in conds.items():
         for wording in [w for w in WORDINGS if w in variants]:
             c = variants[wording]
-            novelty = ", ".join(f"{k} {_pct(v['value'])} (n={v['n']})" for k, v in c.get("by_novelty", {}).items())
+            novelty = ", ".join(f"{k} {pct(v['value'])} (n={v['n']})" for k, v in c.get("by_novelty", {}).items())
             rows.append([html.escape(key), wording, str(c["n"]), _rate(c, "success"), _rate(c, "grasp_any"),
                          _rate(c, "reach"), _cell(c["wrong_object"]),
                          _delta(c["vs_canonical"]["success"]) if "vs_canonical" in c else "", novelty])

@@ -15,15 +15,11 @@ from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.contract import METRICS
 from vla_ladder.files import atomic_path, number
 from vla_ladder.report.probes import VIEWS
-from vla_ladder.report.tables import METRIC_NAMES, REGIME_NAMES, SPLIT_NAMES, tex_escape
-
-
-def _pct(x: float | None) -> str:
-    return "–" if x is None or x != x else f"{100 * x:.0f}"  # (None: an undefined rate as summary.json holds it)
+from vla_ladder.report.tables import METRIC_NAMES, REGIME_NAMES, SPLIT_NAMES, pct, tex_escape
 
 
 def _cell(c: dict) -> str:
-    return " / ".join(_pct(c[m]) for m in METRICS)
+    return " / ".join(pct(c[m]) for m in METRICS)
 
 
 def _row_label(cell: dict) -> tuple[str, str]:
@@ -78,7 +74,7 @@ def matrix_latex(cells: list[dict]) -> str:
 
 def _rate(c: dict, m: str) -> str:
     lo, hi = c["ci95"][m]
-    return f"{_pct(c[m])} [{_pct(lo)}, {_pct(hi)}]"
+    return f"{pct(c[m])} [{pct(lo)}, {pct(hi)}]"
 
 
 def paper_comparison_markdown(cells: list[dict], paper: dict) -> str:
@@ -102,7 +98,7 @@ def paper_comparison_markdown(cells: list[dict], paper: dict) -> str:
             for key, c in conds.items():
                 if key in learned_keys:
                     lines.append(f"| paper: {model} | {key.split('/')[0]} | {key} | {c['n']} | "
-                                 + " | ".join(_pct(c[m]) for m in METRICS) + " |")
+                                 + " | ".join(pct(c[m]) for m in METRICS) + " |")
     lines += ["", "Rates in %, 95% Wilson intervals in brackets (the paper reports rates of 100 episodes without "
               "intervals). Pairing-trained models are evaluated on the held-out pairings (OOD) as well."]
     return "\n".join(lines) + "\n"
@@ -204,7 +200,7 @@ def plot_curves(curves: dict[str, list[dict]], path: str | Path, xlabel: str = "
 
 def _metric(m: dict) -> str:
     lo, hi = m["ci95"]
-    return f"{_pct(m['value'])} [{_pct(lo)}, {_pct(hi)}]"
+    return f"{pct(m['value'])} [{pct(lo)}, {pct(hi)}]"
 
 
 def _probe_value(metric: str, m: dict) -> str:

@@ -34,10 +34,10 @@ class Rate:
         return cls(condition[metric], lo, hi, condition["n"])
 
     def md(self) -> str:
-        return f"{_pct(self.value)} [{_pct(self.lo)}, {_pct(self.hi)}]"
+        return f"{pct(self.value)} [{pct(self.lo)}, {pct(self.hi)}]"
 
     def tex(self) -> str:
-        return f"${_pct(self.value)}$"
+        return f"${pct(self.value)}$"
 
 
 @dataclass(frozen=True)
@@ -51,7 +51,7 @@ class Change:
         return f"{self.before.md()} → {self.after.md()}"
 
     def tex(self) -> str:
-        return f"${_pct(self.before.value)}\\!\\rightarrow\\!{_pct(self.after.value)}$"
+        return f"${pct(self.before.value)}\\!\\rightarrow\\!{pct(self.after.value)}$"
 
 
 @dataclass
@@ -105,8 +105,10 @@ class Table:
         return "\n".join(out) + "\n"
 
 
-def _pct(x: float | None) -> str:
-    return "–" if x is None or x != x else f"{100 * x:.0f}"  # (None: an undefined rate as summary.json holds it)
+def pct(x: float | None) -> str:
+    """A rate in whole percent; "–" where it is undefined (NaN, or null as a result file holds it since it is strict
+    JSON). Every report's tables use it."""
+    return "–" if x is None or x != x else f"{100 * x:.0f}"
 
 
 _TEX = {"\\": "\\textbackslash{}", "_": "\\_", "%": "\\%", "&": "\\&", "#": "\\#", "$": "\\$", "{": "\\{",
