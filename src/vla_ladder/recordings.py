@@ -91,6 +91,17 @@ def read_provenance(root: str | os.PathLike) -> pd.DataFrame:
         "episode_index", ignore_index=True)
 
 
+def recorded_seeds(root: str | os.PathLike, episodes=None) -> set[int]:
+    """The seeds the dataset's episodes (those in `episodes`, where given) were recorded on: the scenes a model
+    trained on it has seen (empty for a dataset without provenance)."""
+    prov = read_provenance(root)
+    if "seed" not in prov:
+        return set()
+    if episodes:
+        prov = prov[prov["episode_index"].isin(episodes)]
+    return set(prov["seed"].astype(int))
+
+
 def read_recording_state(root: str | os.PathLike) -> dict | None:
     """The recording state at `root` (None when there is none); ValueError naming the file when it is damaged
     (cut short by a full disk, edited by hand): json's own message does not say which file it read."""

@@ -318,10 +318,10 @@ def training_overlap(cfg: EvalConfig) -> int:
     condition its very layout, target and instruction, in the other jitter regimes nearly the same one, so its rates
     there lean high. `record` starts at RECORD_FIRST_SEED for that reason; a recording made from seed 0 and
     evaluated from 0 played the model's own demonstrations."""
-    seeds = training_seeds(cfg.policy)
-    overlap = sum(j.seed in seeds for j in cfg.jobs())
+    seeds, jobs = training_seeds(cfg.policy), cfg.jobs()
+    overlap = sum(j.seed in seeds for j in jobs)
     if overlap:
-        print(f"[eval] warning: {overlap} of the {len(cfg.jobs())} episodes here play seeds that {cfg.policy}'s "
+        print(f"[eval] warning: {overlap} of the {len(jobs)} episodes here play seeds that {cfg.policy}'s "
               f"training data were recorded on ({min(seeds)} to {max(seeds)}): the same scenes in the data's "
               f"condition, nearly the same in the other jitter regimes, so its rates lean high; --first-seed "
               f"{max(seeds) + 1} or above plays unseen ones")

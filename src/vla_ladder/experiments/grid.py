@@ -29,7 +29,7 @@ from vla_ladder.checks import check_ray_address, check_output_dir
 from vla_ladder.contract import METRICS
 from vla_ladder.evaluation.runner import EvalConfig, saved_request
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
-from vla_ladder.recordings import read_provenance
+from vla_ladder.recordings import recorded_seeds
 from vla_ladder.training.train import TrainConfig, check_offline_assets, checkpoint_dir
 
 log = logging.getLogger(__name__)
@@ -171,13 +171,13 @@ def check_unseen_seeds(cfg: GridConfig) -> None:
     training data were recorded on. A seed is a scene: in the data's condition the very layout, target and
     instruction of a demonstration, and in the other jitter regimes nearly the same one (the same draws, scaled),
     so a model scored there is scored on what it was trained on; a study keeps the two apart the same way
-    (study_config._check_seeds). Record's and eval's first seed are both 0 by default."""
+    (study_config._check_seeds). Eval starts at seed 0, record at RECORD_FIRST_SEED (at 0 before 2026-11-28)."""
     e = cfg.eval
     played = range(e.first_seed, e.first_seed + 2 * e.episodes)
-    seeds = read_provenance(cfg.train.dataset).get("seed", pd.Series(dtype=int)).astype(int)
-    if not len(seeds) or not seeds.between(played.start, played.stop - 1).any():
+    seeds = recorded_seeds(cfg.train.dataset)
+    if not any(s in played for s in seeds):
         return
-    lo, hi = int(seeds.min()), int(seeds.max())
+    lo, hi = min(seeds), max(seeds)
     below = f", or one that ends below {lo}" if lo >= 2 * e.episodes else ""
     raise ValueError(f"--eval.first-seed {e.first_seed}: the grid plays seeds {played.start}-"
                      f"{played.start + e.episodes - 1} and its best's held-out evaluation the next {e.episodes}, "

@@ -238,21 +238,16 @@ def training_seeds(path: Path) -> set[int]:
     """The seeds of the demonstrations checkpoint `path` was trained on: those of its train_config.json's dataset
     (the episodes it trained on, where it names them) when that is a vla-ladder recording on this machine; empty
     where the checkpoint or the dataset does not say."""
-    from vla_ladder.recordings import RECORDING_FILE, read_provenance
+    from vla_ladder.recordings import RECORDING_FILE, recorded_seeds
 
     try:
         data = json.loads((path / "train_config.json").read_text())["dataset"]
-        root, episodes = data.get("root"), data.get("episodes")
+        root = data.get("root")
         if not root or not Path(root, RECORDING_FILE).is_file():
             return set()
-        prov = read_provenance(root)
+        return recorded_seeds(root, data.get("episodes"))
     except (OSError, ValueError, KeyError, TypeError, AttributeError):  # (a file of another shape says nothing)
         return set()
-    if "seed" not in prov:
-        return set()
-    if episodes:
-        prov = prov[prov["episode_index"].isin(episodes)]
-    return set(prov["seed"].astype(int))
 
 
 def trained_inputs(path: Path, rename_map: dict[str, str]) -> dict[str, tuple] | None:
