@@ -81,6 +81,11 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         # A value twice trained the same model twice under one unit id, or showed a reference twice.
         "batch_sizes: 4 given twice": _micro(**{"grid.batch_sizes": [4, 4]}),
         "reference_policies: nearest given twice": _micro(**{"evaluation.reference_policies": ["nearest"] * 2}),
+        # Diffusion executes at most chunk - n_obs_steps + 1 actions of a chunk: every model would be trained and no
+        # horizon of the grid could evaluate it.
+        "policies[D]: grid.horizons: no horizon in [4] fits a chunk size in [4] (diffusion executes at most chunk - "
+        "n_obs_steps + 1 actions of a chunk: 3 of 4)": {**_micro(), "policies": [
+            {"name": "D", "type": "diffusion", "steps": 1}]},
     }
     for message, data in bad.items():
         path = tmp_path / "study.json"
@@ -243,6 +248,27 @@ def test_replicates_are_grouped_by_recipe_and_their_episodes_paired():
     assert sj["success_count"] == {base["name"]: 2, "s2": 2, "s3": 2}
     assert list(sj["episodes_alike"].values()) == [2, 4, 2]  # seeds 1 and 2 differ between the first and s2
     assert "| 50 / 50 / 50 | 0 | 2 of 4, 4 of 4, 2 of 4 |" in replicates_markdown(cells)
+
+
+def test_diffusion_trains_and_is_selected_only_on_the_horizons_it_executes(tmp_path):
+    """Diffusion's chunk starts n_obs_steps - 1 steps back, so it executes at most chunk - n_obs_steps + 1 of its
+    actions: the study trained it with n_action_steps = chunk and selected among horizons up to the chunk, which
+    every evaluation of its checkpoints refused, after the training. (Planning needs no diffusers.)"""
+    from vla_ladder.experiments.study import Study, StudyCommand
+
+    path = tmp_path / "study.json"
+    data = _micro(**{"grid.chunk_sizes": [8, 16], "grid.horizons": [4, 8, 16], "grid.select_episodes": 3})
+    path.write_text(json.dumps({**data, "policies": [*data["policies"], {"name": "D", "type": "diffusion",
+                                                                         "steps": 1}]}))
+    study = Study(StudyCommand(str(path), out=tmp_path / "s"))
+    assert {u.id: u.config["n_action_steps"] for u in study.train_units()} == {
+        "train-SmolVLA-tiny-sj-b4c8": 8, "train-SmolVLA-tiny-sj-b4c16": 16,
+        "train-D-sj-b4c8": 7, "train-D-sj-b4c16": 15}
+    assert [u.id for u in study.select_units()] == [
+        *(f"select-SmolVLA-tiny-sj-{m}" for m in ("b4c8-h4", "b4c8-h8", "b4c16-h4", "b4c16-h8", "b4c16-h16")),
+        "select-D-sj-b4c8-h4", "select-D-sj-b4c16-h4", "select-D-sj-b4c16-h8"]
+    chosen = study.best({})[("D", "sj")]
+    assert [(r["chunk_size"], r["horizon"]) for r in chosen["candidates"]] == [(8, 4), (16, 4), (16, 8)]
 
 
 def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):

@@ -337,6 +337,37 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_diffusion_grid_trains_and_evaluates_only_the_horizons_it_executes(data, tmp_path, capsys, monkeypatch):
+    """Diffusion's chunk starts n_obs_steps - 1 steps back, so it executes at most chunk - n_obs_steps + 1 of its
+    actions: the grid trained it with n_action_steps = chunk and evaluated horizon = chunk, which every evaluation
+    of the checkpoint refuses, after the training."""
+    from vla_ladder.experiments.grid import GridConfig, units
+    from vla_ladder.training import train as train_module
+
+    assert [train_module.max_action_steps("diffusion", c) for c in (8, 16)] == [7, 15]  # LeRobot's n_obs_steps: 2
+    assert train_module.max_action_steps("diffusion", 16, ["--policy.n_obs_steps", "4"]) == 13
+    assert train_module.max_action_steps("act", 16) == 16
+    # Planning needs no diffusers (only building the model does): its check is left out where it is not installed.
+    monkeypatch.setattr(train_module, "check_policy_packages", lambda policy_type: None)
+    cfg = GridConfig(out=tmp_path / "g", train=TrainConfig(policy_type="diffusion", dataset=data),
+                     batch_sizes=(4,), chunk_sizes=(8, 16), horizons=(4, 8, 16))
+    trains, evals = units(cfg)
+    assert [(u.config["chunk_size"], u.config["n_action_steps"]) for u in trains] == [(8, 7), (16, 15)]
+    assert [(c, h) for _, c, h, _ in evals] == [(8, 4), (16, 4), (16, 8)]
+    # A grid none of whose horizons it executes, and a training asked for more: refused in one line, before work.
+    for argv, says in ((["grid", "--train.policy-type", "diffusion", "--train.dataset", str(data), "--out",
+                         str(tmp_path / "g"), "--chunk-sizes", "16", "--horizons", "16"],
+                        "no horizon in [16] fits a chunk size in [16] (diffusion executes at most chunk - "
+                        "n_obs_steps + 1 actions of a chunk: 15 of 16)"),
+                       (["train", "--policy-type", "diffusion", "--dataset", str(data), "--out", str(tmp_path / "run"),
+                         "--chunk-size", "16", "--n-action-steps", "16"],
+                        "--n-action-steps (16) cannot exceed 15 for diffusion")):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "g").exists() and not (tmp_path / "run").exists()
+
+
 def test_best_is_success_then_grasp_then_reach():
     df = pd.DataFrame([
         {"batch_size": 64, "chunk_size": 8, "n_action_steps": 1, "success": 0.5, "grasp_any": 0.9, "reach": 0.1},

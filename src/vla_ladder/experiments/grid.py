@@ -2,7 +2,8 @@
 
 One model is trained per (batch size, chunk size) with LeRobot training (`--train.*`: the flags of
 `vla-ladder train`); each is evaluated by the evaluation runner (`--eval.*`: the flags of `vla-ladder eval`)
-once per execution horizon <= its chunk size, always on the same seeded episodes. Both configs are parsed
+once per execution horizon <= its chunk size (diffusion: <= what it executes of a chunk, the chunk size -
+n_obs_steps + 1), always on the same seeded episodes. Both configs are parsed
 and checked before the first training starts. Every training and evaluation is a unit (experiments/units.py):
 a child process with its log in OUT/logs/, marked done in OUT/units/; with --ray they run as Ray tasks, on a
 local Ray or the cluster at --ray-address, each evaluation after its model's training. The best run has the
@@ -30,7 +31,7 @@ from vla_ladder.contract import METRICS
 from vla_ladder.evaluation.runner import EvalConfig, saved_request
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
 from vla_ladder.recordings import recorded_seeds
-from vla_ladder.training.train import TrainConfig, check_offline_assets, checkpoint_dir
+from vla_ladder.training.train import TrainConfig, check_offline_assets, checkpoint_dir, unfit_horizons
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +56,8 @@ class GridConfig:
     chunk_sizes: tuple[int, ...] = PAPER_CHUNK_SIZES
     """action chunk sizes trained"""
     horizons: tuple[int, ...] = PAPER_HORIZONS
-    """execution horizons (n_action_steps) evaluated per model, those <= its chunk size"""
+    """execution horizons (n_action_steps) evaluated per model, those <= its chunk size (diffusion: <= the chunk
+    size - n_obs_steps + 1, what it executes of a chunk)"""
     ray: bool = False
     """run the trainings and evaluations as Ray tasks (a local Ray, or the cluster at --ray-address)"""
     ray_address: str | None = None
@@ -69,8 +71,8 @@ class GridConfig:
                 raise ValueError(f"--{name.replace('_', '-')} must be distinct positive integers, got {list(values)}")
             setattr(self, name, values)
         check_ray_address(self.ray_address)
-        if not any(h <= c for h in self.horizons for c in self.chunk_sizes):
-            raise ValueError(f"no horizon in {list(self.horizons)} fits a chunk size in {list(self.chunk_sizes)}")
+        if unfit := unfit_horizons(self.train.policy_type, self.chunk_sizes, self.horizons, self.train.lerobot_args):
+            raise ValueError(unfit)
         if self.eval.policy or self.eval.out or self.train.out:
             raise ValueError("the grid sets --train.out, --eval.policy and --eval.out per run; leave them out")
         if self.train.given:  # they were replaced by each model's, unsaid
@@ -125,9 +127,10 @@ def held_out_command(cfg: GridConfig, best: dict) -> str:
 
 
 def model_train(cfg: GridConfig, bs: int, cs: int) -> TrainConfig:
-    """The training of the grid's (batch size, chunk size) model, into OUT/runs/b{B}_c{C}/train."""
+    """The training of the grid's (batch size, chunk size) model, into OUT/runs/b{B}_c{C}/train, saved with the
+    longest horizon it executes (the chunk; diffusion's less n_obs_steps - 1)."""
     return replace(cfg.train, out=cfg.out / "runs" / f"b{bs}_c{cs}" / "train", batch_size=bs, chunk_size=cs,
-                   n_action_steps=cs)
+                   n_action_steps=cfg.train.max_action_steps(cs))
 
 
 def units(cfg: GridConfig) -> tuple[list[Unit], list[tuple[int, int, int, Unit]]]:
@@ -140,7 +143,7 @@ def units(cfg: GridConfig) -> tuple[list[Unit], list[tuple[int, int, int, Unit]]
             trains.append(Unit(f"train-b{bs}_c{cs}", "train", "vla_ladder.experiments.units:train_unit",
                                files.plain(asdict(train)), cpus=2))
             for h in cfg.horizons:
-                if h <= cs:
+                if h <= cfg.train.max_action_steps(cs):
                     spec = f"lerobot:{checkpoint_dir(model_dir / 'train')}?n_action_steps={h}"
                     ev = replace(cfg.eval, policy=spec, out=model_dir / f"eval_h{h}")
                     evals.append((bs, cs, h, Unit(f"eval-b{bs}_c{cs}_h{h}", "eval",

@@ -2,8 +2,9 @@
 
 1. record: one dataset per training condition, with the config's expert (`vla-ladder record`);
 2. train: every policy x dataset x (batch size, chunk size) of the grid, with LeRobot's own training;
-3. select: every execution horizon <= the chunk size on validation episodes of the training condition; the
-   best model per policy x dataset is picked by success, then grasp-any, then reach;
+3. select: every execution horizon <= the chunk size (diffusion: what it executes of one) on validation
+   episodes of the training condition; the best model per policy x dataset is picked by success, then
+   grasp-any, then reach;
 4. evaluate: that model on the same seeded episodes as every other policy: every regime of the ladder for a
    canonically trained model (the train x eval regime matrix), pairings ID and OOD for a pairing-trained one,
    the configured object counts; the reference policies on the same cells;
@@ -188,7 +189,7 @@ class Study:
                 data = self.blind_dir(d) if p.blind else self.dataset_dir(d)
                 config = {"policy_type": p.type, "dataset": str(data),
                           "out": str(self.root / "models" / mid), "pretrained": p.pretrained,
-                          "batch_size": b, "chunk_size": c, "n_action_steps": c, "steps": p.steps,
+                          "batch_size": b, "chunk_size": c, "n_action_steps": self.max_steps(p, c), "steps": p.steps,
                           "save_freq": save_freq, "log_freq": max(p.steps // 20, 1),
                           "num_workers": self.cfg.num_workers, "device": self.cfg.device,
                           "lerobot_args": args}
@@ -245,7 +246,7 @@ class Study:
             own = {"regimes": [d.cond.regime], "splits": [d.cond.split], "num_objects": [d.cond.num_objects]}
             for b, c in bcs:
                 mid = model_id(p, d, b, c)
-                for h in self.horizons(c):
+                for h in self.horizons(p, c):
                     if g.select_episodes == 0:
                         break
                     cfg = self.eval_config(self.spec(p, mid, h), self.root / "select" / f"{mid}-h{h}", own,
@@ -255,8 +256,14 @@ class Study:
                                       cfg, cpus=2, after=[f"train-{mid}"]))
         return units
 
-    def horizons(self, chunk: int) -> list[int]:
-        return [h for h in self.cfg.grid.horizons if h <= chunk]
+    def horizons(self, p: PolicySpec, chunk: int) -> list[int]:
+        """The grid's horizons that `p` executes of a chunk of `chunk` (diffusion: the chunk - n_obs_steps + 1)."""
+        return [h for h in self.cfg.grid.horizons if h <= self.max_steps(p, chunk)]
+
+    @staticmethod
+    def max_steps(p: PolicySpec, chunk: int) -> int:
+        from vla_ladder.training.train import max_action_steps
+        return max_action_steps(p.type, chunk, p.lerobot_args)
 
     def best(self, results: dict) -> dict[tuple[str, str], dict]:
         """(policy, dataset) -> the chosen model and horizon, with the validation rates it was chosen on (None where
@@ -266,7 +273,7 @@ class Study:
             rows = []
             for b, c in bcs:
                 mid = model_id(p, d, b, c)
-                for h in self.horizons(c):
+                for h in self.horizons(p, c):
                     r = results.get(f"select-{mid}-h{h}")
                     rates = next(iter(r["conditions"].values())) if r else {}
                     rows.append({"model": mid, "batch_size": b, "chunk_size": c, "horizon": h,

@@ -124,10 +124,10 @@ class PolicySpec:
 
 @dataclass
 class GridSpec:
-    """The paper's grid: every (batch size, chunk size) is trained, every execution horizon <= the chunk size is
-    tried on validation episodes of the training condition, and the best (success, then grasp-any, then reach)
-    is evaluated. Validation seeds are disjoint from the evaluation seeds, so the reported numbers are not the
-    ones the choice was made on."""
+    """The paper's grid: every (batch size, chunk size) is trained, every execution horizon <= the chunk size
+    (diffusion: <= what it executes of a chunk, training.train.max_action_steps) is tried on validation episodes of
+    the training condition, and the best (success, then grasp-any, then reach) is evaluated. Validation seeds are
+    disjoint from the evaluation seeds, so the reported numbers are not the ones the choice was made on."""
 
     batch_sizes: list[int] = field(default_factory=lambda: [64])
     chunk_sizes: list[int] = field(default_factory=lambda: [16])
@@ -229,11 +229,19 @@ class StudyConfig:
                 if name not in names:
                     raise ValueError(f"policies[{p.name}].datasets: unknown dataset {name!r}; allowed: "
                                      f"{', '.join(names)}")
+        self._check_models()
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device: unknown {self.device!r}; allowed: auto, cpu, cuda")
         if self.num_workers < 0:
             raise ValueError(f"num_workers must be >= 0, got {self.num_workers}")
         self._check_seeds()
+
+    def _check_models(self) -> None:
+        """Every policy the study trains: one the grid's horizons can evaluate."""
+        from vla_ladder.training.train import unfit_horizons
+        for p in self.policies:
+            if unfit := unfit_horizons(p.type, self.grid.chunk_sizes, self.grid.horizons, p.lerobot_args):
+                raise ValueError(f"policies[{p.name}]: grid.horizons: {unfit}")
 
     def _check_seeds(self):
         """No seed serves two purposes: the evaluation's and probes' scenes, the validation episodes that select

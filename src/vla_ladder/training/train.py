@@ -15,6 +15,7 @@ import io
 import json
 import logging
 import os
+import re
 import shlex
 import time
 from urllib.error import URLError
@@ -102,6 +103,38 @@ def check_policy_packages(policy_type: str) -> None:
                              f"(pip install 'lerobot[{extra}]')")
 
 
+def max_action_steps(policy_type: str, chunk_size: int, lerobot_args=()) -> int:
+    """The most actions a policy of this type executes of a chunk of `chunk_size` (the largest n_action_steps it
+    takes): the chunk, but for the types whose chunk is a `horizon` (diffusion) the chunk less n_obs_steps - 1, as
+    their chunk starts that many steps back, at the observed past. The grid and the study train and evaluate no
+    horizon above it, where one failed after training. n_obs_steps: LeRobot's default, or --policy.n_obs_steps in
+    `lerobot_args`."""
+    if policy_type not in CHUNK_FIELD:
+        return chunk_size
+    import lerobot.policies  # noqa: F401  (registers the built-in configs)
+    from lerobot.configs.policies import PreTrainedConfig
+
+    n_obs = PreTrainedConfig.get_choice_class(policy_type)().n_obs_steps
+    for a in joined_flags(lerobot_args):
+        flag, _, value = a.partition("=")
+        if flag == "--policy.n_obs_steps" and re.fullmatch(r"[0-9]+", value.strip()):
+            n_obs = int(value)
+    return chunk_size - n_obs + 1
+
+
+def unfit_horizons(policy_type: str, chunk_sizes, horizons, lerobot_args=()) -> str | None:
+    """Why no horizon fits any chunk size (a one-line reason), or None when one does: a grid or study refuses it
+    before training models that none of its horizons could evaluate."""
+    fits = {c: max_action_steps(policy_type, c, lerobot_args) for c in chunk_sizes}
+    if any(h <= m for h in horizons for m in fits.values()):
+        return None
+    said = f"no horizon in {list(horizons)} fits a chunk size in {list(chunk_sizes)}"
+    if policy_type in CHUNK_FIELD:
+        said += (f" ({policy_type} executes at most chunk - n_obs_steps + 1 actions of a chunk: "
+                 f"{', '.join(f'{m} of {c}' for c, m in fits.items())})")
+    return said
+
+
 NO_PRETRAINED = ("", "none", "None")
 """--pretrained values that mean from scratch"""
 
@@ -182,8 +215,7 @@ class TrainConfig:
             auto_steps = self.chunk_size
         elif chunked:  # LeRobot's default, where the chunk of `horizon` steps holds it (diffusion runs actions
             # n_obs_steps - 1 .. of its horizon: its default 32 of 64 queued 15 with a horizon of 16)
-            default = self._config_class()()
-            auto_steps = min(default.n_action_steps, self.chunk_size - default.n_obs_steps + 1)
+            auto_steps = min(self._config_class()().n_action_steps, self.max_action_steps())
         # The flags that set what a grid sets per model (it refuses them): a value other than the one filled in. (A
         # config rebuilt with dataclasses.replace holds the filled-in values, which nobody gave.)
         self.given = tuple(flag for flag, given in (
@@ -200,7 +232,11 @@ class TrainConfig:
         for name in ("batch_size", "chunk_size", "n_action_steps", "steps"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
-        if chunked and self.n_action_steps is not None and self.n_action_steps > self.chunk_size:
+        if chunked and self.n_action_steps is not None and self.n_action_steps > self.max_action_steps():
+            if self.policy_type in CHUNK_FIELD:  # (its checkpoint would be refused by every evaluation)
+                raise ValueError(f"--n-action-steps ({self.n_action_steps}) cannot exceed {self.max_action_steps()} "
+                                 f"for {self.policy_type}: it executes at most --chunk-size ({self.chunk_size}) - "
+                                 "n_obs_steps + 1 actions of a chunk")
             raise ValueError(f"--n-action-steps ({self.n_action_steps}) cannot exceed --chunk-size "
                              f"({self.chunk_size})")
         check_seed(self.train_seed, "--train-seed")  # lerobot-train seeds numpy with it too
@@ -220,6 +256,11 @@ class TrainConfig:
     def _config_class(self):
         from lerobot.configs.policies import PreTrainedConfig
         return PreTrainedConfig.get_choice_class(self.policy_type)
+
+    def max_action_steps(self, chunk_size: int | None = None) -> int:
+        """max_action_steps of this policy type for `chunk_size` (default: this run's), with its --policy flags."""
+        return max_action_steps(self.policy_type, self.chunk_size if chunk_size is None else chunk_size,
+                                self.lerobot_args)
 
     def _chunk_name(self) -> str:
         return CHUNK_FIELD.get(self.policy_type, "chunk_size")
