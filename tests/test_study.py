@@ -86,6 +86,10 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         "policies[D]: grid.horizons: no horizon in [4] fits a chunk size in [4] (diffusion executes at most chunk - "
         "n_obs_steps + 1 actions of a chunk: 3 of 4)": {**_micro(), "policies": [
             {"name": "D", "type": "diffusion", "steps": 1}]},
+        # train_seed null is train's 1000: the same models trained twice, reported as replicates that agree.
+        "policies[SmolVLA-tiny] and policies[again] would train the same models on datasets[sj]: alike but for the "
+        "name, with train_seed 1000 (null is `vla-ladder train`'s)": {**_micro(), "policies": [
+            _micro()["policies"][0], {**_micro()["policies"][0], "name": "again", "train_seed": 1000}]},
     }
     for message, data in bad.items():
         path = tmp_path / "study.json"

@@ -229,19 +229,31 @@ class StudyConfig:
                 if name not in names:
                     raise ValueError(f"policies[{p.name}].datasets: unknown dataset {name!r}; allowed: "
                                      f"{', '.join(names)}")
-        self._check_models()
+        self._check_models(names)
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device: unknown {self.device!r}; allowed: auto, cpu, cuda")
         if self.num_workers < 0:
             raise ValueError(f"num_workers must be >= 0, got {self.num_workers}")
         self._check_seeds()
 
-    def _check_models(self) -> None:
-        """Every policy the study trains: one the grid's horizons can evaluate."""
-        from vla_ladder.training.train import unfit_horizons
+    def _check_models(self, names: list[str]) -> None:
+        """Every (policy, dataset) the study trains: one the grid's horizons can evaluate, trained once."""
+        from vla_ladder.training.train import DEFAULT_TRAIN_SEED, unfit_horizons
+        trained: dict[tuple, str] = {}
         for p in self.policies:
             if unfit := unfit_horizons(p.type, self.grid.chunk_sizes, self.grid.horizons, p.lerobot_args):
                 raise ValueError(f"policies[{p.name}]: grid.horizons: {unfit}")
+            # Replicates differ in train_seed: alike but for the name and the same seed (null: train's default), a
+            # policy trains the same models again, and the report took their agreement for a replicate's.
+            seed = DEFAULT_TRAIN_SEED if p.train_seed is None else p.train_seed
+            recipe = json.dumps({f.name: getattr(p, f.name) for f in fields(p)
+                                 if f.name not in ("name", "train_seed", "datasets")}, sort_keys=True)
+            for d in p.datasets or names:
+                if (other := trained.setdefault((recipe, seed, d), p.name)) != p.name:
+                    raise ValueError(f"policies[{other}] and policies[{p.name}] would train the same models on "
+                                     f"datasets[{d}]: alike but for the name, with train_seed {seed}"
+                                     + (" (null is `vla-ladder train`'s)" if seed == DEFAULT_TRAIN_SEED else "")
+                                     + "; give a replicate another train_seed, or drop one")
 
     def _check_seeds(self):
         """No seed serves two purposes: the evaluation's and probes' scenes, the validation episodes that select

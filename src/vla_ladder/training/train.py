@@ -51,6 +51,8 @@ DEFAULT_BATCH = 64
 # The config field that holds the action chunk length, where it is not called chunk_size.
 CHUNK_FIELD = {"diffusion": "horizon"}
 DEFAULT_CHUNK = 16
+DEFAULT_TRAIN_SEED = 1000
+"""lerobot-train's --seed where none is given (a study's policies with train_seed null train with it)"""
 # Tokenizers the policies' saved processors load by name; offline they must be local or in the HF cache.
 PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"
 TOKENIZER_OF = {"pi0": lambda cfg: PALIGEMMA_TOKENIZER, "pi05": lambda cfg: PALIGEMMA_TOKENIZER,
@@ -169,7 +171,7 @@ class TrainConfig:
     """log every N steps"""
     num_workers: int = 4
     """data-loader worker processes"""
-    train_seed: int = 1000
+    train_seed: int = DEFAULT_TRAIN_SEED
     """seed of the training run (initialisation, data order, augmentation)"""
     device: str | None = None
     """cuda, cpu, mps (default: LeRobot picks)"""
