@@ -90,6 +90,14 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         "policies[SmolVLA-tiny] and policies[again] would train the same models on datasets[sj]: alike but for the "
         "name, with train_seed 1000 (null is `vla-ladder train`'s)": {**_micro(), "policies": [
             _micro()["policies"][0], {**_micro()["policies"][0], "name": "again", "train_seed": 1000}]},
+        # Names are joined with '-' in unit ids and directories: both models were models/A-sj-x-b4c4, eval/A-sj-x.
+        "policies[A-sj] on datasets[x] and policies[A] on datasets[sj-x] would share the unit ids and directories "
+        "named A-sj-x": {**_micro(), "datasets": [{**_micro()["datasets"][0], "name": n} for n in ("x", "sj-x")],
+                         "policies": [{"name": "A-sj", "type": "act", "steps": 1, "datasets": ["x"]},
+                                      {"name": "A", "type": "act", "steps": 1, "datasets": ["sj-x"]}]},
+        "policies[reference-nearest] on datasets[sj]: its evaluation eval/reference-nearest-sj would be read as one "
+        "of the reference policy nearest's": {**_micro(**{"evaluation.reference_policies": ["nearest"]}),
+                                              "policies": [{"name": "reference-nearest", "type": "act", "steps": 1}]},
     }
     for message, data in bad.items():
         path = tmp_path / "study.json"
@@ -273,6 +281,28 @@ def test_diffusion_trains_and_is_selected_only_on_the_horizons_it_executes(tmp_p
         "select-D-sj-b4c8-h4", "select-D-sj-b4c16-h4", "select-D-sj-b4c16-h8"]
     chosen = study.best({})[("D", "sj")]
     assert [(r["chunk_size"], r["horizon"]) for r in chosen["candidates"]] == [(8, 4), (16, 4), (16, 8)]
+
+
+def test_learning_curves_are_read_from_their_own_model_only(tmp_path):
+    """curves/MODEL-STEP: the curve of model A-sj-b4c4 also took the points of A-sj-b4c4-x-sj-b4c4, whose name
+    begins with its own and '-'."""
+    from vla_ladder.experiments.study import Study, StudyCommand
+    from vla_ladder.experiments.study_results import curve_points
+
+    base = _micro(**{"evaluation.curve_episodes": 2})
+    policy = base["policies"][0]
+    path = tmp_path / "study.json"
+    path.write_text(json.dumps({**base, "policies": [{**policy, "name": "A"},
+                                                     {**policy, "name": "A-sj-b4c4-x", "train_seed": 7}]}))
+    study = Study(StudyCommand(str(path), out=tmp_path / "s"))
+    chosen = study.best({})
+    for model, step, success in (("A-sj-b4c4", 4, 0.5), ("A-sj-b4c4-x-sj-b4c4", 4, 1.0),
+                                 ("A-sj-b4c4-x-sj-b4c4", 8, 0.0)):
+        files.write_json(tmp_path / "s" / "curves" / f"{model}-{step}" / "summary.json", {"conditions": {
+            "small_jitter/canonical/2": {"n": 2, "success": success, "grasp_any": 1.0, "reach": 1.0, "ci95": {}}}})
+    curves = curve_points(study, chosen)
+    assert {k: [(p["step"], p["success"]) for p in v] for k, v in curves.items()} == {
+        "A on sj": [(4, 0.5)], "A-sj-b4c4-x on sj": [(4, 1.0), (8, 0.0)]}
 
 
 def test_a_policy_trains_and_is_evaluated_only_on_its_datasets(tmp_path):

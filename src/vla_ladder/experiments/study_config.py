@@ -237,9 +237,13 @@ class StudyConfig:
         self._check_seeds()
 
     def _check_models(self, names: list[str]) -> None:
-        """Every (policy, dataset) the study trains: one the grid's horizons can evaluate, trained once."""
+        """Every (policy, dataset) the study trains: one the grid's horizons can evaluate, trained once, under ids of
+        its own. Unit ids and directories join the names with '-' (Study: models/P-D-bBcC, eval/P-D, ...), so policy
+        A-sj on dataset x and policy A on sj-x would write one directory; a new separator would rename the committed
+        studies' directories, so such names are refused instead."""
         from vla_ladder.training.train import DEFAULT_TRAIN_SEED, unfit_horizons
         trained: dict[tuple, str] = {}
+        joined: dict[str, tuple[str, str]] = {}
         for p in self.policies:
             if unfit := unfit_horizons(p.type, self.grid.chunk_sizes, self.grid.horizons, p.lerobot_args):
                 raise ValueError(f"policies[{p.name}]: grid.horizons: {unfit}")
@@ -254,6 +258,15 @@ class StudyConfig:
                                      f"datasets[{d}]: alike but for the name, with train_seed {seed}"
                                      + (" (null is `vla-ladder train`'s)" if seed == DEFAULT_TRAIN_SEED else "")
                                      + "; give a replicate another train_seed, or drop one")
+                key = f"{p.name}-{d}"
+                if (was := joined.setdefault(key, (p.name, d))) != (p.name, d):
+                    raise ValueError(f"policies[{was[0]}] on datasets[{was[1]}] and policies[{p.name}] on "
+                                     f"datasets[{d}] would share the unit ids and directories named {key} (eval/{key}, "
+                                     f"models/{key}-bBcC, ...: names are joined with '-'); rename one")
+                if ref := next((r for r in self.evaluation.reference_policies
+                                if key.startswith(f"reference-{r}-")), None):
+                    raise ValueError(f"policies[{p.name}] on datasets[{d}]: its evaluation eval/{key} would be read "
+                                     f"as one of the reference policy {ref}'s (eval/reference-{ref}-N); rename one")
 
     def _check_seeds(self):
         """No seed serves two purposes: the evaluation's and probes' scenes, the validation episodes that select

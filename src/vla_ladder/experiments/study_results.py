@@ -37,7 +37,10 @@ def curve_points(study, chosen: dict) -> dict[str, list[dict]]:
         model = chosen[(p.name, d.name)]["model"]
         points = []
         for run_dir in sorted((study.root / "curves").glob(f"{model}-*")):
-            step = int(run_dir.name.rsplit("-", 1)[1])
+            head, _, step = run_dir.name.rpartition("-")
+            if head != model or not step.isdigit():  # another model's, whose name starts with this one's and '-'
+                continue
+            step = int(step)
             c = next(iter(json.loads((run_dir / "summary.json").read_text())["conditions"].values()))
             points.append({"step": step, "n": c["n"], **{m: c[m] for m in METRICS}, "ci95": c["ci95"]})
         curves[f"{p.name} on {d.name}"] = sorted(points, key=lambda x: x["step"])
