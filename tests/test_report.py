@@ -146,6 +146,37 @@ def test_the_report_names_no_folder_of_the_machine_that_wrote_it(runs, tmp_path)
     assert str(tmp_path) not in page
 
 
+@pytest.mark.slow
+def test_a_checkpoints_runs_are_labelled_by_its_training_run_and_step(tmp_path_factory, tmp_path):
+    """A lerobot: run was labelled with its whole spec, an absolute path into the machine's folders, in every table,
+    legend and heading; it is labelled by its training run's folder and step, with more folders where two
+    experiments' runs share a name, and keeps its options. Labels given to the report win."""
+    import lerobot_helpers as H
+    from vla_ladder.report.html import run_labels
+
+    trained = H.trained(tmp_path_factory, "act")  # a real `vla-ladder train` run: checkpoints/000002, last -> it
+    for exp in ("expA", "expB"):
+        shutil.copytree(trained, tmp_path / exp / "act", symlinks=True)
+    specs = [f"lerobot:{tmp_path}/expA/act/checkpoints/last/pretrained_model",
+             f"lerobot:{tmp_path}/expB/act/checkpoints/last/pretrained_model",
+             f"lerobot:{tmp_path}/expB/act/checkpoints/last/pretrained_model?n_action_steps=2",
+             f"lerobot:{tmp_path}/gone/act/checkpoints/last/pretrained_model"]
+    cond = [("small_jitter", "canonical", 2)]
+    runs = [load_run(make_run(tmp_path / f"eval{i}", spec, cond, ["success"])) for i, spec in enumerate(specs)]
+    assert run_labels(runs) == ["lerobot:expA/act@step2", "lerobot:expB/act@step2",
+                                "lerobot:expB/act@step2?n_action_steps=2", "lerobot:gone/act@last"]
+    assert run_labels(runs[1:3]) == ["lerobot:act@step2", "lerobot:act@step2?n_action_steps=2"]
+    # A training run's folder names its model too, and a ppo: checkpoint is cut to its file.
+    trained_run = load_run(make_run(tmp_path / "evalrun", f"lerobot:{tmp_path}/expA/act", cond, ["success"]))
+    ppo = load_run(make_run(tmp_path / "evalppo", f"ppo:{tmp_path}/ppo/final.pt", cond, ["success"]))
+    assert run_labels([trained_run, ppo]) == ["lerobot:act@step2", "ppo:final.pt"]
+    page = build_report(runs, tmp_path / "pages" / "r.html", samples=0, placements=False).read_text()
+    assert str(tmp_path) not in page and "lerobot:expA/act@step2" in page
+    page = build_report(runs, tmp_path / "pages" / "r.html", samples=0, placements=False,
+                        labels=["a", "b", "c", "d"]).read_text()
+    assert "<li>a: <code>../eval0</code>" in page and "act@step2" not in page
+
+
 def test_the_placement_figure_draws_the_split_and_object_count_played(tmp_path, monkeypatch):
     """The figure was always of the canonical split with five objects whatever the runs played; it draws the most
     played split and count, in the regimes played with them, and its caption says which."""

@@ -115,6 +115,26 @@ def check_checkpoint(path: str | Path) -> Path:
     return found
 
 
+def checkpoint_name(path: str | Path) -> tuple[tuple[str, ...], str | None]:
+    """What names the model of checkpoint spec `path`, from the path as written (never resolved: that would name the
+    machine's folders): (the parts of its training run's folder, its step). RUN/checkpoints/STEP[/pretrained_model]
+    and RUN (which plays RUN/checkpoints/last) -> (RUN's parts, STEP, "2" for LeRobot's 000002); any other folder ->
+    (its parts, None). "last" is read as the step it stands for where the checkpoint is on this machine."""
+    model = Path(path).parent if Path(path).name == "pretrained_model" else Path(path)
+    if model.parent.name == "checkpoints":
+        run, step_dir = model.parent.parent, model
+    else:
+        run, step_dir = model, model / "checkpoints" / "last" if (model / "checkpoints" / "last").is_dir() else None
+    step = step_dir.name if step_dir else None
+    if step == "last":
+        try:  # (what LeRobot wrote beside the weights; "last" is a link to the step's folder, or a copy of it)
+            step = str(json.loads((step_dir / "training_state" / "training_step.json").read_text())["step"])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+    step = str(int(step)) if step and step.isdigit() and step.isascii() else step
+    return run.parts[1 if run.anchor else 0:], step
+
+
 def check_env_compatible(cfg, rename_map: dict[str, str], trained: dict[str, tuple] | None = None) -> None:
     """ValueError naming every input the policy declares that GraspObject-v1 does not provide, and every size that
     differs, for every policy type. `rename_map` (env key -> policy key) is the one saved with the checkpoint:
