@@ -143,6 +143,34 @@ def test_a_cuda_device_without_a_gpu_is_refused(tmp_path):
         LeRobotPolicy(good, device="cuda")
 
 
+def test_a_cuda_device_past_the_gpus_is_refused_by_eval_and_serve_policy(tmp_path, monkeypatch, capsys):
+    """`?device=cuda:3` on a machine with one GPU passed the checks and failed once the model was moved there, after
+    the checkpoint loaded; eval and serve-policy refuse it in one line naming the GPUs there are, before any work.
+    No GPU is here, so torch is told of some (the refusal needs nothing else of it)."""
+    import torch
+    from safetensors.torch import save_file
+
+    from vla_ladder.checks import check_torch_device
+    from vla_ladder.cli import main
+    from vla_ladder.policies.lerobot import LeRobotPolicy
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    good = _checkpoint(tmp_path / "good", "act", ENV_CAMERAS)
+    save_file({}, good / "model.safetensors")  # (the commands check the weights file is there before the device)
+    spec = f"lerobot:{good}?device=cuda:3"
+    for argv in (["eval", "--policy", spec, "--out", str(tmp_path / "run"), "--episodes", "1"],
+                 ["serve-policy", "--policy", spec, "--port", "0"]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].endswith("device=cuda:3: this machine has 1 GPU (cuda:0)"), err
+    assert not (tmp_path / "run").exists()
+    assert check_torch_device("cuda:0", "device=cuda:0", "") == "cuda:0"  # the GPU there is, taken
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 4)
+    with pytest.raises(ValueError, match=r"^device=cuda:4: this machine has 4 GPUs \(cuda:0 to cuda:3\)$"):
+        LeRobotPolicy(good, device="cuda:4")
+
+
 def test_eval_refuses_a_mismatched_checkpoint_before_its_run_directory(tmp_path):
     """`vla-ladder eval` in a fresh process (nothing of LeRobot imported yet): a checkpoint whose cameras the env
     cannot feed, weights and all, is refused in one line by check_spec, and the run directory is never written."""

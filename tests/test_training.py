@@ -368,6 +368,23 @@ def test_a_diffusion_grid_trains_and_evaluates_only_the_horizons_it_executes(dat
     assert not (tmp_path / "g").exists() and not (tmp_path / "run").exists()
 
 
+def test_train_refuses_a_cuda_device_past_the_gpus(data, tmp_path, monkeypatch, capsys):
+    """`--device cuda:3` on a machine with one GPU passed every check and failed once LeRobot moved the model there
+    (torch's "invalid device ordinal"); it is refused in one line naming the GPUs there are, before any work. No GPU
+    is here, so torch is told of one (the refusal needs nothing else of it); cuda:0 gets past the check."""
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    argv = ["train", "--policy-type", "act", "--dataset", str(data), "--out", str(tmp_path / "run"), "--pretrained",
+            "none", "--steps", "1", "--num-workers", "0", "--device"]
+    assert main([*argv, "cuda:3"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith("--device cuda:3: this machine has 1 GPU (cuda:0)"), err
+    assert not (tmp_path / "run").exists()
+    assert TrainConfig(policy_type="act", dataset=data, device="cuda:0").device == "cuda:0"
+
+
 def test_best_is_success_then_grasp_then_reach():
     df = pd.DataFrame([
         {"batch_size": 64, "chunk_size": 8, "n_action_steps": 1, "success": 0.5, "grasp_any": 0.9, "reach": 0.1},

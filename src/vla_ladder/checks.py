@@ -28,6 +28,26 @@ TORCH_DEVICE = re.compile(r"cpu|mps|cuda(:\d+)?")
 """The torch devices a policy or a training run may be put on (`--device`, `lerobot:...?device=`)."""
 
 
+def check_torch_device(device: str, said: str, fix: str) -> str:
+    """`device` (a TORCH_DEVICE) when this machine has it, else ValueError in one line that starts with `said` (how
+    the command was told, "--device cuda:3" or "device=cuda:3") and, where no GPU is visible, ends with `fix`.
+    LeRobot puts a model on a missing device's stand-in with a warning only, and torch fails on cuda:N past the
+    GPUs only once the model is moved there, after the checkpoint or the data have loaded: every command that
+    takes a device (train, eval and serve-policy of lerobot: checkpoints) checks it here, before that work."""
+    import torch
+
+    if device.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ValueError(f"{said} needs a CUDA GPU and none is visible; {fix}")
+        count, index = torch.cuda.device_count(), int(device.partition(":")[2] or 0)
+        if index >= count:
+            gpus = ", ".join(f"cuda:{i}" for i in range(count)) if count <= 2 else f"cuda:0 to cuda:{count - 1}"
+            raise ValueError(f"{said}: this machine has {count} GPU{'s' if count > 1 else ''} ({gpus})")
+    if device == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"{said} needs Apple's Metal (MPS) and it is not available here; {fix}")
+    return device
+
+
 # ---------------------------------------------------------------------------------------------- counts
 def check_count(value, name: str, least: int = 1):
     """`value` when it is an integer (numpy's too; a bool is not one) of at least `least`, else ValueError naming

@@ -30,7 +30,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from vla_ladder.checks import TORCH_DEVICE
+from vla_ladder.checks import TORCH_DEVICE, check_torch_device
 from vla_ladder.contract import (ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IMAGE_SHAPE, POLICY_FIELDS, STATE_DIM,
                                  STATE_KEY, TRAINED_CONTRACT_FILE, contract_changes)
 from vla_ladder.files import own_tempdir
@@ -208,12 +208,8 @@ def checked_config(path: str | Path, n_action_steps: int | None = None, device: 
                          f"(horizon {horizon} - n_obs_steps {n_obs} + 1), got {steps}")
     overrides = [] if n_action_steps is None else [f"--n_action_steps={int(n_action_steps)}"]
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device={device} needs a CUDA GPU and none is visible; use ?device=cpu, or leave "
-                         "device out (cuda when there is one, else cpu)")
-    if device == "mps" and not torch.backends.mps.is_available():  # (LeRobot would play on the CPU, warning only)
-        raise ValueError("device=mps needs Apple's Metal (MPS) and it is not available here; use ?device=cpu, or "
-                         "leave device out")
+    check_torch_device(device, f"device={device}", "use ?device=cpu, or leave device out (cuda when there is one, "
+                       "else cpu)")
     overrides.append(f"--device={device}")
     if use_amp is not None:
         overrides.append(f"--use_amp={str(bool(use_amp)).lower()}")

@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from vla_ladder import files
-from vla_ladder.checks import TORCH_DEVICE, check_output_dir, check_seed
+from vla_ladder.checks import TORCH_DEVICE, check_output_dir, check_seed, check_torch_device
 from vla_ladder.contract import CAMERA_KEYS, TRAINED_CONTRACT_FILE
 from vla_ladder.training.dataset import check_features, dataset_condition, dataset_contract, read_info
 
@@ -244,11 +244,9 @@ class TrainConfig:
         check_seed(self.train_seed, "--train-seed")  # lerobot-train seeds numpy with it too
         if self.device is not None and not TORCH_DEVICE.fullmatch(self.device):
             raise ValueError(f"--device {self.device!r}: allowed: cpu, cuda, cuda:N, mps")
-        if (self.device or "").startswith("cuda"):
-            import torch
-            if not torch.cuda.is_available():  # LeRobot would train on the CPU, saying so in a warning only
-                raise ValueError(f"--device {self.device} needs a CUDA GPU and none is visible; use --device cpu, or "
-                                 "leave it out (LeRobot picks)")
+        if self.device is not None:  # (LeRobot would train on the CPU, saying so in a warning only)
+            check_torch_device(self.device, f"--device {self.device}", "use --device cpu, or leave it out (LeRobot "
+                               "picks)")
         if self.num_workers < 0:
             raise ValueError(f"--num-workers must be >= 0 (0: load data in the training process), got "
                              f"{self.num_workers}")
