@@ -177,6 +177,26 @@ def test_a_checkpoints_runs_are_labelled_by_its_training_run_and_step(tmp_path_f
     assert "<li>a: <code>../eval0</code>" in page and "act@step2" not in page
 
 
+def test_no_committed_report_names_a_folder_of_the_machine_that_wrote_it():
+    """The committed studies' pages named their runs by the /tmp folders they were evaluated in (written before
+    build_report named them relative to the page); they name the run directories committed beside them. Inlined
+    pictures and videos (data: URIs) are left out of the search: base64 may spell anything."""
+    import re
+    from pathlib import Path
+
+    data_uri = re.compile(r"data:[\w/+.-]+;base64,[A-Za-z0-9+/=]+")
+    absolute = re.compile(r"(?<![\w.~/-])/(?:[\w.+-]+/)+[\w.+-]*")  # /a/b, also in lerobot:/a/b; not eval/a, ../a
+    results = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
+    pages = sorted(results.rglob("*.html"))
+    assert len(pages) >= 5
+    found = {str(p.relative_to(results)): sorted(set(absolute.findall(data_uri.sub("", p.read_text()))))
+             for p in pages}
+    assert {page: paths for page, paths in found.items() if paths} == {}
+    for page in pages:  # what they name instead is there
+        for run in re.findall(r"<code>(eval/[^<]+)</code>", page.read_text()):
+            assert (page.parent / run / "episodes.parquet").is_file(), (page, run)
+
+
 def test_the_placement_figure_draws_the_split_and_object_count_played(tmp_path, monkeypatch):
     """The figure was always of the canonical split with five objects whatever the runs played; it draws the most
     played split and count, in the regimes played with them, and its caption says which."""
