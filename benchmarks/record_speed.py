@@ -16,7 +16,9 @@ rebuild, so that episodes replay bit for bit; --no-rebuild-scenes reuses the sce
   write    - DatasetStore commit (finalize, statistics, card, fsync, atomic swap), per episode it held.
 The servers run in parallel and each writer is one process (`--writers K`), so the pipeline runs at its slowest
 stage, with simulation divided among N workers and writing among K writers, and no faster than the cores
-allow: the result names that bottleneck. The writer stage is also measured alone with K processes at once,
+allow (cores / the process CPU seconds a demo costs in all stages, each stage's measured with os.times in this
+process, its threads included: lavapipe renders in threads, LeRobot encodes each camera in one): the result names
+that bottleneck. The writer stage is also measured alone with K processes at once,
 with the merge of their shards.
 
 Writes benchmarks/results/record_speed_cpu.json (record_speed_cuda.json where a CUDA GPU renders; _h264 before
@@ -28,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import os
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -106,10 +109,10 @@ def end_to_end(args: Args, workers: int, work: Path, writers: int = 1) -> dict:
            str(args.num_objects), "--robot-mesh", args.robot_mesh, "--encoder-threads",
            str(args.encoder_threads[0]), "--vcodec", args.vcodec]
     log = work / f"record-{workers}-{writers}.log"
-    started = time.time()
+    started, cpu0 = time.time(), _children_cpu_s()
     with open(log, "w") as f:
         proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT)
-    wall = time.time() - started
+    wall, cpu = time.time() - started, _children_cpu_s() - cpu0
     if proc.returncode != 0:
         sys.exit(f"`{' '.join(cmd[2:])}` failed ({proc.returncode}):\n{log.read_text()[-3000:]}")
     from vla_ladder.recordings import read_provenance, read_recording_state
@@ -125,11 +128,14 @@ def end_to_end(args: Args, workers: int, work: Path, writers: int = 1) -> dict:
            "writer spawn to merge (writers' start-up and the merge included)",
            "episodes_saved": c["saved"], "episodes_attempted": c["attempted"],
            "wall_s": round(wall, 1), "demos_per_s": round(c["saved"] / wall, 4),
+           # the recorder's, its servers' and its writers' CPU seconds (start-up, failed episodes, merge included)
+           "process_cpu_s": round(cpu, 1), "process_cpu_s_per_demo": round(cpu / max(c["saved"], 1), 3),
            "frames_per_s": round(EPISODE_STEPS * c["saved"] / wall, 2), "first_demo_after_s": round(first - started, 1),
            "after_startup_demos_per_s": float(done[-1]) if done else None}
     print(f"end to end, --workers {workers} --writers {writers}: {c['saved']} demos ({c['attempted']} attempted) in "
           f"{wall:.0f} s = {row['demos_per_s']} demos/s with start-up (first after {row['first_demo_after_s']} s), "
-          f"{row['after_startup_demos_per_s']} demos/s once the servers were up", flush=True)
+          f"{row['after_startup_demos_per_s']} demos/s once the servers were up; {row['process_cpu_s_per_demo']} "
+          "CPU s a demo in all its processes", flush=True)
     return row
 
 
@@ -170,17 +176,19 @@ def simulate(args: Args, rebuild: bool) -> tuple[dict, list]:
                                 rebuild_scenes=rebuild, robot_mesh=args.robot_mesh))
     build = time.perf_counter() - t0
     sim.run([10**6])  # warm-up: the first render
-    totals, steps, episodes = [], [], []
+    totals, cpus, steps, episodes = [], [], [], []
     for seed in range(args.stage_episodes):
-        t = time.perf_counter()
+        t, cpu = time.perf_counter(), _cpu_s()
         (r,) = sim.run([seed])
         totals.append(time.perf_counter() - t)
+        cpus.append(_cpu_s() - cpu)
         steps.append(r.header["sim_seconds"])
         episodes.append(Episode.from_message(decode(encode({**r.header, "has_frames": True}, r.arrays)), "local"))
     sim.close()
     total = sum(totals) / len(totals)
     step = sum(steps) / len(steps)
     return {"build_s": build, "episode_s": total, "reset_s": total - step, "steps_s": step,
+            "episode_cpu_s": sum(cpus) / len(cpus),  # this process's, the renderer's threads included
             "success_rate": sum(e.success for e in episodes) / len(episodes)}, episodes
 
 
@@ -210,10 +218,12 @@ def transfer(episode, repeats: int = 5) -> dict:
                     times.append(time.perf_counter() - t)
         return times
 
+    cpu0 = _cpu_s()
     times = asyncio.run(main())
+    cpu = (_cpu_s() - cpu0) / repeats  # both ends': the server's encode and the recorder's decode
     size = len(P.encode(header, arrays))
     per = sorted(times)[len(times) // 2]
-    return {"message_bytes": size, "s_per_episode": per, "MB_per_s": size / per / 1e6}
+    return {"message_bytes": size, "s_per_episode": per, "cpu_s_per_episode": cpu, "MB_per_s": size / per / 1e6}
 
 
 def encode_and_write(args: Args, episodes: list, work: Path, video: bool, lerobot_stats: bool = False) -> dict:
@@ -249,6 +259,7 @@ def encode_and_write(args: Args, episodes: list, work: Path, video: bool, lerobo
     n = len(episodes)
     return {"encode_s_per_episode": added / n, "encode_cpu_s_per_episode": added_cpu / n,
             "write_s_per_episode": commit / n, "commit_s": commit, "writer_cpu_s_per_episode": writer_cpu / n,
+            "write_cpu_s_per_episode": (writer_cpu - added_cpu) / n,
             "episodes_per_commit": n, "bytes_per_episode": size / n, "image_statistics": used}
 
 
@@ -300,6 +311,13 @@ def _cpu_s() -> float:
     """CPU seconds of this process, all threads (LeRobot encodes each camera in a thread of its own)."""
     t = os.times()
     return t.user + t.system
+
+
+def _children_cpu_s() -> float:
+    """CPU seconds of this process's children that have ended, and of theirs that they waited for (a `record`'s
+    servers and writers)."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
 
 
 def _write_shard(root: str, episodes: list, vcodec: str, threads: int, ready, go, out) -> None:
@@ -361,16 +379,18 @@ def writer_scaling(episodes: list, work: Path, writers: int, threads: int, vcode
             "merge_s": merge, "merge_s_per_demo": merge / n}
 
 
-def pipeline(stages: dict, success: float, workers: int, n_cores: int, writers: int = 1) -> dict:
-    """Seconds per saved demo of each stage given its parallelism, the slowest one, and the bound it sets."""
+def pipeline(stages: dict, cpu_s: dict, success: float, workers: int, n_cores: int, writers: int = 1) -> dict:
+    """Seconds per saved demo of each stage given its parallelism, the slowest one, and the bound it sets; and the
+    bound the cores set, from `cpu_s`, each stage's process CPU seconds per episode (simulation: physics, the expert
+    and both cameras, which one server process runs together)."""
     per_demo = {"physics": stages["physics"] / success / workers, "render": stages["render"] / success / workers,
                 "transfer": stages["transfer"] / writers, "encode": stages["encode"] / writers,
                 "write": stages["write"] / writers}
     slowest = max(per_demo, key=per_demo.get)
-    cpu = {"physics": stages["physics"] / success, "render": stages["render"] / success,  # CPU s per demo
-           "transfer": stages["transfer"], "encode": stages["encode_cpu"], "write": stages["write"]}
+    # (the files before 2026-11-29 held cpu_s_per_demo: wall seconds for every stage but encode)
+    cpu = {"simulation": cpu_s["simulation"] / success, **{k: cpu_s[k] for k in ("transfer", "encode", "write")}}
     stage_bound, core_bound = 1 / per_demo[slowest], n_cores / sum(cpu.values())
-    return {"workers": workers, "writers": writers, "s_per_demo": per_demo, "cpu_s_per_demo": cpu,
+    return {"workers": workers, "writers": writers, "s_per_demo": per_demo, "process_cpu_s_per_demo": cpu,
             "slowest_stage": slowest,
             "stage_bound_demos_per_s": stage_bound, "cores_bound_demos_per_s": core_bound,
             "demos_per_s_bound": min(stage_bound, core_bound),
@@ -420,9 +440,10 @@ def main(args: Args) -> None:
                             "render": sim["steps_s"] - state_only["steps_s"],
                             "transfer": trans["s_per_episode"], "encode": video["encode_s_per_episode"],
                             "write": video["write_s_per_episode"]}
-        stage = {**per_episode[key], "encode_cpu": video["encode_cpu_s_per_episode"]}
-        bounds[key] = [pipeline(stage, success[key], n, n_cores, k) for n in args.workers for k in args.writers
-                       if k <= n]
+        cpu_s = {"simulation": sim["episode_cpu_s"], "transfer": trans["cpu_s_per_episode"],
+                 "encode": video["encode_cpu_s_per_episode"], "write": video["write_cpu_s_per_episode"]}
+        bounds[key] = [pipeline(per_episode[key], cpu_s, success[key], n, n_cores, k) for n in args.workers
+                       for k in args.writers if k <= n]
     result.update({
         "stages": {"no_rebuild": stages[False], "rebuild": stages[True]}, "transfer": trans,
         "encode_and_write_video": video, "encode_and_write_video_lerobot_stats": video_lerobot_stats,
@@ -434,7 +455,9 @@ def main(args: Args) -> None:
                "no_rebuild or rebuild run) / workers for the simulation stages "
                "(one server process each), / writers for transfer, encode and write (one process each). The "
                "pipeline runs at its slowest stage, and no faster than cores / the CPU seconds one demo costs in all "
-               "stages (the writer's CPU seconds measured, its encoder threads included). writer_scaling: the "
+               "stages (process_cpu_s_per_demo: each stage's process CPU seconds, its threads included, the "
+               "simulation's / expert success rate). end_to_end process_cpu_s_per_demo: the CPU seconds of the "
+               "recorder and all its servers and writers per saved demo, start-up included. writer_scaling: the "
                "writer stage alone, N processes at once, and the merge of their shards.",
         "machine": {"cores": n_cores, "gpu": gpu, "load_average_1min": [load_before, os.getloadavg()[0]]},
         "provenance": files.provenance(ok[0].header["object_set"]),
