@@ -106,7 +106,7 @@ def test_position_metrics_tell_grounded_shortcut_and_blind_policies_apart():
     original, swapped = swap_plays(shortcut)
     old = grounding.position_swap(original.assign(tcp_x=np.nan), swapped)[key]
     assert old["reaches_place_swapped"] is None and old["follows_place_swapped"]["value"] == 1
-    with pytest.raises(ValueError, match="different seeds or instructions"):
+    with pytest.raises(ValueError, match="played different seeds on 12 of 12 scenes"):
         grounding.position_swap(original, swapped.assign(seed=swapped["seed"] + 1))
 
 

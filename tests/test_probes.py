@@ -15,10 +15,12 @@ from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.evaluation import grounding
 from vla_ladder.evaluation.rundir import load_run
 from vla_ladder.evaluation.runner import EvalConfig, open_run_dir
-from vla_ladder.experiments.probes import PROBES, Probe, ProbeConfig, open_probe_dir, rescore_probe, run_probe
+from vla_ladder.experiments.probes import (PROBES, Probe, ProbeConfig, open_probe_dir, probe_results, rescore_probe,
+                                         run_probe)
 from vla_ladder.files import write_json
 from vla_ladder.report import probes as probe_report
 from vla_ladder.report.html import build_report
+from vla_ladder.report.study import probe_rows
 from vla_ladder.task.layouts import sample_layout
 from vla_ladder.task.objects import OBJECT_NAMES
 
@@ -167,11 +169,11 @@ def test_instruction_swap_plays_of_other_scenes_are_refused():
     two requests put together) were scored as scenes, 3 of them 'sensitive'; every other probe refused them."""
     df = plays(lambda lay, r, j: lay.target)
     shifted = df.assign(seed=df["seed"] + 100 * (df["instruct"] == 1))
-    with pytest.raises(ValueError, match="played different seeds or instructed an object twice"):
+    with pytest.raises(ValueError, match="played different seeds on 12 of 12 scenes"):
         metrics(shifted)
     twice = df.assign(target=np.where(df["instruct"] == 1, df["target"].where(df["instruct"] == 0).ffill(),
                                       df["target"]))
-    with pytest.raises(ValueError, match="played different seeds or instructed an object twice"):
+    with pytest.raises(ValueError, match="instructed an object twice in a scene"):
         metrics(twice.sort_values(["episode", "instruct"]))
 
 
@@ -201,7 +203,7 @@ def test_paired_and_appearance_metrics():
     assert c["follows_shape"]["value"] == pytest.approx(1 - followed / n)
     assert c["transitions"]["counts"][0][:2] == [n - followed, followed] and c["shape_change"]["value"] < 0
     assert c["colour_change"]["value"] == pytest.approx(followed / n)  # (no swap: never the partner)
-    with pytest.raises(ValueError, match="different seeds or instructions"):  # not the same scenes: no pairs
+    with pytest.raises(ValueError, match="played different seeds on 12 of 12 scenes"):  # not the same scenes: no pairs
         grounding.appearance_swap(original.assign(seed=original["seed"] + 100), swapped)
 
 
@@ -419,13 +421,17 @@ def test_probe_report_renders_in_chromium(tmp_path):
     assert cells[:2] == ["small_jitter/canonical/2", "3"]
 
 
-def test_paired_variants_refuse_scenes_played_in_one_only():
-    """An inner join dropped the scenes one variant lacked and reported the rest as the whole probe."""
+def test_paired_variants_count_the_scenes_one_lacks_and_refuse_other_seeds():
+    """An inner join dropped the scenes one variant lacked and reported the rest as the whole probe; they are left
+    out and counted now, as every probe does (grounding.common_scenes). Another seed on the same episode is not a
+    scene left out: it is refused."""
     df = plays(lambda lay, r, j: lay.target)
-    with pytest.raises(ValueError, match=r"the variants played different scenes: 5 in one only \(e.g. "
-                                         r"small_jitter/canonical/5 episode 0\)"):
-        grounding.paired(df, df[df["episode"] > 0])
+    short = grounding.paired(df, df[df["episode"] > 0])["small_jitter/canonical/5"]
+    assert short["left_out"] == 1 and short["n"] == 11 * 25  # (5 plays a scene here: 5 x 5 pairs each)
     assert grounding.paired(df, df)["small_jitter/canonical/5"]["n"] == len(df) * 5
+    with pytest.raises(ValueError, match=r"the variants played different seeds on 1 of 12 scenes \(e.g. "
+                                         r"small_jitter/canonical/5 episode 3\); a probe compares the same scenes"):
+        grounding.paired(df, df.assign(seed=df["seed"] + 100 * (df["episode"] == 3)))
     with pytest.raises(ValueError, match="the variants played different object sets"):  # resumed on another machine
         grounding.paired(df.assign(object_set="standin"), df.assign(object_set="ycb"))
 
@@ -502,3 +508,71 @@ def test_a_probe_with_undefined_metrics_writes_strict_json_and_reports_them_as_b
     entry = probe_report.load_probe(tmp_path / "instruction-swap")["conditions"][key]["instruction_sensitivity"]
     assert entry["value"] is None and np.isnan(_rate(entry)["value"]) and np.isnan(_rate(entry)["ci95"]).all()
     assert probe_report.load_probe(tmp_path / "absent-object")["conditions"][key]["grasp_absent"]["value"] is None
+
+
+# ---------------------------------------------------------------------- variants that played different scenes
+CUT_SHORT = {  # probe -> its --num-objects: the fewest variants that probe plays (two each), three scenes
+    "instruction-swap": 2, "absent-object": 4, "position-swap": 5}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(CUT_SHORT))
+def test_every_probe_pairs_the_scenes_every_variant_played_and_counts_the_rest(tmp_path, name):
+    """A variant cut short holds fewer scenes than the others. The two-play probes refused to score such variants
+    ("the variants played different scenes: 1 in one only") while the instruction swap and the absent object left
+    the scenes out without a word; every probe now pairs the scenes every variant played, in one place
+    (grounding.common_scenes), and says how many it left out, in probe.json, the terminal's lines and the report's
+    table. Another seed on the same episode is no scene left out: an error. The plays are real (scripted expert)."""
+    cfg = ProbeConfig(name, policy="scripted", out=tmp_path / name, episodes=3, workers=1, report=False,
+                      grid=ConditionGrid(("small_jitter",), ("canonical",), (CUT_SHORT[name],)),
+                      **({"resamples": 100} if name == "instruction-swap" else {}))
+    whole = run_probe(cfg, progress=False)
+    key = f"small_jitter/canonical/{CUT_SHORT[name]}"
+    assert whole["conditions"][key]["scenes"] == 3 and whole["conditions"][key]["left_out"] == 0
+    runs = {v: load_run(tmp_path / name / rel) for v, rel in whole["variants"].items()}
+    assert len(runs) == 2
+
+    def cut(run, keep):
+        return type(run)(run.path, run.episodes[run.episodes["episode"] < keep], run.summary, run.config)
+
+    last = list(runs)[-1]  # the variant played last: the one an interruption cuts short
+    short = probe_results(name, {**runs, last: cut(runs[last], 2)}, 100)
+    assert short[key]["scenes"] == 2 and short[key]["left_out"] == 1
+    # Exactly the metrics of the two scenes both variants played, nothing of the third.
+    both = probe_results(name, {v: cut(r, 2) for v, r in runs.items()}, 100)
+    assert both[key]["left_out"] == 0 and {**short[key], "left_out": 0} == both[key]
+    data = {**whole, "conditions": short}
+    lines = probe_report.summary_lines(data)
+    assert lines[-1] == f"{key}: 1 scene left out, {probe_report.LEFT_OUT}"
+    assert f"<b>Scenes left out</b>, {probe_report.LEFT_OUT}: {key}: 1.</p>" in probe_report.table_html(data)
+    assert [key, "scenes left out (played in some variants only)", "1"] in [r[2:5] for r in probe_rows({"m": data})]
+    assert "left out" not in " ".join(probe_report.summary_lines(whole)) + probe_report.table_html(whole)
+    # The first variant cut short instead: the same.
+    first = list(runs)[0]
+    assert probe_results(name, {**runs, first: cut(runs[first], 2)}, 100) == short
+    # Another seed on scene 1 of one variant: not the same scenes, refused.
+    other = runs[last].episodes.assign(seed=lambda e: e["seed"] + 1000 * (e["episode"] == 1))
+    with pytest.raises(ValueError, match=rf"the variants played different seeds on 1 of 3 scenes \(e.g. {key} "
+                                         r"episode 1\); a probe compares the same scenes"):
+        probe_results(name, {**runs, last: type(runs[last])(runs[last].path, other, {}, {})}, 100)
+
+
+@pytest.mark.slow
+def test_an_interrupted_probe_is_refused_by_rescoring_and_finished_by_its_command(tmp_path):
+    """An interrupted probe has no probe.json yet: rescoring it (a study's report) failed with a FileNotFoundError
+    traceback; it names the command now, and that command resumes the cut-short variant and finishes the probe
+    with the same metrics as an uninterrupted one."""
+    cfg = ProbeConfig("position-swap", policy="scripted", out=tmp_path / "p", episodes=3, workers=1, report=False,
+                      grid=ConditionGrid(("small_jitter",), ("canonical",), (5,)))
+    whole = run_probe(cfg, progress=False)
+    (tmp_path / "p" / "probe.json").unlink()
+    swapped = tmp_path / "p" / "swapped"  # cut short after two scenes, as a Ctrl-C leaves it
+    episodes = pd.read_parquet(swapped / "episodes.parquet")
+    write_json(swapped / "summary.json", {**json.loads((swapped / "summary.json").read_text()), "complete": False})
+    episodes[episodes["episode"] < 2].to_parquet(swapped / "episodes.parquet", index=False)
+    with pytest.raises(ValueError, match=r"p holds no probe.json: its probe has not finished \(interrupted\?\); "
+                                         "rerun the same `vla-ladder probe` command, which resumes it"):
+        rescore_probe(tmp_path / "p")
+    again = run_probe(cfg, progress=False)
+    assert again["complete"] and again["conditions"] == whole["conditions"]
+    assert len(load_run(swapped).episodes) == 3 and rescore_probe(tmp_path / "p")["conditions"] == whole["conditions"]

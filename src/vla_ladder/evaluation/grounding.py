@@ -29,14 +29,16 @@ on what the instruction says:
   and its paired change (Newcombe, McNemar), and the original play's failures split into those that succeed alone
   and those that fail alone too.
 
-An object "held" is the one grasped at the final step ("none" when nothing is), as for success.
+An object "held" is the one grasped at the final step ("none" when nothing is), as for success. Every probe pairs
+its variants' plays of a scene (condition and episode index: seed first_seed + j in every variant) in one place,
+common_scenes: it scores the scenes every variant played and counts, per condition, those it left out (`left_out`).
 """
 
 from __future__ import annotations
 
 import json
 from statistics import NormalDist
-from typing import Callable
+from typing import Callable, Iterable
 
 import numpy as np
 import pandas as pd
@@ -163,21 +165,61 @@ def _by_condition(df: pd.DataFrame):
         yield condition_key(*key), g
 
 
+def _conditions(df: pd.DataFrame, left_out: dict[str, int]):
+    """(condition key, its rows of df) for every condition of common_scenes' `left_out`, in its order: one whose
+    scenes were all left out is scored over none (undefined rates) rather than missing from the results."""
+    groups = dict(_by_condition(df))
+    for key in left_out:
+        yield key, groups.get(key, df.iloc[:0])
+
+
+# ---------------------------------------------------------------------- pairing the variants' plays
+SCENE_KEYS = (*CONDITION_KEYS, "episode")
+"""What makes a scene: its condition and its index j there, which every variant plays with seed first_seed + j."""
+
+
+def common_scenes(variants: dict, plays_in: Callable[[Condition], Iterable] | None = None
+                  ) -> tuple[dict[object, pd.DataFrame], dict[str, int]]:
+    """The one place every probe pairs its variants' plays (episodes.parquet rows): each variant's plays of the
+    scenes that every variant playing their condition played (`plays_in(condition)` names those variants, all of
+    them by default), and per condition, in the order the plays first name them, how many of the scenes played
+    are left out because some variant lacks them (a variant cut short: the probe command, run again, plays them).
+    Those are counted, for probe.json and the report to say, never dropped without a word. Plays that are not of
+    the same scenes are a ValueError, not a scene left out: a scene played with different seeds in two variants,
+    or a condition played with both object sets (one_object_set)."""
+    names = list(variants)
+    plays = pd.concat([df[list(SCENE_KEYS) + ["seed", *(["object_set"] if "object_set" in df else [])]]
+                       .assign(_variant=i) for i, df in enumerate(variants.values())], ignore_index=True)
+    seeds = plays.groupby(list(SCENE_KEYS), sort=False)["seed"].nunique()
+    if (seeds > 1).any():
+        regime, split, k, j = seeds[seeds > 1].index[0]
+        raise ValueError(f"the variants played different seeds on {int((seeds > 1).sum())} of {len(seeds)} scenes "
+                         f"(e.g. {condition_key(regime, split, k)} episode {j}); a probe compares the same scenes")
+    left_out, kept = {}, []
+    for key, g in plays.groupby(list(CONDITION_KEYS), sort=False):
+        one_object_set(g)
+        wanted = {names.index(v) if v in names else None for v in (plays_in(Condition(*key)) if plays_in else names)}
+        played = g.groupby("episode")["_variant"].apply(frozenset)
+        whole = [j for j, got in played.items() if got == wanted]
+        left_out[condition_key(*key)] = len(played) - len(whole)
+        kept += [(*key, j) for j in whole]
+    kept = pd.MultiIndex.from_tuples(kept, names=list(SCENE_KEYS))
+    return {name: df[pd.MultiIndex.from_frame(df[list(SCENE_KEYS)]).isin(kept)] for name, df in variants.items()}, \
+        left_out
+
+
 # ---------------------------------------------------------------------- instruction swap
 def instruction_swap(plays: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
     """Per condition: the instruction-swap metrics of plays (episodes.parquet rows with an `instruct` column,
-    the rank of the instructed object; `target` is the instructed object). Scenes missing a variant are left out."""
+    the rank of the instructed object; `target` is the instructed object), over the scenes played under every
+    instruction (common_scenes: the others are counted in `left_out`)."""
+    kept, left_out = common_scenes(dict(iter(plays.groupby("instruct"))), lambda c: range(c.num_objects))
+    per_scene = plays.groupby([*SCENE_KEYS])["target"].agg(["nunique", "size"])  # each object instructed once
+    if (per_scene["nunique"] != per_scene["size"]).any():
+        raise ValueError("the variants instructed an object twice in a scene; a probe compares the same scenes")
     out = {}
-    for key, g in _by_condition(plays):
-        ranks = int(g["num_objects"].iloc[0])
-        # A scene is one seed, each of its objects instructed once, as every other paired probe checks (same_scenes).
-        per_scene = g.groupby("episode").agg(seeds=("seed", "nunique"), targets=("target", "nunique"),
-                                             plays=("target", "size"))
-        if ((per_scene["seeds"] > 1) | (per_scene["targets"] != per_scene["plays"])).any():
-            raise ValueError("the variants played different seeds or instructed an object twice; a probe compares "
-                             "the same scenes")
-        one_object_set(g)
-        full = g.groupby("episode").filter(lambda s: s["instruct"].nunique() == ranks)
+    for key, full in _conditions(pd.concat(kept.values()) if kept else plays, left_out):
+        ranks = Condition.parse(key).num_objects
         scenes = [s.sort_values("instruct") for _, s in full.groupby("episode", sort=True)]
         n = len(scenes)
         held = [s["held"].tolist() for s in scenes]
@@ -207,7 +249,7 @@ def instruction_swap(plays: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
                         np.array([[cols.index(h) for h in s["held"]] for s in scenes], dtype=int).reshape(n, ranks),
                         stratum, len(cols), resamples)
         out[key] = {
-            "scenes": n, "plays": int(n * ranks),
+            "scenes": n, "plays": int(n * ranks), "left_out": left_out[key],
             "instruction_sensitivity": wilson_rate(sensitive, n),
             "scene_accuracy": wilson_rate(accurate, n),
             "grounded_accuracy": pooled_rate(diag, grasped),
@@ -244,26 +286,18 @@ def transitions(before: list[str], after: list[str], outcomes: tuple[str, ...]) 
     return {"rows": list(outcomes), "columns": list(outcomes), "counts": counts.tolist()}
 
 
-def same_scenes(a: pd.DataFrame, b: pd.DataFrame, suffixes: tuple[str, str], same_target: bool = False) -> pd.DataFrame:
-    """Two variants' plays of the same scenes side by side, paired on condition and episode index (columns suffixed
-    `suffixes`); ValueError when a scene is in one only, or they played different seeds (or, `same_target`, named
-    different targets). An inner join would drop the unmatched scenes without a word."""
-    merged = a.merge(b, on=[*CONDITION_KEYS, "episode"], how="outer", suffixes=suffixes, indicator=True)
-    alone = merged[merged["_merge"] != "both"]
-    if len(alone):
-        row = alone.iloc[0]
-        raise ValueError(f"the variants played different scenes: {len(alone)} in one only (e.g. "
-                         f"{condition_key(row['regime'], row['split'], row['num_objects'])} episode {row['episode']}); "
-                         "a probe compares the same scenes")
-    merged = merged.drop(columns="_merge")
+def same_scenes(a: pd.DataFrame, b: pd.DataFrame, suffixes: tuple[str, str], same_target: bool = False
+                ) -> tuple[pd.DataFrame, dict[str, int]]:
+    """Two variants' plays of the scenes both played, side by side (columns suffixed `suffixes`), and per condition
+    the scenes left out (common_scenes); ValueError when they played different seeds (or, `same_target`, named
+    different targets)."""
+    kept, left_out = common_scenes({0: a, 1: b})
+    merged = kept[0].merge(kept[1], on=list(SCENE_KEYS), suffixes=suffixes)
     first, second = suffixes
-    if (merged[f"seed{first}"] != merged[f"seed{second}"]).any() or (
-            same_target and (merged[f"target{first}"] != merged[f"target{second}"]).any()):
-        raise ValueError(f"the variants played different seeds{' or instructions' if same_target else ''}; a probe "
-                         "compares the same scenes")
-    if f"object_set{first}" in merged and (merged[f"object_set{first}"] != merged[f"object_set{second}"]).any():
-        raise ValueError(DIFFERENT_OBJECT_SETS)
-    return merged
+    if same_target and (merged[f"target{first}"] != merged[f"target{second}"]).any():
+        raise ValueError("the variants instructed different objects in the same scene; a probe compares the same "
+                         "scenes")
+    return merged, left_out
 
 
 DIFFERENT_OBJECT_SETS = ("the variants played different object sets (ycb and standin: resumed on another machine?); "
@@ -271,24 +305,24 @@ DIFFERENT_OBJECT_SETS = ("the variants played different object sets (ycb and sta
 
 
 def one_object_set(*plays: pd.DataFrame) -> None:
-    """ValueError when the plays (of one condition, from several variants) hold both object sets: what same_scenes
-    checks for the probes that play each scene twice, here for those that pool more variants (instruction swap,
-    absent object), whose variants a resume on another machine (object_set auto) can play with the other set."""
+    """ValueError when the plays (of one condition, from several variants) hold both object sets (common_scenes
+    checks it for every probe): a resume on another machine (object_set auto) can play a variant with the other
+    set."""
     sets = {s for p in plays if "object_set" in p for s in p["object_set"].dropna()}  # (older runs: none kept)
     if len(sets) > 1:
         raise ValueError(DIFFERENT_OBJECT_SETS)
 
 
 def paired(a: pd.DataFrame, b: pd.DataFrame, metrics=METRICS) -> dict:
-    """Per condition: both variants' rates (Wilson), and per metric the paired difference b - a with Newcombe's paired
-    interval over scenes and McNemar's exact p-value. Episodes pair on condition and episode index."""
-    merged = same_scenes(a, b, ("_a", "_b"))
+    """Per condition: per metric the paired difference b - a with Newcombe's paired interval over the scenes both
+    played (same_scenes) and McNemar's exact p-value. Episodes pair on condition and episode index."""
+    merged, left_out = same_scenes(a, b, ("_a", "_b"))
     out = {}
-    for key, g in _by_condition(merged):
+    for key, g in _conditions(merged, left_out):
         diffs = {}
         for m in metrics:
             diffs[m] = paired_change(g[f"{m}_a"].astype(bool).to_numpy(), g[f"{m}_b"].astype(bool).to_numpy())
-        out[key] = {"n": int(len(g)), "difference": diffs}
+        out[key] = {"n": int(len(g)), "left_out": left_out[key], "difference": diffs}
     return out
 
 
@@ -301,17 +335,21 @@ def by_novelty(episodes: pd.DataFrame) -> dict:
 
 
 def paraphrase(variants: dict[str, pd.DataFrame]) -> dict:
-    """Per condition and instruction set (variants[CANONICAL] is the reference): the rates, the share of
-    wrong-object grasps, success by novelty, and the paired difference to the canonical wording."""
+    """Per condition and instruction set (variants[CANONICAL] is the reference), over the scenes every wording
+    played (common_scenes; the others counted in the condition's `left_out`): the rates, the share of wrong-object
+    grasps, success by novelty, and the paired difference to the canonical wording."""
+    kept, left_out = common_scenes(variants)
+    nothing = paired_change(np.zeros(0, bool), np.zeros(0, bool))  # (a condition whose every scene was left out)
     out: dict = {}
-    for name, df in variants.items():
-        diff = paired(variants[CANONICAL], df) if name != CANONICAL else {}
-        for key, g in _by_condition(df):
+    for name, df in kept.items():
+        diff = paired(kept[CANONICAL], df) if name != CANONICAL else {}
+        for key, g in _conditions(df, left_out):
             wrong = int(((g["held"] != NONE) & (g["held"] != g["target"])).sum())
             entry = {**rates(g), "wrong_object": wilson_rate(wrong, len(g))}
             if name != CANONICAL:
-                entry.update(by_novelty=by_novelty(g), vs_canonical=diff[key]["difference"])
-            out.setdefault(key, {})[name] = entry
+                entry.update(by_novelty=by_novelty(g), vs_canonical=diff[key]["difference"] if key in diff else
+                             {m: nothing for m in METRICS})
+            out.setdefault(key, {"left_out": left_out[key]})[name] = entry
     return out
 
 
@@ -331,10 +369,10 @@ def appearance_swap(original: pd.DataFrame, swapped: pd.DataFrame) -> dict:
     without it (the same scenes), as shares of COLOUR_OUTCOMES with Wilson intervals; the transition table
     original -> swap; follows-shape and follows-colour (the partner held) minus their no-swap values with Newcombe's
     paired interval and McNemar's p (a policy blind to colour takes the partner as often either way)."""
-    merged = same_scenes(original, swapped, ("_o", "_s"), same_target=True)
+    merged, left_out = same_scenes(original, swapped, ("_o", "_s"), same_target=True)
     merged["partner"] = [(json.loads(lay).get("colour_swap") or [None, None])[1] for lay in merged["layout_s"]]
     out = {}
-    for key, g in _by_condition(merged):
+    for key, g in _conditions(merged, left_out):
         s = g[g["partner"].notna()]
         before = [held_outcome(h, t, p) for h, t, p in zip(s["held_o"], s["target_o"], s["partner"])]
         after = [held_outcome(h, t, p) for h, t, p in zip(s["held_s"], s["target_s"], s["partner"])]
@@ -342,7 +380,7 @@ def appearance_swap(original: pd.DataFrame, swapped: pd.DataFrame) -> dict:
         x = np.array([o == "instructed" for o in before], bool)
         y = np.array([o == "instructed" for o in after], bool)
         out[key] = {
-            "scenes": int(len(g)), "swapped": n,
+            "scenes": int(len(g)), "swapped": n, "left_out": left_out[key],
             "original": {o: wilson_rate(before.count(o), n) for o in COLOUR_OUTCOMES},
             "swap": {o: wilson_rate(after.count(o), n) for o in COLOUR_OUTCOMES},
             "follows_shape": wilson_rate(after.count("instructed"), n),
@@ -382,25 +420,26 @@ def absent_object(present: pd.DataFrame, absent: pd.DataFrame) -> dict:
     """Per condition: what a policy does when told to grasp an object that is not on the table. `absent`: the
     absent plays (episodes.parquet rows with an `absent` column, the named object's rank among the absent ones;
     `target` is the named object), `present`: the same scenes' ordinary plays (their own target instructed).
-    Scenes missing a play are left out. Rates over the present plays (one a scene) are Wilson; rates pooled over a
-    scene's absent plays get pooled_rate's interval; the change absent - present Newcombe's paired interval with one
-    absent play a scene (four objects), and with several the same construction from the present rate's Wilson
-    interval, the absent rate's pooled one and their correlation over scenes (stats.difference_interval). Measured
+    Scenes missing a play are left out and counted (common_scenes: `left_out`). Rates over the present plays (one a
+    scene) are Wilson; rates pooled over a scene's absent plays get pooled_rate's interval; the change absent -
+    present Newcombe's paired interval with one absent play a scene (four objects), and with several the same
+    construction from the present rate's Wilson interval, the absent rate's pooled one and their correlation over
+    scenes (stats.difference_interval). Measured
     coverage of the nominal 95% (beta-binomial scenes, 2-3 absent plays, rates 0.1-0.9, present and absent
     correlated through the scene): 90-96% at 10 scenes, 92-96% at 20-50, where the bootstrap over scenes used
     before gave 87-95% at 10 (docs/probes.md); it keeps a width where every scene plays alike."""
+    kept, left_out = common_scenes({"present": present, **dict(iter(absent.groupby("absent")))},
+                                   lambda c: ["present", *range(MAX_OBJECTS - c.num_objects)])
+    absent_kept = pd.concat([df for name, df in kept.items() if name != "present"]) if len(kept) > 1 else absent
+    present_kept = dict(_conditions(kept["present"], left_out))
     out = {}
-    for key, g in _by_condition(absent):
+    for key, g in _conditions(absent_kept, left_out):
         cond = Condition.parse(key)
         missing = MAX_OBJECTS - cond.num_objects
-        full = g.groupby("episode").filter(lambda s: s["absent"].nunique() == missing)
-        own = present[(present["regime"] == cond.regime) & (present["split"] == cond.split)
-                      & (present["num_objects"] == cond.num_objects)].set_index("episode")
-        full = full[full["episode"].isin(own.index)].sort_values(["episode", "absent"])
-        own = own.loc[sorted(set(full["episode"]))]
-        if (own["seed"].reindex(full["episode"]).to_numpy() != full["seed"].to_numpy()).any():
-            raise ValueError("the variants played different seeds; a probe compares the same scenes")
-        one_object_set(full, own)
+        if not missing:  # (five objects: none to name; the probe never plays them)
+            continue
+        full = g.sort_values(["episode", "absent"])
+        own = present_kept[key].set_index("episode").sort_index()
         n = len(own)
         # (scenes, absent plays) arrays: the rows are sorted by scene, then by rank.
         held = (full["held"] != NONE).to_numpy().reshape(n, missing)
@@ -416,7 +455,7 @@ def absent_object(present: pd.DataFrame, absent: pd.DataFrame) -> dict:
             grasp_change = share_change(grasp_present, grasp_absent, held_present, held.mean(1))
         regions = {o: usual_regions(o, cond) for o in OBJECT_NAMES}  # all None in full random
         out[key] = {
-            "scenes": n, "absent_plays": int(n * missing),
+            "scenes": n, "absent_plays": int(n * missing), "left_out": left_out[key],
             "usual_regions": None if None in regions.values() else {o: list(r) for o, r in regions.items()},
             "grasp_present": grasp_present,
             "grasp_absent": grasp_absent,
@@ -502,15 +541,15 @@ def position_swap(original: pd.DataFrame, swapped: pd.DataFrame) -> dict:
     stands at the instructed object's original place; in the original play it is a wrong grasp like any other).
     reaches_object / reaches_place: the TCP ends at the instructed object / at the partner (`ends_near`), whatever
     is held. Their paired changes swapped - original get Newcombe's paired interval and McNemar's exact p."""
-    merged = same_scenes(original, swapped, ("_o", "_s"), same_target=True)
+    merged, left_out = same_scenes(original, swapped, ("_o", "_s"), same_target=True)
     merged["partner"] = [(json.loads(lay).get("position_swap") or [None, None])[1] for lay in merged["layout_s"]]
     out = {}
-    for key, g in _by_condition(merged):
+    for key, g in _conditions(merged, left_out):
         s = g[g["partner"].notna()]
         n = len(s)
         before = [held_outcome(h, t, p) for h, t, p in zip(s["held_o"], s["target_o"], s["partner"])]
         after = [held_outcome(h, t, p) for h, t, p in zip(s["held_s"], s["target_s"], s["partner"])]
-        entry = {"scenes": int(len(g)), "swapped": n, "no_swap": int(len(g) - n),
+        entry = {"scenes": int(len(g)), "swapped": n, "no_swap": int(len(g) - n), "left_out": left_out[key],
                  **_two_plays(s, before, after, PLACE_OUTCOMES, ("swap", "swapped"),
                               {"follows_object": "instructed", "follows_place": "partner"},
                               # where the gripper ends, for policies whose grasp can miss
@@ -535,10 +574,12 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
     (Newcombe's paired interval, McNemar's exact p); where the gripper ends, at B or at A (`ends_near`: within 5 cm
     horizontally of the footprint, nearer it than the other); the transition table original -> switched. Each
     condition holds them per K under "by_step", and at its top, like every probe's flat metrics (the study's probe
-    table lists those), the switched play's follows_new_at_K and stays_old_at_K."""
+    table lists those), the switched play's follows_new_at_K and stays_old_at_K. Every K over the same scenes, those
+    that the original and every switched variant played (common_scenes: the others counted in `left_out`)."""
+    kept, left_out = common_scenes({"original": original, **switched})  # the scenes every step played
     out: dict = {}
-    for step, plays in sorted(switched.items()):
-        merged = same_scenes(original, plays, ("_o", "_s"))
+    for step in sorted(switched):
+        merged, _ = same_scenes(kept["original"], kept[step], ("_o", "_s"))
         switch = [json.loads(lay).get("switch") or {} for lay in merged["layout_s"]]
         if any(s.get("step") != step or s.get("target") != t for s, t in zip(switch, merged["target_s"])):
             raise ValueError(f"the switch-{step} plays do not all switch at step {step} to their target; "
@@ -547,7 +588,7 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
         merged["old"] = [json.loads(lay)["target"] for lay in merged["layout_s"]]
         if (merged["old"] != merged["target_o"]).any():
             raise ValueError("the switched plays do not start with the original plays' instruction")
-        for key, s in _by_condition(merged):
+        for key, s in _conditions(merged, left_out):
             n = len(s)
             before = [held_outcome(h, b, a, SWITCH_OUTCOMES) for h, a, b in zip(s["held_o"], s["old"], s["new"])]
             after = [held_outcome(h, b, a, SWITCH_OUTCOMES) for h, a, b in zip(s["held_s"], s["old"], s["new"])]
@@ -557,8 +598,7 @@ def instruction_switch(original: pd.DataFrame, switched: dict[int, pd.DataFrame]
                                   # where the gripper ends, at B or at A (nothing moves: one layout, both places)
                                   {"reaches_new": s["new"], "reaches_old": s["old"]})}
             entry["pairs"] = {f"{a}/{b}": int(c) for (a, b), c in s.groupby(["old", "new"]).size().items()}
-            cond = out.setdefault(key, {"scenes": n, "switch_steps": [], "by_step": {}})
-            cond["scenes"] = min(cond["scenes"], n)  # (that every step has: an interrupted run's last has fewer)
+            cond = out.setdefault(key, {"scenes": n, "left_out": left_out[key], "switch_steps": [], "by_step": {}})
             cond["switch_steps"].append(step)
             cond[f"follows_new_at_{step}"] = entry["follows_new_switched"]
             cond[f"stays_old_at_{step}"] = entry["stays_old_switched"]
@@ -580,15 +620,15 @@ def distractor_removal(original: pd.DataFrame, alone: pd.DataFrame) -> dict:
     to choose between as well: reaching, grasping, or going to a place where the object is not), so success as
     it is + distractor failures + failures alone too = 1. Shares of all scenes (Wilson). Δ success nets the
     distractor failures against the opposite flips (succeeds as it is, fails alone)."""
-    merged = same_scenes(original, alone, ("_o", "_a"), same_target=True)
+    merged, left_out = same_scenes(original, alone, ("_o", "_a"), same_target=True)
     out = {}
-    for key, g in _by_condition(merged):
+    for key, g in _conditions(merged, left_out):
         n = len(g)
         x, y = g["success_o"].astype(bool).to_numpy(), g["success_a"].astype(bool).to_numpy()
         held = ["none" if h == NONE else "instructed" if h == t else "distractor"
                 for h, t in zip(g["held_o"], g["target_o"])]
         out[key] = {
-            "scenes": n,
+            "scenes": n, "left_out": left_out[key],
             "success_original": wilson_rate(int(x.sum()), n), "success_alone": wilson_rate(int(y.sum()), n),
             "success_change": paired_change(x, y),
             "held_original": {o: wilson_rate(held.count(o), n) for o in REMOVAL_OUTCOMES},

@@ -30,7 +30,9 @@ DIR/probe.json (metrics with 95% intervals, evaluation/grounding.py), DIR/<probe
   instructed object where it stood). A failure that turns into success alone was the distractors' doing (the
   policy chose, or was drawn to, another object); one that stays is the policy's own, with nothing to choose.
 
-Rerunning the same command resumes every variant; another request into DIR is refused unless --overwrite.
+Rerunning the same command resumes every variant; another request into DIR is refused unless --overwrite. Every
+probe pairs its variants' plays in one place (grounding.common_scenes): a scene some variant lacks is left out and
+counted (`left_out` in probe.json, said by the report), a scene played with different seeds is an error.
 """
 
 from __future__ import annotations
@@ -303,7 +305,13 @@ def probe_results(probe: str, runs: dict[str, Run], resamples: int) -> dict:
 def rescore_probe(out: Path) -> dict:
     """Recompute a finished probe's metrics from its variants' episodes (no policy loaded, nothing played) and
     rewrite probe.json and its figure. A study's report does this for each probe, so a re-run of a finished
-    study brings the current metrics and intervals to plays made with an older vla-ladder."""
+    study brings the current metrics and intervals to plays made with an older vla-ladder. As when the probe
+    ran, scenes some variant lacks are left out and counted (grounding.common_scenes). An interrupted probe has
+    no probe.json yet (it is written once every variant has played), and its cut-short variant is an incomplete
+    run directory, which load_run refuses: both say to run the command again, which resumes it."""
+    if not (out / PROBE_FILE).is_file():
+        raise ValueError(f"{out} holds no {PROBE_FILE}: its probe has not finished (interrupted?); rerun the same "
+                         "`vla-ladder probe` command, which resumes it")
     data = json.loads((out / PROBE_FILE).read_text())
     runs = {name: load_run(out / rel) for name, rel in data["variants"].items()}
     data["conditions"] = probe_results(data["probe"], runs, data["config"]["resamples"])

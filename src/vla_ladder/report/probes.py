@@ -260,11 +260,24 @@ def _switch_tables(conds: dict) -> list[tuple[str, dict]]:
     return [(f"{key}, switch at step {k}", c) for key, cond in conds.items() for k, c in cond["by_step"].items()]
 
 
+LEFT_OUT = "played in some variants only, so not scored (a variant cut short: rerun the probe command to play them)"
+
+
+def left_out(data: dict) -> dict[str, int]:
+    """Per condition, the scenes the probe left out (evaluation/grounding.py common_scenes), where there are any
+    (probe.json from before they were counted: none)."""
+    return {k: int(c["left_out"]) for k, c in data["conditions"].items() if c.get("left_out")}
+
+
 def table_html(data: dict) -> str:
-    """The probe's table: one row per condition (and wording for the paraphrase probe, step for the switch)."""
+    """The probe's table: one row per condition (and wording for the paraphrase probe, step for the switch), and
+    the scenes left out, where any were."""
     view = _view(data["probe"])
     head, rows = view.table(data["conditions"])
-    return _table(head, rows) + f"<p class=note>In %, 95% intervals in brackets{view.unit}.</p>"
+    out = left_out(data)
+    missing = "" if not out else (f"<p class=note><b>Scenes left out</b>, {LEFT_OUT}: "
+                                  + ", ".join(f"{html.escape(k)}: {n}" for k, n in out.items()) + ".</p>")
+    return _table(head, rows) + f"<p class=note>In %, 95% intervals in brackets{view.unit}.</p>" + missing
 
 
 def matrices_html(data: dict) -> str:
@@ -489,9 +502,10 @@ def _switch_lines(key: str, c: dict) -> list[str]:
 
 
 def summary_lines(data: dict) -> list[str]:
-    """One line per condition (and switch step) for the terminal."""
-    lines = _view(data["probe"]).lines
-    return [line for key, c in data["conditions"].items() for line in lines(key, c)]
+    """One line per condition (and switch step) for the terminal, and one for the scenes it left out, if any."""
+    lines, out = _view(data["probe"]).lines, left_out(data)
+    return [line for key, c in data["conditions"].items() for line in lines(key, c)
+            + ([f"{key}: {out[key]} scene{'s' * (out[key] > 1)} left out, {LEFT_OUT}"] if key in out else [])]
 
 
 # ---------------------------------------------------------------------- the probes

@@ -229,6 +229,9 @@ def probe_rows(probes: dict[str, dict]) -> list[list[str]]:
                 rows.append([model, data["probe"], cond, label or metric.replace("_", " "), _probe_value(metric, m),
                              str(m.get("n", ""))])
 
+            if metrics.get("left_out"):  # (scenes some variant lacks: grounding.common_scenes)
+                rows.append([model, data["probe"], cond, "scenes left out (played in some variants only)",
+                             str(metrics["left_out"]), ""])
             for metric, m in metrics.items():
                 if isinstance(m, dict) and "value" in m and "ci95" in m:
                     row(metric, m)
