@@ -238,6 +238,37 @@ def test_a_bad_answer_is_one_clear_error(answer, says):
         server.shutdown()
 
 
+def test_a_server_cannot_make_the_client_buffer_more_than_a_few_messages():
+    """A server that sends faster than the client reads stalls after a few messages (websockets' default queue let
+    one fill 16 x MAX_MESSAGE, 64 MiB, in the client), and every message still arrives once read."""
+    import threading
+    import time
+
+    from websockets.sync.server import serve
+
+    from vla_ladder.policies.remote import connect
+
+    blob, sent = b"x" * (MAX_MESSAGE - 1024), []
+
+    def server_side(ws):
+        ws.send(pack({}))
+        for i in range(24):
+            ws.send(pack({"actions": blob, "i": i}))  # blocks once the client stops reading
+            sent.append(i)
+
+    with serve(server_side, "127.0.0.1", 0, max_size=None) as server:
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        ws, _ = connect(f"ws://127.0.0.1:{server.socket.getsockname()[1]}")
+        with ws:
+            seen = -1
+            while seen != len(sent):  # until the server stalls (or is done)
+                seen = len(sent)
+                time.sleep(0.5)
+            assert seen <= 8, f"the server got {seen} messages of 4 MiB into a client that read none"
+            assert [unpack(ws.recv(timeout=30))["i"] for _ in range(24)] == list(range(24))
+        server.shutdown()
+
+
 def test_every_option_may_be_given_as_a_keyword(monkeypatch):
     """load_policy("remote:URL", **kwargs) takes the spec's options as keywords; instruction= was dropped unsaid."""
     from vla_ladder.policies import load_policy, remote

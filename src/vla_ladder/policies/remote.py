@@ -30,7 +30,8 @@ a server that does not say is not checked.
 
 A server that wants a key gets $VLA_LADDER_API_KEY as openpi's client sends its api_key. Nothing received is
 unpickled: arrays are rebuilt with np.frombuffer, only for boolean, numeric and fixed-width string dtypes and
-only when their bytes match their shape, and every message is bounded (MAX_MESSAGE).
+only when their bytes match their shape, every message is bounded (MAX_MESSAGE) and so are those received and not
+yet read (two).
 """
 
 from __future__ import annotations
@@ -159,7 +160,9 @@ def connect(url: str, timeout_s: float = CONNECT_TIMEOUT_S):
     headers = {"Authorization": f"Api-Key {key}"} if key else None
     try:
         # Entered as a context manager, and closed by whoever holds it (websockets >= 17.1 warns otherwise).
-        ws = ws_connect(url, open_timeout=timeout_s, max_size=MAX_MESSAGE, compression=None,
+        # max_queue: frames received and not yet read before reading pauses; websockets' default (16) let a server
+        # fill 16 x MAX_MESSAGE here. A window's answers (a few KB each) wait in TCP's buffers until read.
+        ws = ws_connect(url, open_timeout=timeout_s, max_size=MAX_MESSAGE, max_queue=2, compression=None,
                         additional_headers=headers).__enter__()
     except InvalidStatus as e:
         if e.response.status_code == 401:
