@@ -555,12 +555,25 @@ def test_a_field_given_twice_under_any_spelling_is_refused_with_the_fix_for_its_
     (["--policy", "ppo:/nonexistent"], "no PPO checkpoint at '/nonexistent'"),
     (["--robot-mesh", "foo"], "unknown robot_mesh 'foo'; allowed: lite, full"),
     (["--server", "ws://127.0.0.1:1", "ws://127.0.0.1:1"], "--server ws://127.0.0.1:1 is given twice"),
+    # One server spelt two ways passed that check and was drawn from twice.
+    (["--server", "ws://127.0.0.1:1", "ws://localhost:1"], "--server ws://127.0.0.1:1 and ws://localhost:1 are one "
+     "server; name each server once"),
+    (["--server", "ws://Gpu-Box:1", "ws://gpu-box.:1/"], "--server ws://Gpu-Box:1 and ws://gpu-box.:1/ are one server"),
+    (["--server", "wss://h", "ws://h:8", "ws://h:443"], "--server wss://h and ws://h:443 are one server"),
+    (["--server", "ws://[::ffff:127.0.0.1]:1", "ws://127.0.0.1:1"], "are one server"),
     (["--ledger", "ledger.json"], "--ledger is for the writers `record --writers` starts: it needs their --server"),
 ])
 def test_record_writers_each_need_a_server(extra, says, tmp_path, capsys):
     rc = main(["record", "--out", str(tmp_path / "rec"), "--episodes", "1", *extra])
     _one_line_error(capsys, rc, says)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_distinct_servers_are_not_taken_for_one():
+    from vla_ladder.checks import check_distinct_ws_urls
+
+    check_distinct_ws_urls(["ws://127.0.0.1:1", "ws://127.0.0.1:2", "ws://127.0.0.2:1", "ws://h:1", "ws://h:1/a",
+                            "ws://h:1/b", "ws://g:1", "wss://g"], "--server")
 
 
 def test_record_refuses_the_root_and_a_directory_that_holds_no_recording_leaving_nothing_beside_it(tmp_path, capsys):

@@ -251,6 +251,51 @@ def check_ws_url(url: str, what: str) -> str:
     return url
 
 
+def ws_endpoint(url: str) -> tuple[frozenset[str], int, str]:
+    """What a checked WebSocket URL reaches, spelling aside: its host's addresses, its port (80 for ws, 443 for wss
+    where it names none) and its path without a trailing slash. Two URLs whose hosts share an address, with the same
+    port and path, reach one server (`ws://localhost:P`, `ws://127.0.0.1:P/`). An IP literal is its own address and
+    a loopback name is resolved (a local lookup); any other name stays a lower-case name, never looked up here, so
+    two names of one remote machine are not caught."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url)
+    host = parts.hostname.rstrip(".")  # (lower-case already; "localhost." is localhost)
+    if is_loopback(host) and not _ip(host):
+        try:
+            addresses = {_ip(info[4][0]) for info in socket.getaddrinfo(host, None)} - {None}
+        except OSError:  # no resolver: what localhost is everywhere
+            addresses = set()
+        names = frozenset(addresses or {"127.0.0.1", "::1"})
+    else:
+        names = frozenset({_ip(host) or host})
+    return names, parts.port or (443 if parts.scheme == "wss" else 80), parts.path.rstrip("/")
+
+
+def _ip(host: str) -> str | None:
+    """`host`'s address written one way (an IPv4-mapped IPv6 address as IPv4), None when it is not an IP literal."""
+    try:
+        ip = ipaddress.ip_address(host)
+    except ValueError:
+        return None
+    return str(getattr(ip, "ipv4_mapped", None) or ip)
+
+
+def check_distinct_ws_urls(urls: typing.Sequence[str], flag: str) -> None:
+    """ValueError naming both spellings when two of `urls` (each checked by check_ws_url) reach one server
+    (`ws_endpoint`)."""
+    seen: list[tuple[str, tuple]] = []
+    for url in urls:
+        names, port, path = ws_endpoint(url)
+        for other, (other_names, other_port, other_path) in seen:
+            if port == other_port and path == other_path and names & other_names:
+                said = f"{flag} {url} is given twice" if url == other else \
+                    f"{flag} {other} and {url} are one server"
+                raise ValueError(f"{said}; name each server once (a server with more envs serves more: its "
+                                 "--num-envs)")
+        seen.append((url, (names, port, path)))
+
+
 RAY_ADDRESS = re.compile(r"auto|(ray://)?[^\s:/]+:\d{1,5}")
 """What ray.init(address=...) takes: auto (the local cluster), or HOST:PORT, or ray://HOST:PORT (Ray Client)."""
 

@@ -17,7 +17,7 @@ from typing import Annotated
 
 import tyro
 
-from vla_ladder.checks import SEED_LIMIT, check_count, check_ws_url
+from vla_ladder.checks import SEED_LIMIT, check_count, check_distinct_ws_urls, check_ws_url
 from vla_ladder.conditions import Condition
 from vla_ladder.machine import auto_workers, auto_writers, check_workers
 from vla_ladder.recording.card import missing_targets, target_counts
@@ -142,10 +142,8 @@ class RecordConfig:
         check_instruction_set(self.instructions)
         for url in self.server:
             check_ws_url(url, "--server")
-        twice = sorted({url for url in self.server if self.server.count(url) > 1})
-        if twice:  # two connections to one server: its episodes drawn twice as fast, not two servers' worth
-            raise ValueError(f"--server {twice[0]} is given twice; name each server once (a server with more "
-                             "envs serves more: its --num-envs)")
+        # Two connections to one server (however spelt): its episodes drawn twice as fast, not two servers' worth.
+        check_distinct_ws_urls(self.server, "--server")
         from vla_ladder.policies import check_expert, check_spec, parse_spec
         # The local servers' expert is checked here, before they start (each refused it, and the recorder said to
         # rerun); with --server the servers' expert is the one recorded.
