@@ -169,6 +169,18 @@ def test_an_eta_of_days_says_its_days(monkeypatch):
     assert record.eta_text(59) == "00:00:59" and record.eta_text(86400 + 61) == "1d 00:01:01"
 
 
+def test_a_resumed_sharded_recording_rates_only_its_own_demos():
+    """`record --writers K` resumed over an earlier run's shard after a gap (4 demos, 4 seeds, 1 block: the ledger
+    counts them kept) said 0.088 demos/s, ETA 8 min, before its writers had kept one demo."""
+    from vla_ladder.recording.writers import progress_line
+
+    at_start = (16, 4, 1)  # 12 demos in the dataset, 4 in the shard left after a gap
+    assert progress_line((16, 4, 3), at_start, 60, 45.0) == \
+        "progress: 16/60 saved | 0 seeds played in 2 blocks | 0.000 demos/s saved | ETA ?"
+    assert progress_line((26, 16, 3), at_start, 60, 100.0) == \
+        "progress: 26/60 saved | 12 seeds played in 2 blocks | 0.100 demos/s saved | ETA 00:05:40"
+
+
 def test_an_out_that_is_a_file_leaves_no_work_directory_beside_it(tmp_path):
     """`record --out FILE` said the path is not a directory, and left .FILE.recording/ (its lock) beside the file."""
     (tmp_path / "notes.txt").write_text("mine")

@@ -87,7 +87,7 @@ class Ledger:
             return self._state()[1]
 
     def tally(self) -> tuple[int, int, int]:
-        """(demos kept in all, seeds played this run, blocks taken)."""
+        """(demos kept in all, seeds played in its blocks, blocks), blocks of earlier runs (shards on disk) included."""
         with self._locked():
             _, blocks, saved = self._state()
         return saved, sum(b.played_to - b.start for b in blocks), len(blocks)

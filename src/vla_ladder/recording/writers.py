@@ -35,6 +35,10 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writer
     seeds it held): the command says to rerun."""
     before = store.saved
     ledger = store.begin_ledger(cfg.episodes, writers)
+    # What earlier runs left: the dataset and the shards after a gap, which the ledger counts as kept. The progress
+    # lines' rate is this run's alone (it counted those shards' demos as this run's: a resumed run's ETA started
+    # short).
+    at_start = ledger.tally()
     env = dict(os.environ, **({TOKEN_ENV: cfg.token} if cfg.token else {}))  # a token stays off command lines
     started = time.monotonic()
     procs = []
@@ -72,16 +76,17 @@ def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writer
                     stopping = gave_up = True
             if time.monotonic() - last_report >= PROGRESS_EVERY_S:
                 last_report = time.monotonic()
-                _report(ledger, cfg.episodes, before, started)
+                log.info("%s", progress_line(ledger.tally(), at_start, cfg.episodes, time.monotonic() - started))
             time.sleep(0.2)
     except KeyboardInterrupt:  # the writers commit what they hold, and what continues the dataset is merged below
         _interrupt(procs)
         codes, interrupted = [p.wait() for p in procs], True
-    store.settle(cfg.episodes)
     elapsed = time.monotonic() - started
+    kept = ledger.tally()[0] - at_start[0]  # (the merge below may take earlier runs' shards in too)
+    store.settle(cfg.episodes)
     log.info("%s %d/%d saved in %s | %.3f demos/s saved by %d writers",
              "done:" if store.saved >= cfg.episodes else "stopped:", store.saved, cfg.episodes, cfg.out,
-             (store.saved - before) / elapsed, writers)
+             kept / elapsed, writers)
     store.close()
     if store.saved:
         report_targets(cfg.out)
@@ -104,12 +109,14 @@ def _interrupt(procs: list[subprocess.Popen]) -> None:
             p.send_signal(signal.SIGINT)
 
 
-def _report(ledger: Ledger, target: int, before: int, started: float) -> None:
-    kept, played, blocks = ledger.tally()
-    rate = (kept - before) / max(time.monotonic() - started, 1e-9)
+def progress_line(tally: tuple[int, int, int], at_start: tuple[int, int, int], target: int, elapsed: float) -> str:
+    """The recorder's progress line from the ledger's `tally` now and at the run's start: demos kept in all, and
+    this run's seeds played, blocks taken and rate (what earlier runs left is not this run's work)."""
+    (kept, played, blocks), (kept0, played0, blocks0) = tally, at_start
+    rate = (kept - kept0) / max(elapsed, 1e-9)
     eta = eta_text((target - kept) / rate) if rate > 0 else "?"
-    log.info("progress: %d/%d saved | %d seeds played in %d blocks | %.3f demos/s saved | ETA %s", kept, target,
-             played, blocks, rate, eta)
+    return (f"progress: {kept}/{target} saved | {played - played0} seeds played in {blocks - blocks0} blocks | "
+            f"{rate:.3f} demos/s saved | ETA {eta}")
 
 
 class _BlockSeeds:
