@@ -8,6 +8,7 @@ import pickle
 import re
 import subprocess
 import sys
+import time
 import urllib.error
 import urllib.request
 
@@ -242,7 +243,6 @@ def test_a_server_cannot_make_the_client_buffer_more_than_a_few_messages():
     """A server that sends faster than the client reads stalls after a few messages (websockets' default queue let
     one fill 16 x MAX_MESSAGE, 64 MiB, in the client), and every message still arrives once read."""
     import threading
-    import time
 
     from websockets.sync.server import serve
 
@@ -598,3 +598,79 @@ def test_one_connection_may_pipeline_requests_and_gets_answers_in_order(served):
         ws.send(pack({**_request(0), WINDOW_KEY: 17}))  # larger than max_pipelined
         assert ws.recv(timeout=30).startswith(f"bad request: {WINDOW_KEY!r} must be an integer in 1..16")
     assert pipeline_depth({}) == pipeline_depth({"max_pipelined": True}) == 1  # openpi's servers: one at a time
+
+
+# A serve-policy whose forward pass raises for a batch holding the prompt "fail" (no request the server takes makes
+# the tiny SmolVLA raise) and sleeps 2 s for one holding "slow" (so that requests sent meanwhile share the next pass).
+FAILING_SERVER = """
+import sys, time
+from vla_ladder.policies import serving
+
+class FailingServer(serving.PolicyServer):
+    def chunks(self, requests):
+        prompts = [r[1] for r in requests]
+        if "slow" in prompts:
+            time.sleep(2)
+        if "fail" in prompts:
+            raise RuntimeError("this policy cannot take that request")
+        return super().chunks(requests)
+
+serving.PolicyServer = FailingServer
+sys.exit(serving.run(serving.ServePolicyConfig(policy=sys.argv[1], port=0)))
+"""
+
+
+@pytest.mark.slow
+def test_a_request_that_fails_a_shared_forward_pass_fails_alone(tmp_path_factory, tmp_path):
+    """A forward pass shared by three clients fails on one client's request: that client gets the error, the others
+    their chunks, to the bit what they get alone (each group run again on its own: a lone request, a window of two).
+    Before, every connection of the batch got the error and was closed."""
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    run = H.trained(tmp_path_factory, "smolvla")
+    env = {k: v for k, v in os.environ.items() if k != "VLA_LADDER_API_KEY"} | {"PYTHONUNBUFFERED": "1"}
+    log = tmp_path / "server.log"
+    with open(log, "w") as err:
+        proc = subprocess.Popen([sys.executable, "-c", FAILING_SERVER, f"lerobot:{run}?n_action_steps=2"],
+                                stdout=subprocess.PIPE, stderr=err, text=True, env=env)
+    try:
+        line = proc.stdout.readline()
+        while line and not line.startswith("listening on "):
+            line = proc.stdout.readline()
+        url = line.split()[-1]
+        with contextlib.ExitStack() as stack:  # (the connections close before the server is killed)
+            clients = {name: stack.enter_context(connect(url, compression=None))
+                       for name in ("slow", "one", "bad", "window")}
+            for ws in clients.values():
+                unpack(ws.recv(timeout=30))
+            one, window = clients["one"], clients["window"]
+            one.send(pack(_request(0)))
+            alone = [unpack(one.recv(timeout=120))["actions"]]
+            for seed in (2, 3):
+                window.send(pack({**_request(seed), WINDOW_KEY: 2}))
+            alone += [unpack(window.recv(timeout=120))["actions"] for _ in range(2)]
+
+            clients["slow"].send(pack({**_request(5), PROMPT_KEY: "slow"}))
+            time.sleep(0.5)  # its pass has begun: what follows waits for the next one, together
+            one.send(pack(_request(0)))
+            clients["bad"].send(pack({**_request(1), PROMPT_KEY: "fail"}))
+            for seed in (2, 3):
+                window.send(pack({**_request(seed), WINDOW_KEY: 2}))
+            assert unpack(clients["slow"].recv(timeout=120))["actions"].shape == alone[0].shape
+            answers = [unpack(one.recv(timeout=120))] + [unpack(window.recv(timeout=120)) for _ in range(2)]
+            assert [a["server_timing"]["batch"] for a in answers] == [1, 2, 2]
+            for answer, chunk in zip(answers, alone):
+                np.testing.assert_array_equal(answer["actions"], chunk)
+            assert clients["bad"].recv(timeout=120) == \
+                "inference failed: RuntimeError: this policy cannot take that request"
+            with pytest.raises(ConnectionClosed) as closed:
+                clients["bad"].recv(timeout=30)
+            assert closed.value.rcvd.code == 1011
+            one.send(pack(_request(0)))  # the others' connections go on
+            np.testing.assert_array_equal(unpack(one.recv(timeout=120))["actions"], alone[0])
+    finally:
+        proc.kill()
+        proc.wait()
+    # They did share the pass that failed (else the test proves nothing).
+    assert "inference failed for a batch of 4 from 3 groups" in log.read_text(), log.read_text()[-2000:]

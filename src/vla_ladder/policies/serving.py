@@ -4,7 +4,8 @@ The server side of policies/remote.py (whose docstring is the protocol): load th
 metadata to every client that connects, answer every observation with a whole action chunk. Requests are
 independent (the client runs the chunk), so any number of clients (`eval --workers N` opens N) share one copy of
 the model, and the requests that arrive while it runs are answered together by its next forward pass (dynamic
-batching, at most --max-batch). One connection may also have up to --max-batch requests in flight (its metadata
+batching, at most --max-batch; a batch that fails is run again request by request, a window together, so that
+one client's failure is its own). One connection may also have up to --max-batch requests in flight (its metadata
 says "max_pipelined"): `eval --num-envs N` sends its envs' requests together, each naming the size of their window
 ("vla_ladder/window"), and reads the answers in order; the server runs a window in one forward pass, so N envs cost
 one pass, with the rows `eval --num-envs N` computes in-process. A request carrying "vla_ladder/episode_seed" and
@@ -201,33 +202,54 @@ class PolicyServer:
     async def _answer_pending(self) -> None:
         """Forever: wait for a group (one request, or a client's window: `read_window`), add every other group
         already waiting while the batch stays within --max-batch, have the main thread run them as one batch, hand
-        each its chunk. It waits for nothing it was not told of: a lone request runs at once."""
+        each its chunk. It waits for nothing it was not told of: a lone request runs at once. A batch of several
+        groups that fails is run again group by group, so that only the group that fails gets the error (one
+        client's request closed every connection of its batch) and the others get what they get alone."""
         held = None  # a group that did not fit the last batch: it opens the next
         while True:
-            batch = list(held or await self._pending.get())
+            groups = [held or await self._pending.get()]
             held = None
             while not self._pending.empty():
                 group = self._pending.get_nowait()
-                if len(batch) + len(group) > self.cfg.max_batch:
+                if sum(map(len, groups)) + len(group) > self.cfg.max_batch:
                     held = group
                     break
-                batch += group
-            start = time.perf_counter()
-            done: concurrent.futures.Future = concurrent.futures.Future()
-            self._passes.put(([parsed for parsed, _ in batch], done))
+                groups.append(group)
+            batch = [request for group in groups for request in group]
             try:
-                chunks = await asyncio.wrap_future(done)
+                await self._answer(batch)
             except Exception as e:
-                log.exception("inference failed for a batch of %d", len(batch))
-                for _, answer in batch:
-                    if not answer.done():
-                        answer.set_exception(e)
-                continue
-            timing = {"infer_ms": (time.perf_counter() - start) * 1000, "batch": len(batch)}
-            self.batches[len(batch)] += 1
-            for (_, answer), chunk in zip(batch, chunks):
-                if not answer.done():  # its client may have gone
-                    answer.set_result((chunk, timing))
+                if len(groups) == 1:
+                    log.exception("inference failed for a batch of %d", len(batch))
+                    self._fail(batch, e)
+                    continue
+                log.warning("inference failed for a batch of %d from %d groups (%s: %s); running each group alone",
+                            len(batch), len(groups), type(e).__name__, e)
+                for group in groups:
+                    try:
+                        await self._answer(group)
+                    except Exception as e:
+                        log.exception("inference failed for a group of %d", len(group))
+                        self._fail(group, e)
+
+    async def _answer(self, batch: list[tuple]) -> None:
+        """One forward pass on the main thread for `batch` ((parsed request, answer future) pairs), each answered its
+        chunk; the pass's exception, answering none, when it fails."""
+        start = time.perf_counter()
+        done: concurrent.futures.Future = concurrent.futures.Future()
+        self._passes.put(([parsed for parsed, _ in batch], done))
+        chunks = await asyncio.wrap_future(done)
+        timing = {"infer_ms": (time.perf_counter() - start) * 1000, "batch": len(batch)}
+        self.batches[len(batch)] += 1
+        for (_, answer), chunk in zip(batch, chunks):
+            if not answer.done():  # its client may have gone
+                answer.set_result((chunk, timing))
+
+    @staticmethod
+    def _fail(batch: list[tuple], error: Exception) -> None:
+        for _, answer in batch:
+            if not answer.done():
+                answer.set_exception(error)
 
     def _admit(self, connection, request):
         """Before the handshake: openpi's health check, the client's key, and room under --max-clients."""
