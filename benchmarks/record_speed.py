@@ -209,7 +209,8 @@ def transfer(episode, repeats: int = 5) -> dict:
 
         async with serve(handler, "127.0.0.1", 0, compression=None) as server:
             port = next(iter(server.sockets)).getsockname()[1]
-            async with connect(f"ws://127.0.0.1:{port}", max_size=P.MAX_EPISODE_MESSAGE, compression=None) as ws:
+            async with connect(f"ws://127.0.0.1:{port}", max_size=P.MAX_EPISODE_MESSAGE, compression=None,
+                               proxy=None) as ws:  # (loopback: never through the environment's proxy)
                 times = []
                 for _ in range(repeats):
                     t = time.perf_counter()

@@ -96,6 +96,24 @@ def test_a_server_that_never_greets_is_not_waited_for_forever():
         asyncio.run(connect(server.url))
 
 
+def test_a_loopback_server_is_reached_directly_where_the_environment_names_a_proxy(monkeypatch):
+    """websockets sends every connection through $https_proxy / $http_proxy unless no_proxy names the host, so on a
+    machine with a proxy (a cluster's login node) `record` reached none of the servers it started on 127.0.0.1."""
+    for name in ("https_proxy", "http_proxy", "HTTPS_PROXY", "HTTP_PROXY", "all_proxy", "ALL_PROXY"):
+        monkeypatch.setenv(name, "http://127.0.0.1:9")  # (the discard port: nothing listens there)
+    for name in ("no_proxy", "NO_PROXY"):
+        monkeypatch.delenv(name, raising=False)
+
+    async def connect(url):
+        client = EpisodeClient(url, **PING)
+        welcome = await asyncio.wait_for(client.connect(open_timeout=5.0), 30)
+        await client.ws.close()
+        return welcome
+
+    with LoopThread(_greeting_server) as server:
+        assert asyncio.run(connect(server.url))["protocol"] == P.PROTOCOL_VERSION
+
+
 def test_a_server_that_stops_answering_is_a_lost_connection_not_a_refusal():
     async def receive_while_frozen(server: LoopThread) -> ServerError:
         client = EpisodeClient(server.url, **PING)

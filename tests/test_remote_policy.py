@@ -178,6 +178,23 @@ def test_a_horizon_past_the_served_chunk_is_refused(tmp_path, capsys):
         check_server(f"{url}?n_action_steps=16")
 
 
+def test_a_loopback_policy_server_is_reached_directly_where_the_environment_names_a_proxy(monkeypatch):
+    """websockets sends every connection through $https_proxy / $http_proxy unless no_proxy names the host: with a
+    proxy set (a cluster's login node), `remote:ws://127.0.0.1:P` could not reach serve-policy on the same machine.
+    A remote host still goes through the proxy (the environment's choice)."""
+    from vla_ladder.checks import ws_proxy
+    from vla_ladder.policies.remote import check_server
+
+    for name in ("https_proxy", "http_proxy", "HTTPS_PROXY", "HTTP_PROXY", "all_proxy", "ALL_PROXY"):
+        monkeypatch.setenv(name, "http://127.0.0.1:9")  # (the discard port: nothing listens there)
+    for name in ("no_proxy", "NO_PROXY"):
+        monkeypatch.delenv(name, raising=False)
+    with metadata_server({"server": "vla-ladder", "n_action_steps": 2}) as url:
+        check_server(url)
+        check_server(url.replace("127.0.0.1", "localhost"))
+    assert ws_proxy("ws://gpu-node.example:8000") is True and ws_proxy("ws://[::1]:8000") is None
+
+
 def test_more_workers_than_the_server_takes_are_refused_before_the_run(tmp_path, capsys):
     """Each worker holds a connection: past the server's --max-clients the extra workers failed once playing."""
     with metadata_server({"server": "vla-ladder", "n_action_steps": 2, "max_clients": 1}) as url:

@@ -168,6 +168,17 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def ws_proxy(url: str) -> None | bool:
+    """websockets' `proxy` argument for a client of `url`: None (connect directly) for a loopback host, else True
+    (websockets' default: the environment's proxy, unless no_proxy names the host). websockets sends even
+    ws://127.0.0.1 through $https_proxy / $http_proxy when no_proxy does not name it, so on a machine with a proxy
+    (a cluster's login node) no client reached the servers vla-ladder starts on this machine."""
+    from urllib.parse import urlsplit
+
+    host = (urlsplit(url).hostname or "").rstrip(".")
+    return None if is_loopback(host) else True
+
+
 def refuse_past_max_clients(connection, max_clients: int, log):
     """For a websockets server's `process_request`: HTTP 503 naming the limit when `max_clients` connections are
     open already (each one's queued work and messages are in the server's memory), else None (go on)."""

@@ -46,7 +46,7 @@ import msgpack
 import numpy as np
 import torch
 
-from vla_ladder.checks import check_ws_url, refusal_body
+from vla_ladder.checks import check_ws_url, refusal_body, ws_proxy
 from vla_ladder.contract import ACTION_DIM, CAMERAS, POLICY_FIELDS, STATE_KEY, contract_changes
 from vla_ladder.policies import Policy, instruction_text, parse_options, positive_int
 
@@ -163,7 +163,7 @@ def connect(url: str, timeout_s: float = CONNECT_TIMEOUT_S):
         # max_queue: frames received and not yet read before reading pauses; websockets' default (16) let a server
         # fill 16 x MAX_MESSAGE here. A window's answers (a few KB each) wait in TCP's buffers until read.
         ws = ws_connect(url, open_timeout=timeout_s, max_size=MAX_MESSAGE, max_queue=2, compression=None,
-                        additional_headers=headers).__enter__()
+                        additional_headers=headers, proxy=ws_proxy(url)).__enter__()
     except InvalidStatus as e:
         if e.response.status_code == 401:
             raise ValueError(f"the policy server at {url} refused the connection: it needs its --api-key in "

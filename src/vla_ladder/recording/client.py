@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 
 from vla_ladder import files
-from vla_ladder.checks import refusal_body
+from vla_ladder.checks import refusal_body, ws_proxy
 from vla_ladder.conditions import Condition
 from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
 from vla_ladder.recording import protocol as P
@@ -138,8 +138,8 @@ class EpisodeClient:
 
         try:
             self.ws = await connect(self.url, max_size=self.max_message, compression=None, max_queue=2,
-                                    open_timeout=open_timeout, ping_interval=self.ping_interval,
-                                    ping_timeout=self.ping_timeout)
+                                    proxy=ws_proxy(self.url), open_timeout=open_timeout,
+                                    ping_interval=self.ping_interval, ping_timeout=self.ping_timeout)
         except InvalidStatus as e:  # a busy server (503, at its --max-clients) may take us later; anything else won't
             status, said = e.response.status_code, refusal_body(e)
             raise ServerError(self.url, f"refused the connection (HTTP {status}{': ' + said if said else ''})",
