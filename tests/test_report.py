@@ -177,6 +177,22 @@ def test_a_checkpoints_runs_are_labelled_by_its_training_run_and_step(tmp_path_f
     assert "<li>a: <code>../eval0</code>" in page and "act@step2" not in page
 
 
+@pytest.mark.slow
+def test_a_probe_of_a_checkpoint_is_titled_and_labelled_by_its_training_run(tmp_path_factory, tmp_path):
+    """A probe's report labelled its variants `SPEC [variant]` with the checkpoint's whole spec, an absolute path into
+    the machine's folders, in its title, tables and legends: it uses the report's short label of the spec."""
+    import lerobot_helpers as H
+    from vla_ladder.experiments.probes import ProbeConfig, ProbeGrid, run_probe
+
+    trained = H.trained(tmp_path_factory, "act")
+    spec = f"lerobot:{trained}/checkpoints/last/pretrained_model"
+    run_probe(ProbeConfig("position-swap", policy=spec, out=tmp_path / "probe", grid=ProbeGrid(("small_jitter",)),
+                          episodes=1, workers=1), progress=False)
+    page = (tmp_path / "probe" / "report.html").read_text()
+    assert str(trained) not in page, "the report names the checkpoint's folder"
+    assert f"lerobot:{trained.name}@step2 [original]" in page and f"lerobot:{trained.name}@step2 [swapped]" in page
+
+
 def test_no_committed_report_names_a_folder_of_the_machine_that_wrote_it():
     """The committed studies' pages named their runs by the /tmp folders they were evaluated in (written before
     build_report named them relative to the page); they name the run directories committed beside them. Inlined

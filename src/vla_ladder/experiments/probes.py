@@ -360,7 +360,8 @@ def _play_probe(cfg: ProbeConfig, policy: Policy | None, progress: bool) -> dict
     save_probe(cfg.out, data)
     if cfg.report:
         from vla_ladder.report.html import build_report
-        spec = data["policy"]["spec"]
+        from vla_ladder.report.labels import short_labels
+        spec = short_labels([data["policy"]["spec"]])[0]  # (a checkpoint's whole path named the machine's folders)
         build_report(list(runs.values()), cfg.out / "report.html", title=f"vla-ladder probe {cfg.name}: {spec}",
                      labels=[f"{spec} [{name}]" for name in runs], placements=False)
     return data

@@ -20,6 +20,7 @@ import numpy as np
 
 from vla_ladder.contract import CONTROL_HZ, EPISODE_STEPS
 from vla_ladder.files import number
+from vla_ladder.report.labels import short_labels
 from vla_ladder.report.plots import _plt, _save, plot_confusion
 from vla_ladder.report.tables import pct
 
@@ -297,7 +298,7 @@ def matrices_html(data: dict) -> str:
 
 def section(data: dict, figures: list[str], where: str) -> str:
     """The HTML of one probe: heading, what it measures, its table, figures (already <img> tags), counts."""
-    spec = data["policy"].get("spec", "?")
+    spec = short_labels([data["policy"].get("spec", "?")])[0]
     done = "" if data.get("complete", True) else " <b>(incomplete: rerun the probe command to finish it)</b>"
     return (f"<h3>{html.escape(data['probe'])}: {html.escape(spec)} <span class=ci>{html.escape(where)}</span></h3>"
             f"<p class=note>{_view(data['probe']).explain}{done}</p>" + table_html(data) + "".join(figures)
