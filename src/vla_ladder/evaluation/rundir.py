@@ -129,8 +129,10 @@ def check_run(run: Run) -> None:
         raise ValueError(f"{run.path} is not a consistent run directory: {'; '.join(broken + repairable)}; its "
                          "files were edited or mixed: evaluate again into a new --out")
     if repairable:
-        raise ValueError(f"{run.path} is an incomplete run: {'; '.join(repairable)}; rerun the same "
-                         "`vla-ladder eval` command: it plays only the missing episodes and rewrites summary.json")
+        # (a probe's variant or a study's evaluation is resumed by the probe or study that wrote it, not by eval)
+        raise ValueError(f"{run.path} is an incomplete run: {'; '.join(repairable)}; rerun the same command that "
+                         "wrote it (`vla-ladder eval`, or the `probe` or `study` whose directory holds it): it plays "
+                         "only the missing episodes and rewrites summary.json")
 
 
 def check_same_seeds(a: Run, b: Run) -> None:
