@@ -9,6 +9,20 @@ os.environ.setdefault("MS_SKIP_ASSET_DOWNLOAD_PROMPT", "1")
 os.environ.setdefault("WANDB_MODE", "disabled")
 
 
+@pytest.fixture(autouse=True)
+def _root_logging_restored():
+    """The root logger's handlers and level as before each test. LeRobot's training loop (init_logging) gives the
+    root logger a handler on the sys.stderr of the moment, a test's captured stream, closed once that test ends: a
+    later test's LeRobot warning then wrote a 'Logging error' traceback into the stderr it reads."""
+    import logging
+
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)
+
+
 @pytest.fixture(scope="session")
 def make_env():
     """gym.make for GraspObject-v1 that closes every env it made at the end of the session."""

@@ -151,11 +151,13 @@ CORRUPTIONS = {
     "an episode twice": (lambda r: _edit_episodes(r, lambda df: pd.concat([df, df.iloc[[2]]], ignore_index=True)),
                          ["small_jitter/canonical/5 episode 2 (2 rows)", "evaluate again into a new --out"]),
     "an episode missing (a killed run)": (
-        lambda r: _killed(r, drop=1), ["incomplete", "lacks episodes 1 of 0..3", "rerun the same command that wrote it (`vla-ladder eval`, or the `probe`"]),
+        lambda r: _killed(r, drop=1), ["incomplete", "lacks episodes 1 of 0..3",
+         "rerun the same command that wrote it (`vla-ladder eval`, or the `probe`"]),
     "an episode missing from episodes.parquet": (
         lambda r: _edit_episodes(r, lambda df: df.drop(index=1)),
         ["lacks episodes 1 of 0..3", "summary.json counts 4 episodes of small_jitter/canonical/5, episodes.parquet "
-         "holds 3", "rerun the same command that wrote it (`vla-ladder eval`, or the `probe`"]),
+         "holds 3",
+         "rerun the same command that wrote it (`vla-ladder eval`, or the `probe`"]),
     "an episode beyond the count": (
         lambda r: _edit_episodes(r, lambda df: df.assign(episode=df["episode"].where(df.index != 3, 9),
                                                          seed=df["seed"].where(df.index != 3, 9))),

@@ -105,6 +105,18 @@ def check_policy_packages(policy_type: str) -> None:
                              f"(pip install 'lerobot[{extra}]')")
 
 
+def config_default(policy_type: str, name: str):
+    """The default of field `name` of LeRobot's config for `policy_type`, read from the dataclass: making one runs
+    its __post_init__, which picks a device and logs about it."""
+    import dataclasses
+
+    import lerobot.policies  # noqa: F401  (registers the built-in configs)
+    from lerobot.configs.policies import PreTrainedConfig
+
+    field = next(f for f in dataclasses.fields(PreTrainedConfig.get_choice_class(policy_type)) if f.name == name)
+    return field.default_factory() if field.default is dataclasses.MISSING else field.default
+
+
 def max_action_steps(policy_type: str, chunk_size: int, lerobot_args=()) -> int:
     """The most actions a policy of this type executes of a chunk of `chunk_size` (the largest n_action_steps it
     takes): the chunk, but for the types whose chunk is a `horizon` (diffusion) the chunk less n_obs_steps - 1, as
@@ -113,10 +125,7 @@ def max_action_steps(policy_type: str, chunk_size: int, lerobot_args=()) -> int:
     `lerobot_args`."""
     if policy_type not in CHUNK_FIELD:
         return chunk_size
-    import lerobot.policies  # noqa: F401  (registers the built-in configs)
-    from lerobot.configs.policies import PreTrainedConfig
-
-    n_obs = PreTrainedConfig.get_choice_class(policy_type)().n_obs_steps
+    n_obs = config_default(policy_type, "n_obs_steps")
     for a in joined_flags(lerobot_args):
         flag, _, value = a.partition("=")
         if flag == "--policy.n_obs_steps" and re.fullmatch(r"[0-9]+", value.strip()):
@@ -217,7 +226,7 @@ class TrainConfig:
             auto_steps = self.chunk_size
         elif chunked:  # LeRobot's default, where the chunk of `horizon` steps holds it (diffusion runs actions
             # n_obs_steps - 1 .. of its horizon: its default 32 of 64 queued 15 with a horizon of 16)
-            auto_steps = min(self._config_class()().n_action_steps, self.max_action_steps())
+            auto_steps = min(config_default(self.policy_type, "n_action_steps"), self.max_action_steps())
         # The flags that set what a grid sets per model (it refuses them): a value other than the one filled in. (A
         # config rebuilt with dataclasses.replace holds the filled-in values, which nobody gave.)
         self.given = tuple(flag for flag, given in (
