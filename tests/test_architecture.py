@@ -95,3 +95,26 @@ def test_every_policy_flag_help_lists_every_policy_kind():
         help_text = re.search(r"\n    policy: [^\n]*\n    \"\"\"(.*?)\"\"\"", inspect.getsource(cls), re.S).group(1)
         words = set(re.findall(r"[a-z][a-z-]*(?=[:,\s)]|$)", " ".join(help_text.split())))
         assert set(POLICY_KINDS) <= words, (cls.__name__, sorted(set(POLICY_KINDS) - words))
+
+
+def test_a_reference_kind_registered_once_is_a_reference_everywhere(tmp_path, monkeypatch):
+    """The recipe for a policy kind: a kind without an argument, registered in POLICY_KINDS, is a reference that
+    diagnose --references and a study's evaluation.reference_policies accept, and diagnose's help names it. Both
+    kept their own list of the five (a newcomer's `still` kind was refused by both)."""
+    import inspect
+
+    from vla_ladder import policies
+    from vla_ladder.experiments.diagnose import DiagnoseConfig
+    from vla_ladder.experiments.study_config import EvaluationSpec
+
+    monkeypatch.setitem(policies.POLICY_KINDS, "still", "vla_ladder.policies.reference:make_random")
+    cfg = DiagnoseConfig(policy=("nearest",), out=tmp_path / "d", references=("still", "nearest"))
+    assert [who for who, _, _ in cfg.plan()] == ["policy", "still", "nearest"]
+    assert EvaluationSpec(reference_policies=["still"]).reference_policies == ["still"]
+    with pytest.raises(ValueError, match="allowed: .*committed, still"):
+        EvaluationSpec(reference_policies=["oracle"])
+    monkeypatch.delitem(policies.POLICY_KINDS, "still")
+    source = inspect.getsource(DiagnoseConfig)
+    help_text = re.search(r"\n    references: .*?\n    \"\"\"(.*?)\"\"\"", source, re.S).group(1)
+    references = [k for k in policies.POLICY_KINDS if k not in policies.NEEDS_ARG]
+    assert all(kind in help_text for kind in references), help_text

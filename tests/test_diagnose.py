@@ -61,7 +61,7 @@ def test_a_one_object_policy_is_probed_with_the_object_counts_each_probe_can_pla
 def test_bad_input_is_refused_in_one_line_before_any_work(tmp_path, capsys):
     out = tmp_path / "d"
     cases = [(["--condition", "tiny/canonical/5"], "regime"),
-             (["--references", "scripted", "oracle"], "allowed: scripted, committed, layout-prior, nearest, random)"),
+             (["--references", "scripted", "oracle"], "allowed: scripted, nearest, layout-prior, random, committed)"),
              (["--references", "nearest", "nearest"], "distinct"),
              (["--episodes", "0"], "positive integer")]
     for extra, words in cases:

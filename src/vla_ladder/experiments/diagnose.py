@@ -63,7 +63,7 @@ from vla_ladder.evaluation.rundir import Run, load_run
 from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.experiments.probes import PROBES
 from vla_ladder.experiments.probes import ProbeConfig, run_probe
-from vla_ladder.policies import POLICY_KINDS, check_spec, parse_spec
+from vla_ladder.policies import POLICY_KINDS, check_spec, parse_spec, reference_kinds
 from vla_ladder.report.diagnosis import answer_lines, diagnosis_html
 from vla_ladder.stats import paired_difference
 
@@ -141,7 +141,7 @@ class DiagnoseConfig:
             raise ValueError(f"--labels must give {len(self.policy)} distinct names of letters, digits, '.', '_' or "
                              f"'-' (one per --policy); got {' '.join(self.labels) or 'none'}")
         self.condition = Condition.parse(self.condition).key
-        allowed = (*REFERENCES, "random")
+        allowed = reference_kinds()
         if any(r not in allowed for r in self.references) or len(set(self.references)) != len(self.references):
             raise ValueError(f"--references must be distinct names (allowed: {', '.join(allowed)}); got "
                              f"{' '.join(self.references) or 'none'}")

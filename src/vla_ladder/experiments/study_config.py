@@ -20,7 +20,6 @@ from vla_ladder.conditions import Condition, ConditionGrid
 from vla_ladder.recordings import RECORD_FIRST_SEED
 
 PRESETS_PACKAGE = "vla_ladder.configs.study"
-REFERENCE_POLICIES = ("scripted", "committed", "nearest", "layout-prior", "random")
 
 
 @dataclass
@@ -181,10 +180,11 @@ class EvaluationSpec:
         _positive(self, "episodes")
         _unique(self, "regimes", "num_objects", "reference_policies", "probes")
         ConditionGrid(tuple(self.regimes), ("canonical",), tuple(self.num_objects))
-        for p in self.reference_policies:
-            if p not in REFERENCE_POLICIES:
-                raise ValueError(f"reference_policies: unknown {p!r}; allowed: {', '.join(REFERENCE_POLICIES)}")
         from vla_ladder.experiments.probes import PROBES
+        from vla_ladder.policies import reference_kinds
+        for p in self.reference_policies:
+            if p not in reference_kinds():
+                raise ValueError(f"reference_policies: unknown {p!r}; allowed: {', '.join(reference_kinds())}")
         for p in self.probes:
             if p not in PROBES:
                 raise ValueError(f"probes: unknown {p!r}; allowed: {', '.join(PROBES)}")

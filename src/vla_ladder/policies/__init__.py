@@ -103,6 +103,13 @@ def _factory(kind: str) -> Callable[..., Policy]:
 # own).
 NEEDS_ARG = {"ppo": "PATH", "lerobot": "PATH", "remote": "URL"}
 EXPERT_KINDS = ("scripted", "ppo")
+
+
+def reference_kinds() -> tuple[str, ...]:
+    """The built-in kinds a spec names by their name alone (no checkpoint, path or server): the reference policies
+    that `diagnose --references` and a study's `evaluation.reference_policies` may play beside learned ones. Read
+    from POLICY_KINDS and NEEDS_ARG, so a kind registered there is a reference everywhere."""
+    return tuple(k for k in POLICY_KINDS if k not in NEEDS_ARG)
 """The kinds whose episodes are demonstrations to record (the others are references or learned policies)."""
 
 
