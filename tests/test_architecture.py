@@ -118,3 +118,36 @@ def test_a_reference_kind_registered_once_is_a_reference_everywhere(tmp_path, mo
     help_text = re.search(r"\n    references: .*?\n    \"\"\"(.*?)\"\"\"", source, re.S).group(1)
     references = [k for k in policies.POLICY_KINDS if k not in policies.NEEDS_ARG]
     assert all(kind in help_text for kind in references), help_text
+
+
+# Module-level names that may spell the metrics out: their titles, and the order models are ranked in (a choice).
+METRIC_LISTS = {("report/tables.py", "METRIC_NAMES"), ("experiments/grid.py", "RANK_BY"),
+                ("experiments/study.py", "RANK_BY")}
+
+
+def test_code_that_handles_every_metric_reads_contract_metrics():
+    """The recipe for a metric: a list, tuple, set, dict or call's keywords that name every metric (success,
+    grasp_any, reach) are contract.METRICS itself, or built from it. The episode columns, the player's rows, the
+    recording protocol's header and provenance, and PPO's logs each spelt the three (PPO's training loop then
+    failed on a fourth: KeyError), so a new metric needed edits in seven more modules; only the metrics' titles and
+    the order models are ranked in name them now."""
+    from vla_ladder.contract import METRICS
+
+    spelt = []
+    for path in sorted(SRC.rglob("*.py")):
+        rel = str(path.relative_to(SRC))
+        if rel in ("contract.py", "task/env.py"):  # where the metrics are named, and computed (evaluate())
+            continue
+        tree = ast.parse(path.read_text())
+        bound = {id(node.value): t.id for node in tree.body if isinstance(node, (ast.Assign, ast.AnnAssign))
+                 for t in (node.targets if isinstance(node, ast.Assign) else [node.target])
+                 if isinstance(t, ast.Name)}
+        for node in ast.walk(tree):
+            items = node.keys if isinstance(node, ast.Dict) else \
+                node.elts if isinstance(node, (ast.Tuple, ast.List, ast.Set)) else []
+            words = {e.value for e in items if isinstance(e, ast.Constant) and isinstance(e.value, str)}
+            if isinstance(node, ast.Call):  # dict(success=..., grasp_any=..., reach=...)
+                words = {k.arg for k in node.keywords}
+            if set(METRICS) <= words and (rel, bound.get(id(node))) not in METRIC_LISTS:
+                spelt.append(f"{rel}:{node.lineno}")
+    assert spelt == [], f"these name every metric instead of reading contract.METRICS: {spelt}"

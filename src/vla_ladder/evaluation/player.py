@@ -21,7 +21,7 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 
 from vla_ladder.conditions import Condition
-from vla_ladder.contract import CAMERA_NAMES, CONTROL_HZ, ENV_ID, EPISODE_STEPS
+from vla_ladder.contract import CAMERA_NAMES, CONTROL_HZ, ENV_ID, EPISODE_STEPS, METRICS
 from vla_ladder.machine import exit_with_parent, limit_threads
 
 PHASES = ("reset", "policy", "env", "film", "encode")
@@ -211,8 +211,7 @@ class Player:
                 # judged against; the layout says what came first and when it switched.
                 seed=job.seed, target=lay.final_target, instruction=instructions[k],
                 held=OBJECT_NAMES[held] if held >= 0 else "none",
-                success=bool(info["success"][k]), grasp_any=bool(info["grasp_any"][k]),
-                reach=bool(info["reach"][k]), reach_dist=float(info["reach_dist"][k]),
+                **{m: bool(info[m][k]) for m in METRICS}, reach_dist=float(info["reach_dist"][k]),
                 tcp_x=float(info["tcp_xy"][k][0]), tcp_y=float(info["tcp_xy"][k][1]),
                 object_set=object_set, layout=lay.to_dict(), policy_info=self.policy.describe(), timing=timing))
         return rows

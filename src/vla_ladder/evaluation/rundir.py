@@ -22,7 +22,7 @@ REQUIRED_FILES = ("episodes.parquet", "summary.json")
 EPISODE_KEY = (*CONDITION_KEYS, "episode")
 """What identifies an episode within a run: its condition and its index j in it (it plays seed first_seed + j)."""
 EPISODE_COLUMNS = ("policy", "regime", "split", "num_objects", "episode", "seed", "target", "instruction",
-                   "held", "success", "grasp_any", "reach", "reach_dist", "tcp_x", "tcp_y", "object_set", "layout",
+                   "held", *METRICS, "reach_dist", "tcp_x", "tcp_y", "object_set", "layout",
                    "video")
 ADDED_COLUMNS = {"tcp_x": float("nan"), "tcp_y": float("nan")}
 """Columns added after run directories existed, with what a run written before them reads as (the TCP's final

@@ -25,7 +25,7 @@ import tyro
 from vla_ladder import files
 from vla_ladder.checks import check_count, check_output_dir
 from vla_ladder.conditions import MAX_OBJECTS, Condition, ConditionGrid
-from vla_ladder.contract import EPISODE_STEPS, contract_changes, fingerprint
+from vla_ladder.contract import EPISODE_STEPS, METRICS, contract_changes, fingerprint
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
 from vla_ladder.machine import auto_workers, check_workers, cores
 from vla_ladder.evaluation.rundir import EPISODE_COLUMNS, read_episodes, run_config
@@ -412,8 +412,7 @@ def run(cfg: EvalConfig) -> int:
         raise ValueError("--out DIR is required: the run directory to write")
     summary = run_evaluation(cfg)
     for key, c in summary["conditions"].items():
-        print(f"{key}: n={c['n']} success={c['success']:.3f} grasp_any={c['grasp_any']:.3f} "
-              f"reach={c['reach']:.3f}")
+        print(f"{key}: n={c['n']} " + " ".join(f"{m}={c[m]:.3f}" for m in METRICS))
     t = summary.get("timing", {})
     if t.get("lockstep_steps"):
         print(f"time: {t['per_step_ms']['policy']} ms a step in the policy, {t['per_step_ms']['env']} ms in the env "

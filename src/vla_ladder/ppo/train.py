@@ -24,6 +24,7 @@ import torch.nn as nn
 
 from vla_ladder import files
 from vla_ladder.conditions import ConditionGrid
+from vla_ladder.contract import METRICS
 from vla_ladder.policies.ppo import Agent, checkpoint_dir, load_agent
 from vla_ladder.ppo.checkpoint import load_optimizer, load_run_state, save_checkpoint
 from vla_ladder.ppo.config import Args
@@ -133,7 +134,7 @@ def train(args: Args) -> dict:
         state["eval"] = {"global_step": state["global_step"], "wall_s": round(state["wall_s"], 1), **result}
         evals.append(state["eval"])
         files.write_json(out / "evals.json", evals)
-        for m in ("success", "grasp_any", "reach"):
+        for m in METRICS:
             writer.add_scalar(f"eval/{m}", result["all"][m], state["global_step"])
             for cond, r in result["conditions"].items():
                 writer.add_scalar(f"eval_{m}/{cond}", r[m], state["global_step"])
@@ -147,9 +148,8 @@ def train(args: Args) -> dict:
                                      "conditions": [c.key for c in args.conditions]})
         by_target = ", ".join(f"{name} {round(r['success'] * r['n'])}/{r['n']}"
                               for name, r in result["targets"].items())
-        bar.write(f"step {state['global_step']}: eval success {result['all']['success']:.3f} "
-                  f"grasp_any {result['all']['grasp_any']:.3f} reach {result['all']['reach']:.3f} | success by target: "
-                  f"{by_target}")
+        bar.write(f"step {state['global_step']}: eval " + " ".join(f"{m} {result['all'][m]:.3f}" for m in METRICS)
+                  + f" | success by target: {by_target}")
 
     # Counted in steps, not iterations: a resumed run may change the batch (--num-envs, --num-steps), which would
     # change what its saved iteration count means.
@@ -162,7 +162,7 @@ def train(args: Args) -> dict:
     try:
         for iteration in range(state["iteration"] + 1, last_iteration + 1):
             t0 = time.perf_counter()
-            finished = {"success": [], "grasp_any": [], "reach": [], "return": []}
+            finished = {**{m: [] for m in METRICS}, "return": []}
             for step in range(T):
                 obs[step] = next_obs
                 with torch.no_grad():
@@ -269,5 +269,5 @@ def run(args: Args) -> int:
     result = train(args)
     ev = result["eval"]["all"] if result.get("eval") else {}
     print(files.dumps({"out": str(args.out), "global_step": result["global_step"], "sps": round(result["sps"], 1),
-                      **{m: ev.get(m) for m in ("success", "grasp_any", "reach")}}))
+                      **{m: ev.get(m) for m in METRICS}}))
     return 0

@@ -19,7 +19,7 @@ import numpy as np
 from vla_ladder import files
 from vla_ladder.checks import refusal_body, ws_proxy
 from vla_ladder.conditions import Condition
-from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
+from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, EPISODE_STEPS, IMAGE_SHAPE, METRICS, STATE_DIM
 from vla_ladder.recording import protocol as P
 
 log = logging.getLogger(__name__)
@@ -84,8 +84,7 @@ class Episode:
                           ("expert", dict), ("condition", str), ("object_set", str), ("num_frames", int),
                           ("has_frames", bool)):
             P.require(h, key, kind)
-        for key, kind in (("success", bool), ("grasp_any", bool), ("reach", bool), ("lifted", bool), ("held", str),
-                          ("reach_dist", (int, float))):
+        for key, kind in (*((m, bool) for m in METRICS), ("lifted", bool), ("held", str), ("reach_dist", (int, float))):
             if not isinstance(h["metrics"].get(key), kind):
                 what = "a number" if isinstance(kind, tuple) else kind.__name__
                 raise P.ProtocolError(f"episode {seed}: metrics[{key!r}] missing or not {what}")

@@ -26,7 +26,8 @@ import tyro
 from vla_ladder import contract
 from vla_ladder.checks import check_count, check_port_free, check_seed, is_loopback, refuse_past_max_clients
 from vla_ladder.conditions import Condition
-from vla_ladder.contract import ACTION_DIM, CAMERA_NAMES, CONTROL_HZ, EPISODE_STEPS, IMAGE_SHAPE, STATE_DIM
+from vla_ladder.contract import (ACTION_DIM, CAMERA_NAMES, CONTROL_HZ, EPISODE_STEPS, IMAGE_SHAPE, METRICS,
+                                  STATE_DIM)
 from vla_ladder.policies import check_spec
 from vla_ladder.recording import protocol as P
 from vla_ladder.task.instructions import check_instruction_set
@@ -176,8 +177,7 @@ class Simulator:
         results = []
         for i, seed in enumerate(seeds):
             metrics = {
-                "success": bool(info["success"][i]), "grasp_any": bool(info["grasp_any"][i]),
-                "reach": bool(info["reach"][i]), "lifted": bool(info["lifted"][i]),
+                **{m: bool(info[m][i]) for m in METRICS}, "lifted": bool(info["lifted"][i]),
                 "held": OBJECT_NAMES[held[i]] if held[i] >= 0 else "none",
                 "reach_dist": float(info["reach_dist"][i]),
             }

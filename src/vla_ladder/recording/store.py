@@ -51,8 +51,8 @@ from vla_ladder.conditions import Condition
 from vla_ladder.recording.ledger import Block, Ledger
 from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, Recording, played_to,
                                    read_provenance, read_recording_state)
-from vla_ladder.contract import (ACTION_KEY, CAMERAS, CONTROL_HZ, EPISODE_STEPS, STATE_KEY, contract_changes,
-                                  dataset_features, fingerprint)
+from vla_ladder.contract import (ACTION_KEY, CAMERAS, CONTROL_HZ, EPISODE_STEPS, METRICS, STATE_KEY,
+                                  contract_changes, dataset_features, fingerprint)
 
 log = logging.getLogger(__name__)
 
@@ -672,8 +672,8 @@ def _provenance_row(index: int, episode) -> dict[str, Any]:
         "instruction": h["instruction"], "layout": files.dumps(h["layout"]),
         "expert": files.dumps(h["expert"]), "object_set": h["object_set"],
         "robot_mesh": h.get("robot_mesh", "full"), "instructions": h.get("instructions", "canonical"),
-        "success": bool(m["success"]), "grasp_any": bool(m["grasp_any"]), "reach": bool(m["reach"]),
-        "lifted": bool(m["lifted"]), "held": m["held"], "reach_dist": float(m["reach_dist"]),
+        **{k: bool(m[k]) for k in METRICS}, "lifted": bool(m["lifted"]), "held": m["held"],
+        "reach_dist": float(m["reach_dist"]),
         "num_frames": int(episode.num_frames), "server": episode.server,
         # Recorded on a rebuilt physx_cpu scene: its seed and actions give back its states to the bit.
         "sim_backend": h.get("sim_backend", "physx_cpu"), "replayable": bool(h.get("replayable", False)),

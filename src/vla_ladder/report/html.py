@@ -263,8 +263,8 @@ def _placement_figure(runs: list[Run], tmp: Path) -> tuple[str, str] | None:
 def _episode_card(run: Run, row, with_video: bool) -> str:
     path = run.video_path(row["video"])
     head = (f"<div class=cap><b>{html.escape(row['instruction'])}</b> — held: {html.escape(row['held'])}; "
-            f"success {int(row['success'])}, grasp-any {int(row['grasp_any'])}, reach {int(row['reach'])} "
-            f"(d={row['reach_dist']:.3f} m); {html.escape(row['regime'])}/{html.escape(row['split'])}/"
+            + ", ".join(f"{tables.METRIC_NAMES[m].lower()} {int(row[m])}" for m in METRICS)
+            + f" (d={row['reach_dist']:.3f} m); {html.escape(row['regime'])}/{html.escape(row['split'])}/"
             f"{row['num_objects']} seed {row['seed']}</div>")
     if path is None:  # filmed, but the file is not with the run: say so rather than that nothing was filmed
         note = "no video recorded" if not row["video"] else f"video {html.escape(row['video'])} not found in the run"
