@@ -48,7 +48,7 @@ class Condition:
     """One evaluation or training condition of GraspObject-v1."""
 
     regime: str = "small_jitter"
-    """placement regime, one of LADDER: small_jitter, medium_jitter, large_jitter or full_random"""
+    """placement regime, a name in LADDER (the ladder's rungs, easiest first; a new one is one entry there)"""
     split: str = "canonical"
     """object-region split: canonical (object i in region i), pairings_id or pairings_ood (held-out pairs)"""
     num_objects: int = MAX_OBJECTS
