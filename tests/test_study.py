@@ -86,6 +86,13 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         "policies[D]: grid.horizons: no horizon in [4] fits a chunk size in [4] (diffusion executes at most chunk - "
         "n_obs_steps + 1 actions of a chunk: 3 of 4)": {**_micro(), "policies": [
             {"name": "D", "type": "diffusion", "steps": 1}]},
+        # TD-MPC was trained with n_action_steps = the chunk, which LeRobot refuses; VQ-BeT has no n_action_steps to
+        # evaluate each horizon with.
+        "policies[0]: type: tdmpc's LeRobot config has no chunk_size, so the chunk sizes and execution horizons cannot "
+        "be swept (train it alone with `vla-ladder train`); allowed: act, diffusion,": {**_micro(), "policies": [
+            {"name": "T", "type": "tdmpc", "steps": 1}]},
+        "policies[0]: type: vqbet's LeRobot config has no chunk_size and no n_action_steps": {**_micro(), "policies": [
+            {"name": "V", "type": "vqbet", "steps": 1}]},
         # train_seed null is train's 1000: the same models trained twice, reported as replicates that agree.
         "policies[SmolVLA-tiny] and policies[again] would train the same models on datasets[sj]: alike but for the "
         "name, with train_seed 1000 (null is `vla-ladder train`'s)": {**_micro(), "policies": [
@@ -271,14 +278,16 @@ def test_diffusion_trains_and_is_selected_only_on_the_horizons_it_executes(tmp_p
     path = tmp_path / "study.json"
     data = _micro(**{"grid.chunk_sizes": [8, 16], "grid.horizons": [4, 8, 16], "grid.select_episodes": 3})
     path.write_text(json.dumps({**data, "policies": [*data["policies"], {"name": "D", "type": "diffusion",
-                                                                         "steps": 1}]}))
+                                                                         "steps": 1},
+                                                     {"name": "M", "type": "multi_task_dit", "steps": 1}]}))
     study = Study(StudyCommand(str(path), out=tmp_path / "s"))
+    # (multi_task_dit's chunk is a horizon from n_obs_steps - 1 back too: it was left at LeRobot's 32, unswept)
     assert {u.id: u.config["n_action_steps"] for u in study.train_units()} == {
         "train-SmolVLA-tiny-sj-b4c8": 8, "train-SmolVLA-tiny-sj-b4c16": 16,
-        "train-D-sj-b4c8": 7, "train-D-sj-b4c16": 15}
+        "train-D-sj-b4c8": 7, "train-D-sj-b4c16": 15, "train-M-sj-b4c8": 7, "train-M-sj-b4c16": 15}
     assert [u.id for u in study.select_units()] == [
         *(f"select-SmolVLA-tiny-sj-{m}" for m in ("b4c8-h4", "b4c8-h8", "b4c16-h4", "b4c16-h8", "b4c16-h16")),
-        "select-D-sj-b4c8-h4", "select-D-sj-b4c16-h4", "select-D-sj-b4c16-h8"]
+        *(f"select-{p}-sj-{m}" for p in "DM" for m in ("b4c8-h4", "b4c16-h4", "b4c16-h8"))]
     chosen = study.best({})[("D", "sj")]
     assert [(r["chunk_size"], r["horizon"]) for r in chosen["candidates"]] == [(8, 4), (16, 4), (16, 8)]
 

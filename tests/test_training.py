@@ -254,13 +254,11 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
                  "--", "--dataset.root=/tmp"]) == 2
     assert "--dataset.root after -- is vla-ladder's to set; use --dataset" in capsys.readouterr().err
     assert not (tmp_path / "elsewhere").exists() and not (tmp_path / "g").exists()
-    # A type without an action chunk (VQ-BeT) trained the same model under each chunk size's label.
+    # A type without an action chunk (VQ-BeT) trained the same model under each chunk size's label; and with one
+    # size, every evaluation at a horizon was refused (test_a_grid_refuses_the_types_whose_chunk_it_cannot_sweep).
     assert main(["grid", "--train.policy-type", "vqbet", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
                  "--chunk-sizes", "8", "16"]) == 2
-    assert "vqbet has no action chunk to size" in capsys.readouterr().err and not (tmp_path / "g").exists()
-    assert main(["grid", "--train.policy-type", "vqbet", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
-                 "--chunk-sizes", "8"]) == 2  # one size, but not the one it would be labelled with and not train
-    assert "give --chunk-sizes 16" in capsys.readouterr().err and not (tmp_path / "g").exists()
+    assert "vqbet's LeRobot config has no chunk_size" in capsys.readouterr().err and not (tmp_path / "g").exists()
     # The grid replaced --train.batch-size, --train.chunk-size and --train.n-action-steps by each model's, unsaid.
     assert main(["grid", "--train.policy-type", "act", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
                  "--train.batch-size", "4", "--train.chunk-size", "10", "--train.n-action-steps", "3"]) == 2
@@ -383,6 +381,52 @@ def test_train_refuses_a_cuda_device_past_the_gpus(data, tmp_path, monkeypatch, 
     assert len(err) == 1 and err[0].endswith("--device cuda:3: this machine has 1 GPU (cuda:0)"), err
     assert not (tmp_path / "run").exists()
     assert TrainConfig(policy_type="act", dataset=data, device="cuda:0").device == "cuda:0"
+
+
+def test_a_grid_refuses_the_types_whose_chunk_it_cannot_sweep(data, tmp_path, capsys):
+    """A grid trains each model with the chunk size in the config's chunk field and evaluates each horizon as
+    `lerobot:CKPT?n_action_steps=H`. TD-MPC (no chunk; its n_action_steps of 1 is all LeRobot takes without MPC) was
+    trained with n_action_steps 16, which LeRobot refused; VQ-BeT's config has no n_action_steps, so every
+    evaluation was refused ("unrecognized arguments"): each after its recording or training. `train` trains them."""
+    import dataclasses
+
+    from vla_ladder.training.train import config_class, policy_types, sweep_problem, sweepable_types
+
+    def has(t, *names):
+        return set(names) <= {f.name for f in dataclasses.fields(config_class(t))}
+    assert sweepable_types() == [t for t in policy_types() if has(t, "n_action_steps") and (
+        has(t, "chunk_size") or t in ("diffusion", "multi_task_dit") and has(t, "horizon"))]
+    assert {"act", "diffusion", "smolvla", "pi05"} <= set(sweepable_types())
+    assert sweep_problem("act") is None and sweep_problem("diffusion") is None
+    for policy_type, says in (("tdmpc", "tdmpc's LeRobot config has no chunk_size,"),
+                              ("vqbet", "vqbet's LeRobot config has no chunk_size and no n_action_steps,")):
+        assert main(["grid", "--train.policy-type", policy_type, "--train.dataset", str(data), "--out",
+                     str(tmp_path / "g")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"--train.policy-type {policy_type}: {says}" in err and "allowed: act, diffusion, " in err, err
+        assert len(err.splitlines()) == 1 and not (tmp_path / "g").exists(), err
+        assert main(["train", "--policy-type", policy_type, "--dataset", str(data), "--out", str(tmp_path / "run"),
+                     "--print-command"]) == 0  # alone it trains as before
+        assert f"--policy.type={policy_type}" in capsys.readouterr().out
+
+
+def test_multi_task_dit_sizes_its_horizon_as_its_chunk_like_diffusion(data, tmp_path, monkeypatch):
+    """Multi-task DiT's chunk is a `horizon` that starts n_obs_steps - 1 steps back, as diffusion's: the grid left its
+    horizon at LeRobot's 32 under the label of each chunk size, and trained and evaluated horizons up to the label."""
+    from vla_ladder.experiments.grid import GridConfig, units
+    from vla_ladder.training import train as train_module
+
+    for policy_type in ("diffusion", "multi_task_dit"):  # LeRobot's action indices: n_obs_steps - 1 back, then on
+        indices = list(train_module.config_class(policy_type)(horizon=16, n_action_steps=1).action_delta_indices)
+        assert len(indices) == 16 and sum(i >= 0 for i in indices) == train_module.max_action_steps(policy_type, 16)
+    monkeypatch.setattr(train_module, "check_policy_packages", lambda policy_type: None)  # (diffusers)
+    cfg = GridConfig(out=tmp_path / "g", train=TrainConfig(policy_type="multi_task_dit", dataset=data),
+                     batch_sizes=(4,), chunk_sizes=(8, 16), horizons=(4, 8, 16))
+    trains, evals = units(cfg)
+    assert [(u.config["chunk_size"], u.config["n_action_steps"]) for u in trains] == [(8, 7), (16, 15)]
+    assert [(c, h) for _, c, h, _ in evals] == [(8, 4), (16, 4), (16, 8)]
+    policy = TrainConfig(**{**trains[1].config, "dataset": data}).build_config().policy
+    assert (policy.horizon, policy.n_action_steps) == (16, 15)
 
 
 def test_best_is_success_then_grasp_then_reach():

@@ -31,7 +31,8 @@ from vla_ladder.contract import METRICS
 from vla_ladder.evaluation.runner import EvalConfig, saved_request
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
 from vla_ladder.recordings import recorded_seeds
-from vla_ladder.training.train import TrainConfig, check_offline_assets, checkpoint_dir, unfit_horizons
+from vla_ladder.training.train import (TrainConfig, check_offline_assets, checkpoint_dir, sweep_problem,
+                                         unfit_horizons)
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +72,8 @@ class GridConfig:
                 raise ValueError(f"--{name.replace('_', '-')} must be distinct positive integers, got {list(values)}")
             setattr(self, name, values)
         check_ray_address(self.ray_address)
+        if unsweepable := sweep_problem(self.train.policy_type):
+            raise ValueError(f"--train.policy-type {self.train.policy_type}: {unsweepable}")
         if unfit := unfit_horizons(self.train.policy_type, self.chunk_sizes, self.horizons, self.train.lerobot_args):
             raise ValueError(unfit)
         if self.eval.policy or self.eval.out or self.train.out:
@@ -78,11 +81,6 @@ class GridConfig:
         if self.train.given:  # they were replaced by each model's, unsaid
             raise ValueError(f"the grid sets {', '.join(f'--train.{f[2:]}' for f in self.train.given)} per model; "
                              "give --batch-sizes, --chunk-sizes and --horizons instead")
-        if self.train.chunk_field() is None and self.chunk_sizes != (self.train.chunk_size,):  # (labelled apart,
-            # trained alike)
-            raise ValueError(f"--train.policy-type {self.train.policy_type} has no action chunk to size (its config "
-                             f"has no chunk_size): every --chunk-sizes value would train the same model; give "
-                             f"--chunk-sizes {self.train.chunk_size}")
 
     def settings(self) -> dict:
         """What a rerun must repeat to resume this grid (not how much work is left)."""

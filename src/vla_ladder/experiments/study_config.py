@@ -70,7 +70,8 @@ class PolicySpec:
     name: str
     """label in tables, e.g. SmolVLA-scratch"""
     type: str
-    """LeRobot policy type: smolvla, act, pi05, diffusion, ..."""
+    """LeRobot policy type whose chunk and horizon the grid sweeps: smolvla, act, pi05, diffusion, ...
+    (training.train.sweepable_types)"""
     steps: int
     """training steps"""
     pretrained: str = "none"
@@ -95,10 +96,12 @@ class PolicySpec:
 
     def __post_init__(self):
         _check_name(self.name)
-        from vla_ladder.training.train import policy_types
+        from vla_ladder.training.train import policy_types, sweep_problem
         allowed = policy_types()
         if self.type not in allowed:
             raise ValueError(f"type: unknown policy type {self.type!r}; allowed: {', '.join(allowed)}")
+        if unsweepable := sweep_problem(self.type):  # (the study trains per chunk size, selects per horizon)
+            raise ValueError(f"type: {unsweepable}")
         _positive(self, "steps")
         from vla_ladder.training.tiny import SIZES
         if self.vlm is not None and self.vlm not in SIZES:

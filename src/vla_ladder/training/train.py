@@ -48,8 +48,9 @@ POLICY_PRESETS: dict[str, dict[str, str]] = {
 # Batch size by placement regime: 128 in full random, 64 in the jitter regimes and the pairings.
 BATCH_FOR_REGIME = {"full_random": 128}
 DEFAULT_BATCH = 64
-# The config field that holds the action chunk length, where it is not called chunk_size.
-CHUNK_FIELD = {"diffusion": "horizon"}
+# The config field that holds the action chunk length, where it is not called chunk_size: the types whose chunk of
+# `horizon` actions starts n_obs_steps - 1 steps back, at the observed past (max_action_steps).
+CHUNK_FIELD = {"diffusion": "horizon", "multi_task_dit": "horizon"}
 DEFAULT_CHUNK = 16
 DEFAULT_TRAIN_SEED = 1000
 """lerobot-train's --seed where none is given (a study's policies with train_seed null train with it)"""
@@ -105,24 +106,54 @@ def check_policy_packages(policy_type: str) -> None:
                              f"(pip install 'lerobot[{extra}]')")
 
 
-def config_default(policy_type: str, name: str):
-    """The default of field `name` of LeRobot's config for `policy_type`, read from the dataclass: making one runs
-    its __post_init__, which picks a device and logs about it."""
-    import dataclasses
-
+def config_class(policy_type: str):
+    """LeRobot's config class of a registered policy type."""
     import lerobot.policies  # noqa: F401  (registers the built-in configs)
     from lerobot.configs.policies import PreTrainedConfig
 
-    field = next(f for f in dataclasses.fields(PreTrainedConfig.get_choice_class(policy_type)) if f.name == name)
+    return PreTrainedConfig.get_choice_class(policy_type)
+
+
+def config_default(policy_type: str, name: str):
+    """The default of field `name` of LeRobot's config for `policy_type`, read from the dataclass: making one runs
+    its __post_init__, which picks a device and logs about it."""
+    field = next(f for f in dataclasses.fields(config_class(policy_type)) if f.name == name)
     return field.default_factory() if field.default is dataclasses.MISSING else field.default
+
+
+def chunk_field(policy_type: str) -> str | None:
+    """The policy config's field that --chunk-size sets (chunk_size, or CHUNK_FIELD's), None where it has none
+    (vqbet, tdmpc, ...: --chunk-size changes nothing there)."""
+    name = CHUNK_FIELD.get(policy_type, "chunk_size")
+    return name if name in {f.name for f in dataclasses.fields(config_class(policy_type))} else None
+
+
+def sweepable_types() -> list[str]:
+    """The policy types a grid or study can train per chunk size and evaluate per execution horizon: their config
+    has the chunk field that --chunk-size sets and n_action_steps, which `lerobot:CKPT?n_action_steps=H` sets."""
+    return [t for t in policy_types() if chunk_field(t) is not None
+            and "n_action_steps" in {f.name for f in dataclasses.fields(config_class(t))}]
+
+
+def sweep_problem(policy_type: str) -> str | None:
+    """Why a grid or study cannot sweep this type's chunk size and execution horizon (one line naming the types it
+    can), or None. Refused before any work: TD-MPC (a planning horizon, no chunk) was trained with n_action_steps 16,
+    which LeRobot refuses, and VQ-BeT's config has no n_action_steps, so every evaluation at a horizon was refused."""
+    if policy_type in sweepable_types():
+        return None
+    fields = {f.name for f in dataclasses.fields(config_class(policy_type))}
+    missing = [f for f in (CHUNK_FIELD.get(policy_type, "chunk_size"), "n_action_steps") if f not in fields]
+    return (f"{policy_type}'s LeRobot config has no {' and no '.join(missing)}, so the chunk sizes and execution "
+            f"horizons cannot be swept (train it alone with `vla-ladder train`); allowed: "
+            f"{', '.join(sweepable_types())}")
 
 
 def max_action_steps(policy_type: str, chunk_size: int, lerobot_args=()) -> int:
     """The most actions a policy of this type executes of a chunk of `chunk_size` (the largest n_action_steps it
-    takes): the chunk, but for the types whose chunk is a `horizon` (diffusion) the chunk less n_obs_steps - 1, as
-    their chunk starts that many steps back, at the observed past. The grid and the study train and evaluate no
-    horizon above it, where one failed after training. n_obs_steps: LeRobot's default, or --policy.n_obs_steps in
-    `lerobot_args`."""
+    takes): the chunk, but for the types whose chunk is a `horizon` (diffusion, multi_task_dit) the chunk less
+    n_obs_steps - 1, as their chunk starts that many steps back, at the observed past. The grid and the study train
+    and evaluate no horizon above it, where one failed after training. n_obs_steps: LeRobot's default, or
+    --policy.n_obs_steps in `lerobot_args`."""
     if policy_type not in CHUNK_FIELD:
         return chunk_size
     n_obs = config_default(policy_type, "n_obs_steps")
@@ -263,8 +294,7 @@ class TrainConfig:
 
     # ------------------------------------------------------------------ lerobot-train flags
     def _config_class(self):
-        from lerobot.configs.policies import PreTrainedConfig
-        return PreTrainedConfig.get_choice_class(self.policy_type)
+        return config_class(self.policy_type)
 
     def max_action_steps(self, chunk_size: int | None = None) -> int:
         """max_action_steps of this policy type for `chunk_size` (default: this run's), with its --policy flags."""
@@ -275,17 +305,15 @@ class TrainConfig:
         return CHUNK_FIELD.get(self.policy_type, "chunk_size")
 
     def chunk_field(self) -> str | None:
-        """The policy config's field that --chunk-size sets (chunk_size, or CHUNK_FIELD's), None where it has none
-        (vqbet, tdmpc, ...: --chunk-size changes nothing there)."""
-        field = self._chunk_name()
-        return field if field in {f.name for f in dataclasses.fields(self._config_class())} else None
+        """chunk_field of this policy type."""
+        return chunk_field(self.policy_type)
 
     def policy_flags(self) -> list[str]:
         """--policy.* flags, without the leading "policy." (the form PreTrainedConfig overrides take)."""
         names = {f.name for f in dataclasses.fields(self._config_class())}
         flags = {"push_to_hub": "false"}
-        if chunk_field := self.chunk_field():
-            flags[chunk_field] = str(self.chunk_size)
+        if field := self.chunk_field():
+            flags[field] = str(self.chunk_size)
         if "n_action_steps" in names and self.n_action_steps is not None:
             flags["n_action_steps"] = str(self.n_action_steps)
         flags.update(POLICY_PRESETS.get(self.policy_type, {}))
