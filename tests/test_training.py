@@ -363,6 +363,11 @@ def test_a_diffusion_grid_trains_and_evaluates_only_the_horizons_it_executes(dat
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and len(err.splitlines()) == 1, err
+        # With one observation step it executes the whole chunk: the flags after -- are read by the first check
+        # (the command line's config was built, and refused, without them before).
+        assert main([*argv, "--train.print-command" if argv[0] == "grid" else "--print-command", "--",
+                     "--policy.n_obs_steps=1"]) == 0
+        assert "--policy.n_action_steps=16" in capsys.readouterr().out
     assert not (tmp_path / "g").exists() and not (tmp_path / "run").exists()
 
 

@@ -67,17 +67,31 @@ def parse(name: str, argv: list[str]):
     check_seed_args(getattr(module, cls_name), argv)  # one message for a bad seed, whichever command
     if hasattr(module, "cli_config"):  # a command with its own parsing (train-expert's --resume)
         return module.cli_config(argv)
-    tail: list[str] = []
+    cls, default = getattr(module, cls_name), None
     if name in LEROBOT_FLAGS_AFTER_DASHES and "--" in argv:
+        # Raw lerobot-train flags, handed over untouched (tyro would read them as its own), in the config that the
+        # flags build: its checks read them (diffusion's --policy.n_obs_steps, --policy.down_dims), where one built
+        # without them first refused what they allow.
+        from vla_ladder.training.train import TrainConfig
         cut = argv.index("--")
         argv, tail = argv[:cut], argv[cut + 1:]
-    cfg = parse_config(getattr(module, cls_name), argv, prog=f"vla-ladder {name}", description=help_)
-    if tail:  # raw lerobot-train flags: handed over untouched (tyro would read them as its own)
-        from dataclasses import replace
-        train = cfg.train if name == "grid" else cfg
-        train = replace(train, lerobot_args=(*train.lerobot_args, *tail))
-        cfg = replace(cfg, train=train) if name == "grid" else train
-    return cfg
+        train = _holding(TrainConfig, lerobot_args=tuple(tail))
+        default = _holding(cls, train=train) if name == "grid" else train
+    return parse_config(cls, argv, prog=f"vla-ladder {name}", description=help_, default=default)
+
+
+def _holding(cls, **values):
+    """parse_config's `default`: an unchecked `cls` holding `values`, its other fields at their defaults and those
+    without one still required."""
+    import dataclasses
+
+    import tyro
+
+    from vla_ladder.commandline import unchecked
+
+    required = {f.name: tyro.MISSING for f in dataclasses.fields(cls)
+                if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING}
+    return unchecked(cls, {**required, **values})
 
 
 def main(argv: list[str] | None = None) -> int:
