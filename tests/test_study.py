@@ -83,9 +83,12 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
         "reference_policies: nearest given twice": _micro(**{"evaluation.reference_policies": ["nearest"] * 2}),
         # Diffusion executes at most chunk - n_obs_steps + 1 actions of a chunk: every model would be trained and no
         # horizon of the grid could evaluate it.
-        "policies[D]: grid.horizons: no horizon in [4] fits a chunk size in [4] (diffusion executes at most chunk - "
-        "n_obs_steps + 1 actions of a chunk: 3 of 4)": {**_micro(), "policies": [
-            {"name": "D", "type": "diffusion", "steps": 1}]},
+        "policies[D]: grid.horizons: no horizon in [8] fits a chunk size in [8] (diffusion executes at most chunk - "
+        "n_obs_steps + 1 actions of a chunk: 7 of 8)": {**_micro(**{"grid.chunk_sizes": [8], "grid.horizons": [8]}),
+                                                       "policies": [{"name": "D", "type": "diffusion", "steps": 1}]},
+        # LeRobot refuses a diffusion horizon off its U-Net's down-sampling (micro's chunk of 4): at the train unit.
+        "policies[D]: grid.chunk_sizes 4: diffusion's chunk (horizon) must be a multiple of 8": {
+            **_micro(), "policies": [{"name": "D", "type": "diffusion", "steps": 1}]},
         # TD-MPC was trained with n_action_steps = the chunk, which LeRobot refuses; VQ-BeT has no n_action_steps to
         # evaluate each horizon with.
         "policies[0]: type: tdmpc's LeRobot config has no chunk_size, so the chunk sizes and execution horizons cannot "

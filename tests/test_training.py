@@ -434,6 +434,42 @@ def test_multi_task_dit_sizes_its_horizon_as_its_chunk_like_diffusion(data, tmp_
     assert (policy.horizon, policy.n_action_steps) == (16, 15)
 
 
+def test_diffusion_chunk_sizes_are_multiples_of_its_unet_down_sampling(data, tmp_path, capsys, monkeypatch):
+    """LeRobot's diffusion U-Net halves the chunk at each of its len(down_dims) stages, and its config refuses a
+    horizon that is not a multiple of 2 ** len(down_dims): a study or grid with chunk 4 (the micro preset's) failed
+    at its train unit, after the recording."""
+    from vla_ladder.training import train as train_module
+
+    diffusion = train_module.config_class("diffusion")
+    for args, dims in (((), None), (["--policy.down_dims", "[64,128]"], (64, 128))):
+        multiple = train_module.chunk_multiple("diffusion", args)
+        assert multiple == (8 if dims is None else 4)
+        for c in range(1, 33):  # the rule as LeRobot's config checks it
+            try:
+                diffusion(horizon=c, n_action_steps=1, **({} if dims is None else {"down_dims": dims}))
+                assert c % multiple == 0, c
+            except ValueError:
+                assert c % multiple, c
+    assert train_module.chunk_multiple("act") == train_module.chunk_multiple("multi_task_dit") == 1
+    monkeypatch.setattr(train_module, "check_policy_packages", lambda policy_type: None)  # (diffusers)
+    says = ("diffusion's chunk (horizon) must be a multiple of 8, the factor its U-Net down-samples it by "
+            "(2 ** len(down_dims) in LeRobot); allowed: 8, 16, 24, 32, ...")
+    for argv, said in ((["train", "--policy-type", "diffusion", "--dataset", str(data), "--out", str(tmp_path / "run"),
+                         "--chunk-size", "4"], f"--chunk-size 4: {says}"),
+                       (["grid", "--train.policy-type", "diffusion", "--train.dataset", str(data), "--out",
+                         str(tmp_path / "g"), "--chunk-sizes", "4", "8", "12", "--horizons", "3"],
+                        f"--chunk-sizes 4, 12: {says}")):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert said in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "g").exists()
+    # A U-Net of two stages takes a chunk of 4 (3 of its actions executed).
+    assert main(["grid", "--train.policy-type", "diffusion", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
+                 "--chunk-sizes", "4", "--horizons", "3", "--train.print-command", "--",
+                 "--policy.down_dims=[64,128]"]) == 0
+    assert "--policy.horizon=4 --policy.n_action_steps=3" in capsys.readouterr().out
+
+
 def test_best_is_success_then_grasp_then_reach():
     df = pd.DataFrame([
         {"batch_size": 64, "chunk_size": 8, "n_action_steps": 1, "success": 0.5, "grasp_any": 0.9, "reach": 0.1},

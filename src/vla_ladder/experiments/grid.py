@@ -32,7 +32,7 @@ from vla_ladder.evaluation.runner import EvalConfig, saved_request
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
 from vla_ladder.recordings import recorded_seeds
 from vla_ladder.training.train import (TrainConfig, check_offline_assets, checkpoint_dir, sweep_problem,
-                                         unfit_horizons)
+                                         unfit_chunks, unfit_horizons)
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +74,8 @@ class GridConfig:
         check_ray_address(self.ray_address)
         if unsweepable := sweep_problem(self.train.policy_type):
             raise ValueError(f"--train.policy-type {self.train.policy_type}: {unsweepable}")
+        if unfit := unfit_chunks(self.train.policy_type, self.chunk_sizes, self.train.lerobot_args):
+            raise ValueError(f"--chunk-sizes {unfit}")
         if unfit := unfit_horizons(self.train.policy_type, self.chunk_sizes, self.horizons, self.train.lerobot_args):
             raise ValueError(unfit)
         if self.eval.policy or self.eval.out or self.train.out:

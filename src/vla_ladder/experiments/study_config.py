@@ -244,10 +244,12 @@ class StudyConfig:
         its own. Unit ids and directories join the names with '-' (Study: models/P-D-bBcC, eval/P-D, ...), so policy
         A-sj on dataset x and policy A on sj-x would write one directory; a new separator would rename the committed
         studies' directories, so such names are refused instead."""
-        from vla_ladder.training.train import DEFAULT_TRAIN_SEED, unfit_horizons
+        from vla_ladder.training.train import DEFAULT_TRAIN_SEED, unfit_chunks, unfit_horizons
         trained: dict[tuple, str] = {}
         joined: dict[str, tuple[str, str]] = {}
         for p in self.policies:
+            if unfit := unfit_chunks(p.type, self.grid.chunk_sizes, p.lerobot_args):
+                raise ValueError(f"policies[{p.name}]: grid.chunk_sizes {unfit}")
             if unfit := unfit_horizons(p.type, self.grid.chunk_sizes, self.grid.horizons, p.lerobot_args):
                 raise ValueError(f"policies[{p.name}]: grid.horizons: {unfit}")
             # Replicates differ in train_seed: alike but for the name and the same seed (null: train's default), a

@@ -148,6 +148,16 @@ def sweep_problem(policy_type: str) -> str | None:
             f"{', '.join(sweepable_types())}")
 
 
+def _policy_flag(lerobot_args, name: str) -> str | None:
+    """The value of the last --policy.NAME in `lerobot_args` (None where it is not given)."""
+    value = None
+    for a in joined_flags(lerobot_args):
+        flag, _, given = a.partition("=")
+        if flag == f"--policy.{name}":
+            value = given.strip()
+    return value
+
+
 def max_action_steps(policy_type: str, chunk_size: int, lerobot_args=()) -> int:
     """The most actions a policy of this type executes of a chunk of `chunk_size` (the largest n_action_steps it
     takes): the chunk, but for the types whose chunk is a `horizon` (diffusion, multi_task_dit) the chunk less
@@ -157,11 +167,35 @@ def max_action_steps(policy_type: str, chunk_size: int, lerobot_args=()) -> int:
     if policy_type not in CHUNK_FIELD:
         return chunk_size
     n_obs = config_default(policy_type, "n_obs_steps")
-    for a in joined_flags(lerobot_args):
-        flag, _, value = a.partition("=")
-        if flag == "--policy.n_obs_steps" and re.fullmatch(r"[0-9]+", value.strip()):
-            n_obs = int(value)
+    if (value := _policy_flag(lerobot_args, "n_obs_steps")) is not None and re.fullmatch(r"[0-9]+", value):
+        n_obs = int(value)
     return chunk_size - n_obs + 1
+
+
+def chunk_multiple(policy_type: str, lerobot_args=()) -> int:
+    """What every chunk size of this type must be a multiple of: 1, but for a U-Net over the chunk (diffusion's,
+    whose config has `down_dims`) the factor it down-samples the chunk by, 2 ** len(down_dims), which LeRobot's
+    config checks (DiffusionConfig.__post_init__; 8 by default). down_dims: LeRobot's default, or
+    --policy.down_dims in `lerobot_args`."""
+    fields = {f.name for f in dataclasses.fields(config_class(policy_type))}
+    if policy_type not in CHUNK_FIELD or "down_dims" not in fields:
+        return 1
+    value = _policy_flag(lerobot_args, "down_dims")
+    stages = len(config_default(policy_type, "down_dims")) if value is None else len(re.findall(r"[0-9]+", value))
+    return 2 ** stages
+
+
+def unfit_chunks(policy_type: str, chunk_sizes, lerobot_args=()) -> str | None:
+    """Why some chunk sizes cannot be trained (a one-line reason after the sizes, naming those allowed), or None: a
+    diffusion chunk off its U-Net's down-sampling was refused by LeRobot when the run was built, a study's after its
+    recording."""
+    m = chunk_multiple(policy_type, lerobot_args)
+    bad = [c for c in chunk_sizes if c % m]
+    if not bad:
+        return None
+    return (f"{', '.join(map(str, bad))}: {policy_type}'s chunk ({chunk_field(policy_type)}) must be a multiple of "
+            f"{m}, the factor its U-Net down-samples it by (2 ** len(down_dims) in LeRobot); allowed: "
+            f"{', '.join(str(m * k) for k in range(1, 5))}, ...")
 
 
 def unfit_horizons(policy_type: str, chunk_sizes, horizons, lerobot_args=()) -> str | None:
@@ -274,6 +308,8 @@ class TrainConfig:
         for name in ("batch_size", "chunk_size", "n_action_steps", "steps"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        if chunked and (unfit := unfit_chunks(self.policy_type, [self.chunk_size], self.lerobot_args)):
+            raise ValueError(f"--chunk-size {unfit}")
         if chunked and self.n_action_steps is not None and self.n_action_steps > self.max_action_steps():
             if self.policy_type in CHUNK_FIELD:  # (its checkpoint would be refused by every evaluation)
                 raise ValueError(f"--n-action-steps ({self.n_action_steps}) cannot exceed {self.max_action_steps()} "
