@@ -96,6 +96,11 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
             {"name": "T", "type": "tdmpc", "steps": 1}]},
         "policies[0]: type: vqbet's LeRobot config has no chunk_size and no n_action_steps": {**_micro(), "policies": [
             {"name": "V", "type": "vqbet", "steps": 1}]},
+        # Flags `vla-ladder train` sets itself (diffusion's chunk is --policy.horizon): its train units refused them.
+        **{f"policies[0]: lerobot_args: {flag} is set by `vla-ladder train`, which trains the study's models and "
+           "refuses it": {**_micro(**{"grid.chunk_sizes": [8]}), "policies": [
+               {"name": "D", "type": "diffusion", "steps": 1, "lerobot_args": [f"{flag}=8"]}]}
+           for flag in ("--policy.horizon", "--save_freq")},
         # train_seed null is train's 1000: the same models trained twice, reported as replicates that agree.
         "policies[SmolVLA-tiny] and policies[again] would train the same models on datasets[sj]: alike but for the "
         "name, with train_seed 1000 (null is `vla-ladder train`'s)": {**_micro(), "policies": [

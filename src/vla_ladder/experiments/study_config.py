@@ -96,7 +96,7 @@ class PolicySpec:
 
     def __post_init__(self):
         _check_name(self.name)
-        from vla_ladder.training.train import policy_types, sweep_problem
+        from vla_ladder.training.train import own_flag, policy_types, sweep_problem
         allowed = policy_types()
         if self.type not in allowed:
             raise ValueError(f"type: unknown policy type {self.type!r}; allowed: {', '.join(allowed)}")
@@ -122,6 +122,10 @@ class PolicySpec:
                 raise ValueError(f"lerobot_args: {flag} is the study's to set (where each unit writes and what it "
                                  f"trains on: {', '.join(STUDY_FLAGS)}, --dataset.*); use the study's own fields "
                                  "(steps, train_seed, the grid's batch and chunk sizes)")
+        if flag := own_flag(self.type, self.lerobot_args):  # (train's check, which the train units would fail)
+            raise ValueError(f"lerobot_args: {flag} is set by `vla-ladder train`, which trains the study's models "
+                             "and refuses it; use the study's own fields (steps, train_seed, device, num_workers, the "
+                             "grid's batch and chunk sizes)")
 
 
 @dataclass

@@ -198,6 +198,18 @@ def unfit_chunks(policy_type: str, chunk_sizes, lerobot_args=()) -> str | None:
             f"{', '.join(str(m * k) for k in range(1, 5))}, ...")
 
 
+def own_flag(policy_type: str, lerobot_args) -> str | None:
+    """The first flag of `lerobot_args` that `train` sets itself (OWN_FLAGS, and the chunk field of this type:
+    --policy.chunk_size, diffusion's --policy.horizon), None where there is none: given after --, they would move the
+    run away from what vla-ladder keeps and resumes, so train refuses them, and a study config before any work."""
+    chunk_flag = f"--policy.{CHUNK_FIELD.get(policy_type, 'chunk_size')}"
+    for a in joined_flags(lerobot_args):
+        flag = a.split("=", 1)[0]
+        if flag in OWN_FLAGS or flag == chunk_flag:
+            return flag
+    return None
+
+
 def unfit_horizons(policy_type: str, chunk_sizes, horizons, lerobot_args=()) -> str | None:
     """Why no horizon fits any chunk size (a one-line reason), or None when one does: a grid or study refuses it
     before training models that none of its horizons could evaluate."""
@@ -266,11 +278,8 @@ class TrainConfig:
         self.dataset = Path(self.dataset)
         self.out = None if self.out is None else Path(self.out)
         self.lerobot_args = joined_flags(self.lerobot_args)
-        chunk_flag = f"--policy.{self._chunk_name()}"
-        for a in self.lerobot_args:  # flags that would move the run away from what vla-ladder keeps and resumes
-            flag = a.split("=", 1)[0]
-            if flag in OWN_FLAGS or flag == chunk_flag:
-                raise ValueError(f"{flag} after -- is vla-ladder's to set; use {OWN_FLAGS.get(flag, '--chunk-size')}")
+        if flag := own_flag(self.policy_type, self.lerobot_args):
+            raise ValueError(f"{flag} after -- is vla-ladder's to set; use {OWN_FLAGS.get(flag, '--chunk-size')}")
         check_policy_packages(self.policy_type)
         self.info = read_info(self.dataset)
         check_features(self.info, self.dataset)
