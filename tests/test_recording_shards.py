@@ -169,6 +169,34 @@ def test_an_eta_of_days_says_its_days(monkeypatch):
     assert record.eta_text(59) == "00:00:59" and record.eta_text(86400 + 61) == "1d 00:01:01"
 
 
+def test_a_ctrl_c_whose_keyboardinterrupt_is_lost_is_still_seen_by_the_writers_loops():
+    """A KeyboardInterrupt raised inside a weakref callback is printed as "Exception ignored" and lost: a writer then
+    waited 300 s for episodes after the Ctrl-C. sticky_sigint remembers it for the loops to raise again; a process
+    started with SIGINT ignored keeps ignoring it."""
+    import os
+    import signal
+    import time
+
+    from vla_ladder.recording.writers import sticky_sigint
+
+    previous = signal.getsignal(signal.SIGINT)
+    try:
+        ctrl_c = sticky_sigint()
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)  # (the handler runs at the next bytecode boundary)
+        except KeyboardInterrupt:
+            pass  # lost, as in a weakref callback
+        assert ctrl_c.is_set()
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        ignored = sticky_sigint()
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.2)
+        assert not ignored.is_set() and signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def test_a_resumed_sharded_recording_rates_only_its_own_demos():
     """`record --writers K` resumed over an earlier run's shard after a gap (4 demos, 4 seeds, 1 block: the ledger
     counts them kept) said 0.088 demos/s, ETA 8 min, before its writers had kept one demo."""
