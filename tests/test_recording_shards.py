@@ -502,6 +502,7 @@ def test_record_with_two_writers_killed_then_rerun(tmp_path):
     assert state["played_to"] == state_alone["played_to"] == alone["seed"].max() + 1
 
 
+@pytest.mark.slow
 def test_record_with_two_writers_stopped_by_ctrl_c_then_rerun(tmp_path):
     """A Ctrl-C at the terminal (SIGINT to the recorder's process group: the recorder and its writers) once a writer
     committed: the writers commit what they hold, the recorder merges what continues the dataset and exits with 130,
@@ -615,6 +616,7 @@ def _synthetic_server(**simulated):
     return server
 
 
+@pytest.mark.slow
 def test_writers_finish_when_a_block_ends_in_a_seed_the_servers_failed(tmp_path):
     """Seed 3's simulation fails on every server: one writer gives it up and records seeds 0, 1, 2 and 4; so do two
     writers, where seed 3 ends the block [2, 4). That block was never played to its end, so the ledger counted on a

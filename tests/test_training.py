@@ -134,6 +134,7 @@ def test_a_run_with_its_own_optimizer_resumes_with_it(data, tmp_path, monkeypatc
     assert {g["lr"] for g in groups} == {0.001}
 
 
+@pytest.mark.slow
 def test_a_killed_training_resumes_from_its_last_checkpoint(data, tmp_path, capsys):
     """Each checkpoint gets the data's task contract as LeRobot saves it, not when training ends, so a run killed
     after a save leaves a `checkpoints/last` that `lerobot:` can check. The same command then resumes it there
