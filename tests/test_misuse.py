@@ -746,6 +746,14 @@ def test_an_empty_path_is_refused_not_read_as_the_current_directory(tmp_path, mo
     (["compare", "a"], "missing RUN_B;"),
     (["grid", "--out", "g", "--train.polcy-type", "act"], "unknown flag --train.polcy-type (did you mean "
                                                           "--train.policy-type?)"),
+    # a positional's field name as a flag was "did you mean --runs?" for --runs; tyro's "name needs a value" hid
+    # the unknown flag before a missing positional; int()'s own words named no flag's type
+    (["report", "--runs", "r", "--out", "r.html"], "RUNS is given without a flag, not as --runs;"),
+    (["compare", "--run-a", "a", "b"], "RUN_A is given without a flag, not as --run-a;"),
+    (["probe", "--probe", "instruction-swap", "--policy", "scripted"], "unknown flag --probe; `vla-ladder probe"),
+    (["eval", "--policy", "scripted", "--out", "r", "--episodes", "1.5"], "--episodes takes INT, got '1.5'"),
+    (["eval", "--policy", "scripted", "--out", "r", "--first-seed=x"], "--first-seed takes INT, got 'x'"),
+    (["eval", "--policy", "scripted", "--out", "r", "--noise-std", "1"], "unknown flag --noise-std; `vla-ladder"),
 ])
 def test_a_flag_tyro_does_not_know_is_named_in_one_line(argv, says, tmp_path, monkeypatch, capsys):
     """An unknown or misspelt flag, a flag without its value, a stray value and a missing argument were drawn in

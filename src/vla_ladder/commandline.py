@@ -19,7 +19,7 @@ def parse_config(cls: type[T], argv: list[str], prog: str, description: str | No
 
     check_no_repeated_flags(argv, cls)
     check_no_empty_paths(cls, argv)
-    with _one_line_value_errors(cls, prog):
+    with _one_line_value_errors(cls, prog, argv):
         return tyro.cli(cls, args=argv, prog=prog, description=description, default=default)
 
 
@@ -103,6 +103,29 @@ def _flag_types(cls: type | None, prefix: str = "--") -> dict[str, bool]:
     return out
 
 
+def _positionals(cls: type | None) -> dict[str, str]:
+    """`--name` -> NAME (as the usage line spells it) for each positional field of dataclass `cls`."""
+    import dataclasses
+    import typing
+
+    import tyro
+
+    if cls is None or not dataclasses.is_dataclass(cls):
+        return {}
+    try:
+        hints = typing.get_type_hints(cls, include_extras=True)
+    except Exception:  # as _flag_types
+        return {}
+    marker, arg_config = typing.get_args(tyro.conf.Positional[int])[1], type(tyro.conf.arg())
+    out = {}
+    for f in dataclasses.fields(cls):
+        meta = getattr(hints[f.name], "__metadata__", ())
+        if marker in meta:
+            metavars = [m.metavar for m in meta if isinstance(m, arg_config) and m.metavar]
+            out["--" + f.name.replace("_", "-")] = metavars[-1] if metavars else f.name.upper()
+    return out
+
+
 def check_no_empty_paths(cls: type, argv: list[str]) -> None:
     """ValueError for a path flag given an empty value (`--out ""`, an unset shell variable): tyro reads it as
     Path(""), which is ".", so results would land in the current directory."""
@@ -124,7 +147,7 @@ def check_no_empty_paths(cls: type, argv: list[str]) -> None:
 
 
 @contextmanager
-def _one_line_value_errors(cls: type | None = None, prog: str = ""):
+def _one_line_value_errors(cls: type | None = None, prog: str = "", argv: list[str] | None = None):
     """A config's __post_init__ rejects bad values with a ValueError that names what is allowed; tyro would draw
     it, an unknown flag or a flag without its value in a box of 9 lines or more. Hand each back as a ValueError so
     main() prints it on one line, like every other bad input. (tyro's parse-error hook is marked experimental:
@@ -145,6 +168,10 @@ def _one_line_value_errors(cls: type | None = None, prog: str = ""):
     def handle(event):
         if isinstance(event, getattr(errors, "InstantiationFailure", ())):
             flag = flag_of(event.argument) if event.argument is not None else ""
+            metavar = getattr(getattr(event.argument, "lowered", None), "metavar", None)
+            given = _values_of(flag, argv or [])
+            if flag.startswith("--") and metavar and given is not None:  # int('1.5')'s words name no flag's type
+                raise ValueError(f"{flag} takes {metavar}, got {given!r}")
             # tyro's own failures go on with a list of the types it tried: their first line says it
             message = next((line.strip() for line in str(event.message).splitlines() if line.strip()), "bad value")
             raise ValueError(f"{flag}: {message}" if flag else message)
@@ -152,6 +179,9 @@ def _one_line_value_errors(cls: type | None = None, prog: str = ""):
             raise ValueError(_unrecognized(list(event.tokens), cls, help_hint))
         if isinstance(event, getattr(errors, "BadValue", ())):
             flag = flag_of(event.argument) or "a flag"
+            unknown = _unknown_flags(argv or [], cls)
+            if not flag.startswith("-") and unknown:  # tyro reports a positional left empty before a flag it
+                raise ValueError(_unrecognized(unknown, cls, help_hint))  # does not know: the unknown flag is news
             if event.offending_value is None:
                 raise ValueError(f"{flag} needs a value; {help_hint}")
             raise ValueError(f"{flag} takes no value, got {event.offending_value!r}; {help_hint}")
@@ -178,8 +208,35 @@ def _unrecognized(tokens: list[str], cls: type | None, help_hint: str) -> str:
     if not flags:
         return f"unexpected argument {tokens[0]!r} (a value must follow its flag); {help_hint}"
     flag = flags[0].split("=", 1)[0]
-    known = list(_flag_types(cls))
+    positionals = _positionals(cls)
+    if _field_flag(flag, {}) in positionals:
+        return f"{positionals[_field_flag(flag, {})]} is given without a flag, not as {flag}; {help_hint}"
+    known = [f for f in _flag_types(cls) if f not in positionals]
     near = difflib.get_close_matches(_field_flag(flag, {}) if flag.startswith("--") else flag, known, n=1,
-                                     cutoff=0.6)
+                                     cutoff=0.7)  # 0.6 offered --robot-mesh for --probe
     more = f" (and {len(flags) - 1} more)" if len(flags) > 1 else ""
     return f"unknown flag {flag}{more}" + (f" (did you mean {near[0]}?)" if near else "") + f"; {help_hint}"
+
+
+def _unknown_flags(argv: list[str], cls: type | None) -> list[str]:
+    """The flags in `argv` (before `--`) that name no field of `cls`; none where its fields cannot be read."""
+    known = _flag_types(cls)
+    if not known:
+        return []
+    flags = [a for a in argv[:argv.index("--") if "--" in argv else len(argv)] if a.startswith("--")]
+    return [a for a in flags if _field_flag(a.split("=", 1)[0], known) not in known
+            or _field_flag(a.split("=", 1)[0], known) in _positionals(cls)]
+
+
+def _values_of(flag: str, argv: list[str]) -> str | None:
+    """What `argv` gives `flag` (`--flag=v`, or the words after `--flag` up to the next flag), space-joined."""
+    for i, arg in enumerate(argv):
+        if arg == "--":
+            break
+        if arg.startswith(flag + "="):
+            return arg.split("=", 1)[1]
+        if arg == flag:
+            rest = argv[i + 1:]
+            n = next((j for j, a in enumerate(rest) if a.startswith("--")), len(rest))
+            return " ".join(rest[:n])
+    return None
