@@ -5,7 +5,7 @@ feeds every frame to RunningQuantileStats for the episode's image statistics: mo
 array reduced along its long axis, min and max the same way, and a Python loop over its 5000 histogram bins
 whenever the range grows. On a 256x256 camera that costs ~5 ms a frame, 0.47 CPU s of the writer's 0.73 a demo
 on the 2-core machine (the AV1 encoder itself: 0.19), and the writer is what bounds recording on the 16-core
-GPU machine (README, "Measured figures on a GPU machine").
+GPU machine (docs/benchmarks.md, "The GPU machine").
 
 A frame's pixels are uint8, so everything RunningQuantileStats keeps follows from each channel's counts of the
 values 0-255 (np.bincount): min and max, the mean and the mean of squares, and the histogram (each value's
