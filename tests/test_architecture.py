@@ -151,3 +151,26 @@ def test_code_that_handles_every_metric_reads_contract_metrics():
             if set(METRICS) <= words and (rel, bound.get(id(node))) not in METRIC_LISTS:
                 spelt.append(f"{rel}:{node.lineno}")
     assert spelt == [], f"these name every metric instead of reading contract.METRICS: {spelt}"
+
+
+def test_every_relative_link_in_the_readme_and_docs_resolves():
+    """The README's figures moved to docs/benchmarks.md, and other pages link to it and to each other: a page or
+    heading renamed must not leave a newcomer a dead link. Checks the file and, for a .md target, the heading."""
+    root = SRC.parents[1]
+
+    def anchors(page: Path) -> set[str]:  # GitHub's heading ids: lower case, punctuation dropped, spaces to -
+        text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)
+        return {re.sub(r"[^\w\- ]", "", re.sub(r"[`*_]", "", h.strip().lower())).replace(" ", "-")
+                for h in re.findall(r"^#+\s+(.*)$", text, flags=re.M)}
+
+    dead = []
+    for page in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        text = re.sub(r"`[^`\n]*`", "", re.sub(r"```.*?```", "", page.read_text(), flags=re.S))
+        for target in re.findall(r"\]\(([^)\s]+)\)", text):
+            if re.match(r"[a-z]+:", target):  # http:, https:, mailto:
+                continue
+            file, _, heading = target.partition("#")
+            dest = (page.parent / file) if file else page
+            if not dest.exists() or (heading and dest.suffix == ".md" and heading not in anchors(dest)):
+                dead.append(f"{page.relative_to(root)}: {target}")
+    assert dead == [], f"dead links: {dead}"
