@@ -6,14 +6,11 @@ from __future__ import annotations
 import html
 
 from vla_ladder.report.displacement import odds_text
+from vla_ladder.report.tables import pct
 
 DIFFERENCES = ("holds_up", "reworded", "by_colour", "distracted", "goes_to_place")
 """Questions answered by a difference of two rates: shown in signed points (by_colour too since it became the change
 the swap makes: unsigned, "10" read as the swapped share it was before)."""
-
-
-def _pct(x: float | None, signed: bool = False) -> str:
-    return "–" if x is None or x != x else (f"{100 * x:+.0f}" if signed else f"{100 * x:.0f}")
 
 
 def _answer(q: dict, answer: dict | None) -> tuple[str, str] | None:
@@ -21,7 +18,7 @@ def _answer(q: dict, answer: dict | None) -> tuple[str, str] | None:
     signed = q["id"] in DIFFERENCES
     if answer is None:
         return None
-    return _pct(answer["value"], signed), f"[{_pct(answer['ci95'][0], signed)}, {_pct(answer['ci95'][1], signed)}]"
+    return pct(answer["value"], signed), f"[{pct(answer['ci95'][0], signed)}, {pct(answer['ci95'][1], signed)}]"
 
 
 def _policies(q: dict) -> dict[str, dict]:
@@ -34,7 +31,7 @@ def answer_lines(data: dict) -> list[str]:
     where it stops finding the object (displacement_lines)."""
     lines = []
     for q in data["questions"]:
-        refs = ", ".join(f"{r} {_pct(x, q['id'] in DIFFERENCES)}" for r, x in q["references"].items())
+        refs = ", ".join(f"{r} {pct(x, q['id'] in DIFFERENCES)}" for r, x in q["references"].items())
         several = len(_policies(q)) > 1
         for label, a in _policies(q).items():
             value = " ".join(_answer(q, a["answer"]) or ("n/a",))
@@ -62,7 +59,7 @@ def diagnosis_html(data: dict) -> str:
             if several:
                 value += f"<br><span class=ci>resembles {html.escape(a['resembles'] or '–')}</span>"
             cells.append(value)
-        cells += [_pct(q["references"][r], q["id"] in DIFFERENCES) for r in refs]
+        cells += [pct(q["references"][r], q["id"] in DIFFERENCES) for r in refs]
         if not several:
             cells.append(html.escape(next(iter(_policies(q).values()))["resembles"] or "–"))
         rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
@@ -91,11 +88,11 @@ def displacement_lines(data: dict) -> list[str]:
         who = f"[{label}] " if several else ""
         beyond = curve["far"]
         at_place = ("" if beyond["ends_at_place"]["value"] is None else
-                    f", ends at its usual place in {_pct(beyond['ends_at_place']['value'])}%")
-        lines.append(f"{who}Where does it stop finding the object? success {_pct(near['success'])}% at "
+                    f", ends at its usual place in {pct(beyond['ends_at_place']['value'])}%")
+        lines.append(f"{who}Where does it stop finding the object? success {pct(near['success'])}% at "
                      f"{near['from_cm']:g}-{near['to_cm']:g} cm from the named object's place in training, "
-                     f"{_pct(far['success'])}% at {far['from_cm']:g}-{far['to_cm']:g} cm; beyond "
+                     f"{pct(far['success'])}% at {far['from_cm']:g}-{far['to_cm']:g} cm; beyond "
                      f"{beyond['from_cm']:g} cm (n={beyond['n']}) it reaches the object in "
-                     f"{_pct(beyond['reach']['value'])}%{at_place}; odds {odds_text(curve['trend']['success'])} "
+                     f"{pct(beyond['reach']['value'])}%{at_place}; odds {odds_text(curve['trend']['success'])} "
                      f"per 10 cm{'; ' + refs if refs else ''}")
     return lines

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import html
 
+from vla_ladder.report.tables import pct
+
 
 def odds_text(trend: dict, interval: bool = True) -> str:
     """An odds ratio per 10 cm with its interval (without, when not `interval`); where outcomes separate at a
@@ -19,15 +21,11 @@ def odds_text(trend: dict, interval: bool = True) -> str:
     return f"x{trend['odds_ratio_per_10cm']:.2g}" + (f" [{lo:.2g}, {hi:.2g}]" if interval else "")
 
 
-def _pct(x: float) -> str:
-    return f"{100 * x:.0f}"
-
-
 def _share(rate: dict) -> str:
     """A Wilson rate as "value [lo, hi]" in %, "–" where it is unknown (a run without final TCP positions)."""
     if rate["value"] is None:
         return "–"
-    return f"{_pct(rate['value'])} <span class=ci>[{_pct(rate['ci95'][0])}, {_pct(rate['ci95'][1])}]</span>"
+    return f"{pct(rate['value'])} <span class=ci>[{pct(rate['ci95'][0])}, {pct(rate['ci95'][1])}]</span>"
 
 
 CAPTION = ("Success, grasp-anything and reach against the named object's distance from its place in training, each "
@@ -45,8 +43,8 @@ def displacement_table(curves: dict[str, dict], trained_in: str) -> str:
     for label, curve in curves.items():
         mine = {(b["from_cm"], b["to_cm"]): b for b in curve["bins"]}
         cells = [("–" if (b := mine.get(key)) is None else
-                  f"{_pct(b['success'])} <span class=ci>[{_pct(b['ci95']['success'][0])}, "
-                  f"{_pct(b['ci95']['success'][1])}] n={b['n']}</span>") for key in bins]
+                  f"{pct(b['success'])} <span class=ci>[{pct(b['ci95']['success'][0])}, "
+                  f"{pct(b['ci95']['success'][1])}] n={b['n']}</span>") for key in bins]
         trend = curve["trend"]["success"]
         odds = odds_text(trend) + ("" if trend["odds_ratio_per_10cm"] is not None
                                    else f" <span class=ci>{html.escape(trend['why'])}</span>")

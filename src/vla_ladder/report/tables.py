@@ -105,10 +105,10 @@ class Table:
         return "\n".join(out) + "\n"
 
 
-def pct(x: float | None) -> str:
+def pct(x: float | None, signed: bool = False) -> str:
     """A rate in whole percent; "–" where it is undefined (NaN, or null as a result file holds it since it is strict
-    JSON). Every report's tables use it."""
-    return "–" if x is None or x != x else f"{100 * x:.0f}"
+    JSON). Every report's tables use it. `signed`: a difference of two rates, in points with its sign ("+12", "-3")."""
+    return "–" if x is None or x != x else f"{100 * x:+.0f}" if signed else f"{100 * x:.0f}"
 
 
 _TEX = {"\\": "\\textbackslash{}", "_": "\\_", "%": "\\%", "&": "\\&", "#": "\\#", "$": "\\$", "{": "\\{",
