@@ -420,6 +420,9 @@ def test_overwrite_replaces_only_a_directory_of_its_own_kind(command, tmp_path, 
                                          ("n_action_steps=²", "expected an integer >= 1, got '²'"),
                                          ("device=foo", "expected cpu, cuda, cuda:N or mps"),
                                          ("noise_seed=99999999999999999999999", "2**63 - 1"),
+                                         # (str.isdigit() took these: '٣' played seed 3, '²' said int()'s words)
+                                         ("noise_seed=٣", "expected an integer from 0 to 2**63 - 1, got '٣'"),
+                                         ("noise_seed=²", "expected an integer from 0 to 2**63 - 1, got '²'"),
                                          ("n_action_steps=2&n_action_steps=3", "given twice")])
 def test_lerobot_options_are_checked_before_the_run_directory(query, says, tmp_path, capsys):
     out = tmp_path / "run"

@@ -49,6 +49,13 @@ def check_torch_device(device: str, said: str, fix: str) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- counts
+def ascii_digits(value: str) -> bool:
+    """Whether `value` is one or more of the digits 0-9, the test before int() on a number typed or a folder's
+    name: str.isdigit() alone also takes '٣' and '５', which int() reads as 3 and 5, and '²', which int() refuses
+    in words that name no flag."""
+    return value.isascii() and value.isdigit()
+
+
 def check_count(value, name: str, least: int = 1):
     """`value` when it is an integer (numpy's too; a bool is not one) of at least `least`, else ValueError naming
     `name` (a flag or a config field)."""

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import itertools
 import math
-import re
 from dataclasses import dataclass
+
+from vla_ladder.checks import ascii_digits
 
 
 @dataclass(frozen=True)
@@ -84,8 +85,7 @@ class Condition:
     def parse(cls, key: str) -> "Condition":
         """The inverse of `key`: "full_random/canonical/5" -> Condition("full_random", "canonical", 5)."""
         parts = str(key).split("/")
-        # ASCII digits only: str.isdigit() also takes "５" and "²", which int() reads as 5 or refuses in its words.
-        if len(parts) != 3 or not re.fullmatch(r"[0-9]+", parts[2].strip()):
+        if len(parts) != 3 or not ascii_digits(parts[2].strip()):
             raise ValueError(f"bad condition {key!r}; expected regime/split/num_objects, e.g. small_jitter/canonical/5")
         return cls(parts[0].strip(), parts[1].strip(), int(parts[2]))
 

@@ -55,7 +55,7 @@ from typing import Annotated
 import tyro
 
 from vla_ladder import files
-from vla_ladder.checks import check_count, check_output_dir
+from vla_ladder.checks import ascii_digits, check_count, check_output_dir
 from vla_ladder.conditions import REGIMES, Condition, ConditionGrid
 from vla_ladder.evaluation.displacement import FAR_CM, by_displacement
 from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
@@ -199,7 +199,7 @@ def default_label(spec: str) -> str:
     if arg is None:
         return kind
     parts = [p for p in re.split(r"[/\\]+", arg.partition("?")[0])
-             if p and p not in ("pretrained_model", "checkpoints", "last", "ws:", "wss:") and not p.isdigit()]
+             if p and p not in ("pretrained_model", "checkpoints", "last", "ws:", "wss:") and not ascii_digits(p)]
     label = re.sub(r"[^A-Za-z0-9._-]", "_", parts[-1]) if parts else kind
     return label if kind in POLICY_KINDS or label == kind else f"{kind}-{label}"
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import tyro
 
 from vla_ladder import files
-from vla_ladder.checks import check_ray_address, check_output_dir
+from vla_ladder.checks import ascii_digits, check_ray_address, check_output_dir
 from vla_ladder.conditions import parse_regimes
 from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig, from_dict
 from vla_ladder.experiments.units import Unit, is_done, run_units, run_units_on_ray
@@ -312,7 +312,7 @@ class Study:
             best = chosen[(p.name, d.name)]
             own = {"regimes": [d.cond.regime], "splits": [d.cond.split], "num_objects": [d.cond.num_objects]}
             steps = sorted(x.name for x in (self.root / "models" / best["model"] / "checkpoints").iterdir()
-                           if x.name.isdigit())
+                           if ascii_digits(x.name))
             for step in steps:
                 cfg = self.eval_config(self.spec(p, best["model"], best["horizon"], step),
                                        self.root / "curves" / f"{best['model']}-{step}", own,

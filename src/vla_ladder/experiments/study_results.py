@@ -8,6 +8,7 @@ import tempfile
 from pathlib import Path
 
 from vla_ladder import files
+from vla_ladder.checks import ascii_digits
 from vla_ladder.contract import METRICS
 from vla_ladder.evaluation.displacement import by_displacement
 from vla_ladder.evaluation.rundir import load_run
@@ -38,7 +39,7 @@ def curve_points(study, chosen: dict) -> dict[str, list[dict]]:
         points = []
         for run_dir in sorted((study.root / "curves").glob(f"{model}-*")):
             head, _, step = run_dir.name.rpartition("-")
-            if head != model or not step.isdigit():  # another model's, whose name starts with this one's and '-'
+            if head != model or not ascii_digits(step):  # another model's, whose name starts with this one's and '-'
                 continue
             step = int(step)
             c = next(iter(json.loads((run_dir / "summary.json").read_text())["conditions"].values()))

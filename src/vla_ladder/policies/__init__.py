@@ -22,6 +22,8 @@ from urllib.parse import parse_qsl
 
 import torch
 
+from vla_ladder.checks import ascii_digits
+
 
 class Policy(ABC):
     """A batched policy for GraspObject-v1 (contract.ACTION_DIM pd_ee_delta_pose actions in [-1, 1])."""
@@ -151,7 +153,7 @@ def allowed_specs() -> str:
 
 def positive_int(value: str) -> int:
     """An option's parser: an integer >= 1 (an execution horizon, say)."""
-    if not (value.isascii() and value.isdigit()) or int(value) < 1:  # (str.isdigit takes '٣' and '²' too)
+    if not ascii_digits(value) or int(value) < 1:
         raise ValueError(f"expected an integer >= 1, got {value!r}")
     return int(value)
 

@@ -30,7 +30,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from vla_ladder.checks import TORCH_DEVICE, check_torch_device
+from vla_ladder.checks import TORCH_DEVICE, ascii_digits, check_torch_device
 from vla_ladder.contract import (ACTION_DIM, ACTION_KEY, CAMERAS, CAMERA_KEYS, IMAGE_SHAPE, POLICY_FIELDS, STATE_DIM,
                                  STATE_KEY, TRAINED_CONTRACT_FILE, contract_changes)
 from vla_ladder.files import own_tempdir
@@ -67,7 +67,7 @@ def _bool(value: str) -> bool:
 
 
 def _noise_seed(value: str) -> int:
-    if not value.isdigit() or int(value) >= 2**63:
+    if not ascii_digits(value) or int(value) >= 2**63:
         raise ValueError(f"expected an integer from 0 to 2**63 - 1, got {value!r}")
     return int(value)
 
@@ -131,7 +131,7 @@ def checkpoint_name(path: str | Path) -> tuple[tuple[str, ...], str | None]:
             step = str(json.loads((step_dir / "training_state" / "training_step.json").read_text())["step"])
         except (OSError, ValueError, KeyError, TypeError):
             pass
-    step = str(int(step)) if step and step.isdigit() and step.isascii() else step
+    step = str(int(step)) if step and ascii_digits(step) else step
     return run.parts[1 if run.anchor else 0:], step
 
 

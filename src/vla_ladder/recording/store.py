@@ -46,7 +46,7 @@ from typing import Any, Iterator
 import pandas as pd
 
 from vla_ladder import files
-from vla_ladder.checks import SEED_LIMIT
+from vla_ladder.checks import SEED_LIMIT, ascii_digits
 from vla_ladder.conditions import Condition
 from vla_ladder.recording.ledger import Block, Ledger
 from vla_ladder.recordings import (FORMAT_VERSION, PROVENANCE_DIR, RECORDING_FILE, Recording, played_to,
@@ -194,7 +194,7 @@ class DatasetStore:
                     if b.done and (b.saved == 0 or self.shard(b.start).is_dir()):
                         found[b.start] = Block(b.start, b.played_to, b.played_to, b.saved, b.attempted, b.failed, True)
         for shard in self.shards_dir.iterdir():
-            if not shard.name.isdigit() or int(shard.name) in found:
+            if not ascii_digits(shard.name) or int(shard.name) in found:
                 continue
             state = read_recording_state(shard)
             if state is not None:

@@ -10,6 +10,7 @@ import itertools
 from collections import Counter
 from pathlib import Path
 
+from vla_ladder.checks import ascii_digits
 from vla_ladder.policies.lerobot import checkpoint_name
 
 
@@ -24,7 +25,7 @@ def _checkpoint_path(spec: str) -> tuple[str, tuple[str, ...], str] | None:
         parts, step = Path(path).parts[1 if Path(path).anchor else 0:], None
     else:
         return None
-    at = "" if step is None else f"@step{step}" if step.isdigit() else f"@{step}"
+    at = "" if step is None else f"@step{step}" if ascii_digits(step) else f"@{step}"
     return (kind, parts, f"{at}{query}{options}") if parts else None
 
 
