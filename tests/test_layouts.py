@@ -10,13 +10,23 @@ import sys
 import numpy as np
 import pytest
 
-from vla_ladder.conditions import REGIMES, SPLITS, Condition, ConditionGrid
+from vla_ladder.conditions import MAX_OBJECTS, REGIMES, SPLITS, Condition, ConditionGrid
 from vla_ladder.task.layouts import (CENTER_REGION, HELD_OUT_REGIONS, MIN_GAP, REGION_CENTERS, TRAIN_REGIONS,
                                      WORKSPACE_CENTER, WORKSPACE_SIZE, region_assignments, sample_layout)
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, OBJECTS, object_index
 
 SEEDS = range(300)
 JITTER = [r for r, e in REGIMES.items() if e is not None]
+
+
+def test_a_scene_holds_at_most_every_object_once():
+    """conditions.MAX_OBJECTS (the ground floor's, without the simulator: the scene sizes 1-5, the absent-object
+    probe's count of names off the table) is the task's object count: an object added to task/objects.py must
+    move both."""
+    assert MAX_OBJECTS == NUM_OBJECTS == len(set(OBJECT_NAMES))
+    for k in range(1, MAX_OBJECTS + 1):
+        layout = sample_layout(Condition("full_random", "canonical", k), seed=k)
+        assert len(set(layout.objects)) == k and len(layout.absent) == MAX_OBJECTS - k
 
 
 def test_paper_region_sizes():
