@@ -177,7 +177,7 @@ def test_a_ctrl_c_whose_keyboardinterrupt_is_lost_is_still_seen_by_the_writers_l
     import signal
     import time
 
-    from vla_ladder.recording.writers import sticky_sigint
+    from vla_ladder.recording.record import sticky_sigint
 
     previous = signal.getsignal(signal.SIGINT)
     try:
@@ -254,6 +254,53 @@ def test_record_refuses_servers_of_other_objects_before_recording(tmp_path, monk
         assert not (tmp_path / ".data.recording" / "staging").exists()
         store = DatasetStore(root, Recording(**CONFIG))  # (the lock was let go)
         store.close()
+
+
+def test_a_ctrl_c_whose_keyboardinterrupt_is_lost_still_stops_a_single_writer_record(tmp_path, monkeypatch):
+    """The single writer's loop waits on its servers as the writers' loops do: a KeyboardInterrupt lost in a weakref
+    callback (sticky_sigint) left it recording on, or waiting for episodes from servers the same Ctrl-C stopped.
+    Here a server that greets and sends no episode, and the recorder's SIGINT handler run where its
+    KeyboardInterrupt is lost (another thread): the recorder still stops with 130, and puts Python's handler back."""
+    import functools
+    import signal
+    import threading
+    import time
+
+    from test_reconnect import LoopThread, _greeting_server
+    from vla_ladder.recording import record
+
+    monkeypatch.setattr(record, "setup_logging", lambda prefix: None)
+    serves = dict(policy="scripted", condition="small_jitter/canonical/2", robot_mesh="lite", instructions="canonical",
+                  num_envs=1)
+    limits = dict(max_outstanding=8, max_seeds_per_request=8)
+    before = signal.getsignal(signal.SIGINT)
+    assert before is signal.default_int_handler  # (pytest leaves Python's)
+    server = LoopThread(functools.partial(_greeting_server, serves=serves, limits=limits)).__enter__()
+    returned, lost_at = threading.Event(), []
+
+    def lose_a_ctrl_c():
+        deadline = time.monotonic() + 20
+        while signal.getsignal(signal.SIGINT) is before and time.monotonic() < deadline and not returned.is_set():
+            time.sleep(0.05)
+        time.sleep(1.0)  # the recorder waits for episodes
+        lost_at.append(time.monotonic())
+        try:
+            signal.getsignal(signal.SIGINT)(signal.SIGINT, None)  # what a Ctrl-C runs in the main thread
+        except KeyboardInterrupt:
+            pass  # lost, as in a weakref callback
+        returned.wait(20)
+        server.__exit__(None, None, None)  # (unseen: the server goes, and the recorder gives up on it)
+
+    helper = threading.Thread(target=lose_a_ctrl_c, daemon=True)
+    helper.start()
+    try:
+        rc = record.run(record.RecordConfig(out=tmp_path / "data", episodes=2, server=(server.url,)))
+        stopped_at = time.monotonic()
+    finally:
+        returned.set()
+        helper.join(60)
+    assert rc == 130 and stopped_at - lost_at[0] < 5, (rc, stopped_at - lost_at[0])
+    assert signal.getsignal(signal.SIGINT) is before
 
 
 def _raised(fn, *args):

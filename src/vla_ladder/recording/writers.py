@@ -19,33 +19,13 @@ from vla_ladder.checks import SEED_LIMIT
 from vla_ladder.machine import signal_on_parent_death
 from vla_ladder.recording.client import EpisodeSource, ServerError
 from vla_ladder.recording.ledger import STOP, WAIT, Ledger
-from vla_ladder.recording.record import RecordConfig, check_server, eta_text, report_targets
+from vla_ladder.recording.record import RecordConfig, check_server, eta_text, report_targets, sticky_sigint
 from vla_ladder.recording.server import TOKEN_ENV
 from vla_ladder.recording.store import DatasetStore
 from vla_ladder.recordings import Recording
 
 log = logging.getLogger(__name__)
 PROGRESS_EVERY_S = 10.0
-
-
-def sticky_sigint() -> threading.Event:
-    """Make SIGINT (Ctrl-C) raise KeyboardInterrupt, as Python's own handler does, and remember it in the returned
-    event, which the caller's loop checks at each turn (`if ctrl_c.is_set(): raise KeyboardInterrupt`). A
-    KeyboardInterrupt raised while the garbage collector runs a weakref's callback is printed as "Exception ignored"
-    and lost: a writer went on waiting 300 s for episodes from the servers the same Ctrl-C had stopped (seen in CI,
-    test_record_with_two_writers_stopped_by_ctrl_c_then_rerun). Only where Ctrl-C raises KeyboardInterrupt now
-    (Python's handler, in the main thread): a process started with SIGINT ignored (`cmd &` in a script) keeps it so."""
-    ctrl_c = threading.Event()
-    if threading.current_thread() is not threading.main_thread() or \
-            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        return ctrl_c
-
-    def handler(signum, frame):
-        ctrl_c.set()
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGINT, handler)
-    return ctrl_c
 
 
 def write_shards(cfg: RecordConfig, store: DatasetStore, urls: list[str], writers: int) -> int:
