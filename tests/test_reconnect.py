@@ -114,6 +114,24 @@ def test_a_loopback_server_is_reached_directly_where_the_environment_names_a_pro
         assert asyncio.run(connect(server.url))["protocol"] == P.PROTOCOL_VERSION
 
 
+def test_the_proxy_choice_and_the_duplicate_check_read_a_host_alike():
+    """ws_proxy (connect directly or through the environment's proxy) and ws_endpoint (`--server` given twice) read
+    a URL's host one way: an IPv4-mapped loopback literal, `ws://[::ffff:127.0.0.1]:P`, was 127.0.0.1 to the
+    duplicate check but went through the proxy, which cannot reach this machine's loopback (cannot connect)."""
+    import ipaddress
+
+    from vla_ladder.checks import ws_endpoint, ws_proxy
+
+    for url in ("ws://[::1]:8000", "ws://LOCALHOST:1", "ws://u@127.0.0.1:1", "ws://u:p@localhost.:1/a",
+                "ws://[::ffff:127.0.0.1]:1", "ws://[0:0:0:0:0:0:0:1]:1", "ws://127.0.0.2:1"):
+        names = ws_endpoint(url)[0]
+        assert ws_proxy(url) is None and all(ipaddress.ip_address(n).is_loopback for n in names), (url, names)
+    for url in ("ws://gpu-node.example:1", "ws://U@GPU-node.example.:1", "ws://10.0.0.1:1", "ws://[::ffff:10.0.0.1]:1",
+                "ws://[2001:db8::1]:1"):
+        names = ws_endpoint(url)[0]
+        assert ws_proxy(url) is True and names in ({"gpu-node.example"}, {"10.0.0.1"}, {"2001:db8::1"}), (url, names)
+
+
 def test_a_server_that_stops_answering_is_a_lost_connection_not_a_refusal():
     async def receive_while_frozen(server: LoopThread) -> ServerError:
         client = EpisodeClient(server.url, **PING)

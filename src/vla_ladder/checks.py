@@ -180,10 +180,7 @@ def ws_proxy(url: str) -> None | bool:
     (websockets' default: the environment's proxy, unless no_proxy names the host). websockets sends even
     ws://127.0.0.1 through $https_proxy / $http_proxy when no_proxy does not name it, so on a machine with a proxy
     (a cluster's login node) no client reached the servers vla-ladder starts on this machine."""
-    from urllib.parse import urlsplit
-
-    host = (urlsplit(url).hostname or "").rstrip(".")
-    return None if is_loopback(host) else True
+    return None if is_loopback(_ws_host(url)) else True
 
 
 def refuse_past_max_clients(connection, max_clients: int, log):
@@ -277,8 +274,7 @@ def ws_endpoint(url: str) -> tuple[frozenset[str], int, str]:
     two names of one remote machine are not caught."""
     from urllib.parse import urlsplit
 
-    parts = urlsplit(url)
-    host = parts.hostname.rstrip(".")  # (lower-case already; "localhost." is localhost)
+    parts, host = urlsplit(url), _ws_host(url)
     if is_loopback(host) and not _ip(host):
         try:
             addresses = {_ip(info[4][0]) for info in socket.getaddrinfo(host, None)} - {None}
@@ -286,8 +282,19 @@ def ws_endpoint(url: str) -> tuple[frozenset[str], int, str]:
             addresses = set()
         names = frozenset(addresses or {"127.0.0.1", "::1"})
     else:
-        names = frozenset({_ip(host) or host})
+        names = frozenset({host})
     return names, parts.port or (443 if parts.scheme == "wss" else 80), parts.path.rstrip("/")
+
+
+def _ws_host(url: str) -> str:
+    """The host a WebSocket URL names, spelt one way for ws_proxy and ws_endpoint alike: without user info or the
+    brackets of an IPv6 literal, in lower case, without a trailing dot ("localhost." is localhost), an IP literal as
+    ipaddress writes it and an IPv4-mapped IPv6 one as IPv4 (`[::ffff:127.0.0.1]` is 127.0.0.1: ws_endpoint took it
+    for that, while ws_proxy sent it through the environment's proxy); "" when it names none."""
+    from urllib.parse import urlsplit
+
+    host = (urlsplit(url).hostname or "").rstrip(".")
+    return _ip(host) or host
 
 
 def _ip(host: str) -> str | None:
