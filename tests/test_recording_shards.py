@@ -303,6 +303,83 @@ def test_a_ctrl_c_whose_keyboardinterrupt_is_lost_still_stops_a_single_writer_re
     assert signal.getsignal(signal.SIGINT) is before
 
 
+def test_a_writer_waiting_on_an_earlier_block_still_sees_a_lost_ctrl_c(tmp_path):
+    """A writer whose success waits on an earlier block still in play (Ledger.verdict says WAIT) loops until that block
+    is played. A Ctrl-C whose KeyboardInterrupt was lost there went unseen: the earlier block's writer, stopped by the
+    same Ctrl-C, never plays it, so the writer waited for ever, and so did the recorder, for its exit. Here the
+    earlier block is played 15 s after the lost Ctrl-C, so that a writer that misses it stops then (too late)."""
+    import asyncio
+    import signal
+    import threading
+    import time
+
+    from test_reconnect import LoopThread
+    from vla_ladder.contract import EPISODE_STEPS
+    from vla_ladder.recording import protocol as P
+    from vla_ladder.recording.ledger import Block, Ledger
+    from vla_ladder.recording.record import RecordConfig
+    from vla_ladder.recording.writers import write_blocks
+
+    async def episodes(ready):  # a server that plays every seed asked for as a success, at once
+        from websockets.asyncio.server import serve
+
+        async def handle(ws):
+            P.decode(await ws.recv())  # the hello
+            serves = dict(policy="scripted", condition="small_jitter/canonical/2", robot_mesh="lite",
+                          instructions="canonical", num_envs=1)
+            await ws.send(P.encode({"type": "welcome", "protocol": P.PROTOCOL_VERSION, "server": serves,
+                                    "limits": dict(max_outstanding=2, max_seeds_per_request=2)}))
+            async for raw in ws:
+                for seed in P.decode(raw).header["seeds"]:
+                    e = synthetic_episode(seed, EPISODE_STEPS)
+                    await ws.send(P.encode({"type": "episode", **e.header}, {
+                        **{f"images.{c}": a for c, a in e.images.items()}, "state": e.state, "action": e.action}))
+
+        async with serve(handle, "127.0.0.1", 0) as server:
+            ready(f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}")
+            await asyncio.Future()
+
+    import lerobot.datasets.lerobot_dataset  # noqa: F401  (imported before the clock starts)
+
+    # 5 demos wanted; seeds 0-9 are another writer's, played to 5 (no success yet), so seed 10's success waits on
+    # its seeds 5-9: the writer here takes seeds 10-24.
+    path = tmp_path / "ledger.json"
+    Ledger.begin(path, {}, target=5, writers=2, base_seed=0, base_saved=0,
+                 blocks=[Block(0, 10, 5, saved=0, attempted=5, failed=5)])
+    other = Ledger(path)
+    shards = tmp_path / "shards"
+    previous = signal.getsignal(signal.SIGINT)
+    assert previous is signal.default_int_handler  # (pytest leaves Python's)
+    returned, lost_at = threading.Event(), []
+
+    def lose_a_ctrl_c():
+        deadline = time.monotonic() + 120
+        while not (shards / ".0000000010.recording").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)  # the writer has seed 10's episode and asks the ledger about it
+        time.sleep(2.0)
+        lost_at.append(time.monotonic())
+        try:
+            signal.getsignal(signal.SIGINT)(signal.SIGINT, None)  # what a Ctrl-C runs in the main thread
+        except KeyboardInterrupt:
+            pass  # lost, as in a weakref callback
+        if not returned.wait(15):  # (unseen: the earlier block is played, without a demo)
+            other.report(0, 10, 0, 10, 10, done=True)
+
+    with LoopThread(episodes) as server:
+        cfg = RecordConfig(out=shards, episodes=5, server=(server.url,), ledger=path, first_seed=0)
+        helper = threading.Thread(target=lose_a_ctrl_c, daemon=True)
+        helper.start()
+        try:
+            rc = write_blocks(cfg, Recording(**CONFIG))
+            stopped_at = time.monotonic()
+        finally:
+            returned.set()
+            helper.join(60)
+            signal.signal(signal.SIGINT, previous)  # (the writer ignores a second Ctrl-C while it commits)
+    assert rc == 130 and stopped_at - lost_at[0] < 5, (rc, stopped_at - lost_at[0])
+    assert Ledger(path).blocks()[1].done  # its block given back to the ledger
+
+
 def _raised(fn, *args):
     try:
         return fn(*args)

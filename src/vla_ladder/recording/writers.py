@@ -235,6 +235,8 @@ def write_blocks(cfg: RecordConfig, recording: Recording) -> int:
                 c = store.counters  # (seeds given up below this one count as played: the others may wait on us)
                 ledger.report(block[0], episode.seed, store.saved + store.pending, c["attempted"], c["failed"])
                 while (verdict := ledger.verdict(episode.seed, episode.success)) == WAIT:
+                    if ctrl_c.is_set():  # (the earlier block's writer, stopped by the same Ctrl-C, never decides it)
+                        raise KeyboardInterrupt
                     time.sleep(0.2)
             if verdict == STOP:
                 close_block(episode.seed, stopped=True)
