@@ -229,7 +229,8 @@ def run(cfg: RecordConfig) -> int:
                  store.next_seed)
     local: list[LocalServer] = []
     source = None
-    sigint = signal.getsignal(signal.SIGINT)  # (put back at the end: a study's unit calls run() in-process)
+    # (put back at the end, sticky_sigint's changes: a study's unit calls run() in-process)
+    sigint, unraisablehook = signal.getsignal(signal.SIGINT), sys.unraisablehook
 
     def close_giving_back() -> None:
         if source is not None:
@@ -298,8 +299,9 @@ def run(cfg: RecordConfig) -> int:
             source.stop()
         for server in local:
             server.stop()
-        if signal.getsignal(signal.SIGINT) is not sigint:  # (sticky_sigint's)
+        if signal.getsignal(signal.SIGINT) is not sigint:
             signal.signal(signal.SIGINT, sigint)
+        sys.unraisablehook = unraisablehook
 
 
 def sticky_sigint() -> threading.Event:
@@ -309,7 +311,8 @@ def sticky_sigint() -> threading.Event:
     and lost: a writer went on waiting 300 s for episodes from the servers the same Ctrl-C had stopped (seen in CI,
     test_record_with_two_writers_stopped_by_ctrl_c_then_rerun); the single writer's loop (run) records on, or waits
     so. Only where Ctrl-C raises KeyboardInterrupt now (Python's handler, in the main thread): a process started with
-    SIGINT ignored (`cmd &` in a script) keeps it so."""
+    SIGINT ignored (`cmd &` in a script) keeps it so. The lost KeyboardInterrupt, remembered, is not printed either
+    (sys.unraisablehook): its "Exception ignored" traceback came with the Ctrl-C that stopped a writer."""
     ctrl_c = threading.Event()
     if threading.current_thread() is not threading.main_thread() or \
             signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
@@ -319,7 +322,12 @@ def sticky_sigint() -> threading.Event:
         ctrl_c.set()
         raise KeyboardInterrupt
 
+    def unraisable(info, previous=sys.unraisablehook):
+        if not (ctrl_c.is_set() and issubclass(info.exc_type, KeyboardInterrupt)):
+            previous(info)
+
     signal.signal(signal.SIGINT, handler)
+    sys.unraisablehook = unraisable
     return ctrl_c
 
 
