@@ -35,10 +35,23 @@ def test_every_contract_fact_has_one_home():
 
 
 def test_lerobot_feature_keys_are_never_typed_out():
-    """observation.state, observation.images.* and the action key come from LeRobot's constants via the contract."""
+    """observation.state, observation.images.* and the action key are LeRobot's constants, spelt once: in the
+    contract, which imports neither LeRobot nor torch (lerobot.utils imports torch: 1.2 s before every command's
+    --help or one-line refusal), and every stage reads them from there."""
+    from lerobot.utils import constants
+
+    from vla_ladder import contract
+
+    assert (contract.ACTION, contract.OBS_IMAGES, contract.OBS_STATE) == \
+        (constants.ACTION, constants.OBS_IMAGES, constants.OBS_STATE)
     pattern = re.compile(r"""["']observation\.(state|images\.[a-z_]+)["']""")
-    offenders = [str(p.relative_to(SRC)) for p in SRC.rglob("*.py") if pattern.search(p.read_text())]
+    offenders = [str(p.relative_to(SRC)) for p in SRC.rglob("*.py")
+                 if p.name != "contract.py" and pattern.search(p.read_text())]
     assert offenders == []
+    code = ("import sys, vla_ladder.contract; "
+            "print(sorted({'torch', 'lerobot'} & {m.split('.')[0] for m in sys.modules}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
 
 
 def test_stages_import_only_downwards():

@@ -1,7 +1,7 @@
 """The GraspObject-v1 data contract: the one place that says what an episode is made of.
 
 Episode length, rates, the two cameras, the 15-d state, the 7-d action, the decomposed metrics, and the
-LeRobot feature keys (LeRobot's own constants) and dataset features built from them. Every stage reads
+LeRobot feature keys (LeRobot's own constants, spelt here) and dataset features built from them. Every stage reads
 these names from here: the env asserts it matches them, the recorder writes these features, training
 checks a dataset against them, and the LeRobot adapters feed policies with them. Simulator-free.
 """
@@ -10,7 +10,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
+# LeRobot's feature-key constants (lerobot.utils.constants; tests/test_architecture.py checks they match), spelt here
+# because importing lerobot.utils imports torch (1.2 s): every command's --help and bad-input check read this file.
+ACTION = "action"
+OBS_IMAGES = "observation.images"
+OBS_STATE = "observation.state"
 
 ENV_ID = "GraspObject-v1"
 ROBOT = "panda_wristcam"
