@@ -206,18 +206,20 @@ def test_a_checkpoint_trained_under_another_task_contract_is_refused(tmp_path):
     assert "no model.safetensors" in _refusal(ckpt)
 
 
-def test_diffusion_plays_no_more_actions_a_chunk_than_its_horizon_holds(tmp_path):
-    """Diffusion's chunk of `horizon` actions starts n_obs_steps - 1 steps back: it queues horizon - n_obs_steps + 1
-    of them, so n_action_steps=16 on a horizon of 16 played 15 a chunk while the run said 16."""
+@pytest.mark.parametrize("kind", ["diffusion", "multi_task_dit"])
+def test_a_horizon_chunk_plays_no_more_actions_a_chunk_than_it_holds(kind, tmp_path):
+    """Diffusion's and multi_task_dit's chunk of `horizon` actions starts n_obs_steps - 1 steps back: they queue
+    horizon - n_obs_steps + 1 of them, so n_action_steps=16 on a horizon of 16 played 15 a chunk while the run said
+    16 (multi_task_dit's was not checked)."""
     from vla_ladder.policies.lerobot import checked_config
 
-    path = _checkpoint(tmp_path / "c", "diffusion", ENV_CAMERAS, horizon=16, n_obs_steps=2, n_action_steps=8)
+    path = _checkpoint(tmp_path / "c", kind, ENV_CAMERAS, horizon=16, n_obs_steps=2, n_action_steps=8)
     for h in (16, 40):
-        with pytest.raises(ValueError, match=r"^n_action_steps must be from 1 to 15 for this diffusion checkpoint "
+        with pytest.raises(ValueError, match=rf"^n_action_steps must be from 1 to 15 for this {kind} checkpoint "
                                              r"\(horizon 16 - n_obs_steps 2 \+ 1\), got " + str(h)):
             checked_config(path, h, device="cpu")
     with pytest.raises(ValueError, match="no model.safetensors"):  # 15 passes, and stops at the absent weights
         checked_config(path, 15, device="cpu")
-    saved = _checkpoint(tmp_path / "saved", "diffusion", ENV_CAMERAS, horizon=16, n_obs_steps=2, n_action_steps=16)
+    saved = _checkpoint(tmp_path / "saved", kind, ENV_CAMERAS, horizon=16, n_obs_steps=2, n_action_steps=16)
     with pytest.raises(ValueError, match=r"from 1 to 15 .* got 16"):  # its own n_action_steps too
         checked_config(saved, device="cpu")

@@ -50,6 +50,16 @@ NOISE_PER_EPISODE = {"smolvla", "pi0", "pi05"}
 # says whether a checkpoint's does.
 ONE_OBSERVATION_CHUNKS = ("smolvla", "pi0", "pi05", "act")
 WEIGHTS_FILE = "model.safetensors"
+# Policies whose chunk of `horizon` actions starts n_obs_steps - 1 steps back, at the observed past: LeRobot keeps
+# actions n_obs_steps - 1 onwards of it, n_action_steps of them but unchecked (a slice past the end is short).
+HORIZON_CHUNKS = ("diffusion", "multi_task_dit")
+
+
+def executable_steps(policy_type: str | None, chunk: int, n_obs_steps: int) -> int:
+    """The most actions a policy of this type executes of a chunk of `chunk` (its largest n_action_steps): the
+    chunk, but chunk - n_obs_steps + 1 for HORIZON_CHUNKS. More would play fewer a chunk than the run says (15 a
+    chunk for n_action_steps 16 on a horizon of 16)."""
+    return chunk - n_obs_steps + 1 if policy_type in HORIZON_CHUNKS else chunk
 
 
 def chunks_from_one_observation(policy_type: str | None, temporal_ensemble_coeff: float | None = None) -> bool:
@@ -200,12 +210,11 @@ def checked_config(path: str | Path, n_action_steps: int | None = None, device: 
                          f"{n_action_steps}")
     horizon, n_obs, steps = (saved.get(k) for k in ("horizon", "n_obs_steps", "n_action_steps"))
     steps = steps if n_action_steps is None else n_action_steps
-    if saved.get("type") == "diffusion" and all(isinstance(v, int) for v in (horizon, n_obs, steps)) and \
-            not 1 <= steps <= horizon - n_obs + 1:
-        # Diffusion's chunk of `horizon` actions starts n_obs_steps - 1 steps back, and LeRobot queues the rest,
-        # unchecked: more would play fewer actions a chunk than the run says (15 a chunk for 16, horizon 16)
-        raise ValueError(f"n_action_steps must be from 1 to {horizon - n_obs + 1} for this diffusion checkpoint "
-                         f"(horizon {horizon} - n_obs_steps {n_obs} + 1), got {steps}")
+    kind = saved.get("type")
+    if kind in HORIZON_CHUNKS and all(isinstance(v, int) for v in (horizon, n_obs, steps)) and \
+            not 1 <= steps <= executable_steps(kind, horizon, n_obs):
+        raise ValueError(f"n_action_steps must be from 1 to {executable_steps(kind, horizon, n_obs)} for this "
+                         f"{kind} checkpoint (horizon {horizon} - n_obs_steps {n_obs} + 1), got {steps}")
     overrides = [] if n_action_steps is None else [f"--n_action_steps={int(n_action_steps)}"]
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     check_torch_device(device, f"device={device}", "use ?device=cpu, or leave device out (cuda when there is one, "

@@ -25,6 +25,7 @@ from pathlib import Path
 from vla_ladder import files
 from vla_ladder.checks import TORCH_DEVICE, check_output_dir, check_seed, check_torch_device
 from vla_ladder.contract import CAMERA_KEYS, TRAINED_CONTRACT_FILE
+from vla_ladder.policies.lerobot import HORIZON_CHUNKS, executable_steps
 from vla_ladder.training.dataset import check_features, dataset_condition, dataset_contract, read_info
 
 log = logging.getLogger(__name__)
@@ -50,7 +51,7 @@ BATCH_FOR_REGIME = {"full_random": 128}
 DEFAULT_BATCH = 64
 # The config field that holds the action chunk length, where it is not called chunk_size: the types whose chunk of
 # `horizon` actions starts n_obs_steps - 1 steps back, at the observed past (max_action_steps).
-CHUNK_FIELD = {"diffusion": "horizon", "multi_task_dit": "horizon"}
+CHUNK_FIELD = dict.fromkeys(HORIZON_CHUNKS, "horizon")
 DEFAULT_CHUNK = 16
 DEFAULT_TRAIN_SEED = 1000
 """lerobot-train's --seed where none is given (a study's policies with train_seed null train with it)"""
@@ -163,13 +164,14 @@ def max_action_steps(policy_type: str, chunk_size: int, lerobot_args=()) -> int:
     takes): the chunk, but for the types whose chunk is a `horizon` (diffusion, multi_task_dit) the chunk less
     n_obs_steps - 1, as their chunk starts that many steps back, at the observed past. The grid and the study train
     and evaluate no horizon above it, where one failed after training. n_obs_steps: LeRobot's default, or
-    --policy.n_obs_steps in `lerobot_args`."""
+    --policy.n_obs_steps in `lerobot_args`. The rule is the one every evaluation of a checkpoint checks
+    (policies.lerobot.executable_steps)."""
     if policy_type not in CHUNK_FIELD:
         return chunk_size
     n_obs = config_default(policy_type, "n_obs_steps")
     if (value := _policy_flag(lerobot_args, "n_obs_steps")) is not None and re.fullmatch(r"[0-9]+", value):
         n_obs = int(value)
-    return chunk_size - n_obs + 1
+    return executable_steps(policy_type, chunk_size, n_obs)
 
 
 def chunk_multiple(policy_type: str, lerobot_args=()) -> int:
