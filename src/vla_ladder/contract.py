@@ -78,6 +78,9 @@ BLIND_INSTRUCTION = "grasp the object"
 METRICS: tuple[str, ...] = ("success", "grasp_any", "reach")
 """success: the instructed object is held at the final step; grasp_any: some object was grasped at some step;
 reach: the TCP ends within REACH_THRESHOLD of the instructed object's bounding box."""
+RANK_BY: tuple[str, ...] = ("success", "grasp_any", "reach")
+"""The order models are ranked in (a grid's best run, a study's selected model): success, ties broken by grasp_any,
+then reach. A choice, not part of the fingerprint: a new metric ranks models only once it is added here."""
 REACH_THRESHOLD = 0.05
 INFO_KEYS: dict[str, str] = {
     "success": "(N,) bool: the instructed object is grasped now (judged at the final step)",

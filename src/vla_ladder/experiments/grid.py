@@ -27,7 +27,7 @@ import pandas as pd
 
 from vla_ladder import files
 from vla_ladder.checks import check_ray_address, check_output_dir
-from vla_ladder.contract import METRICS
+from vla_ladder.contract import METRICS, RANK_BY
 from vla_ladder.evaluation.runner import EvalConfig, saved_request
 from vla_ladder.experiments.units import Unit, run_units, run_units_on_ray
 from vla_ladder.recordings import recorded_seeds
@@ -39,7 +39,6 @@ log = logging.getLogger(__name__)
 PAPER_BATCH_SIZES = (64, 128)
 PAPER_CHUNK_SIZES = (8, 16, 32)
 PAPER_HORIZONS = (1, 4, 8, 16)
-RANK_BY = ("success", "grasp_any", "reach")
 
 
 @dataclass

@@ -27,11 +27,10 @@ import tyro
 from vla_ladder import files
 from vla_ladder.checks import ascii_digits, check_ray_address, check_output_dir
 from vla_ladder.conditions import parse_regimes
+from vla_ladder.contract import RANK_BY
 from vla_ladder.experiments.study_config import DatasetSpec, PolicySpec, StudyConfig, from_dict
 from vla_ladder.experiments.units import Unit, is_done, run_units, run_units_on_ray
 from vla_ladder.machine import check_workers, cores
-
-RANK_BY = ("success", "grasp_any", "reach")
 
 
 @dataclass
