@@ -471,6 +471,20 @@ def test_diffusion_chunk_sizes_are_multiples_of_its_unet_down_sampling(data, tmp
     assert "--policy.horizon=4 --policy.n_action_steps=3" in capsys.readouterr().out
 
 
+def test_flags_after_dashes_are_read_in_either_spelling():
+    """lerobot-train takes `--flag value` as `--flag=value`: train's checks read both (own_flag, and the --policy
+    values that size a chunk), the last of a flag given twice winning, as it wins in lerobot-train."""
+    from vla_ladder.training.train import _policy_flag, own_flag
+
+    args = ["--policy.dim_model", "64", "--policy.n_obs_steps=3", "--policy.n_obs_steps", " 4 ", "--steps", "5"]
+    assert _policy_flag(args, "n_obs_steps") == "4" and _policy_flag(args, "dim_model") == "64"
+    assert _policy_flag(args, "down_dims") is None
+    assert own_flag("act", args) == "--steps" and own_flag("act", args[:5]) is None
+    # The chunk field is the type's: diffusion's --policy.horizon is train's, TD-MPC's planning horizon is not.
+    assert [own_flag(t, ["--policy.horizon", "8"]) for t in ("diffusion", "multi_task_dit", "tdmpc")] == \
+        ["--policy.horizon", "--policy.horizon", None]
+
+
 def test_best_is_success_then_grasp_then_reach():
     df = pd.DataFrame([
         {"batch_size": 64, "chunk_size": 8, "n_action_steps": 1, "success": 0.5, "grasp_any": 0.9, "reach": 0.1},

@@ -85,6 +85,12 @@ def joined_flags(args) -> tuple[str, ...]:
     return tuple(out)
 
 
+def flag_values(args) -> list[tuple[str, str]]:
+    """(flag, value) of each of joined_flags(args), in order: `--policy.n_obs_steps 3` and `--policy.n_obs_steps=3`
+    are both ("--policy.n_obs_steps", "3"); a flag without a value has "" (lerobot-train refuses it itself)."""
+    return [(flag, value) for flag, _, value in (a.partition("=") for a in joined_flags(args))]
+
+
 def check_policy_packages(policy_type: str) -> None:
     """ValueError in one line when a policy type needs a package that is not installed: LeRobot's policies ask for
     their extra's packages (`require_package("diffusers", extra="diffusion")`) only when the model is built, after the
@@ -151,12 +157,8 @@ def sweep_problem(policy_type: str) -> str | None:
 
 def _policy_flag(lerobot_args, name: str) -> str | None:
     """The value of the last --policy.NAME in `lerobot_args` (None where it is not given)."""
-    value = None
-    for a in joined_flags(lerobot_args):
-        flag, _, given = a.partition("=")
-        if flag == f"--policy.{name}":
-            value = given.strip()
-    return value
+    given = [value.strip() for flag, value in flag_values(lerobot_args) if flag == f"--policy.{name}"]
+    return given[-1] if given else None
 
 
 def max_action_steps(policy_type: str, chunk_size: int, lerobot_args=()) -> int:
@@ -205,11 +207,7 @@ def own_flag(policy_type: str, lerobot_args) -> str | None:
     --policy.chunk_size, diffusion's --policy.horizon), None where there is none: given after --, they would move the
     run away from what vla-ladder keeps and resumes, so train refuses them, and a study config before any work."""
     chunk_flag = f"--policy.{CHUNK_FIELD.get(policy_type, 'chunk_size')}"
-    for a in joined_flags(lerobot_args):
-        flag = a.split("=", 1)[0]
-        if flag in OWN_FLAGS or flag == chunk_flag:
-            return flag
-    return None
+    return next((flag for flag, _ in flag_values(lerobot_args) if flag in OWN_FLAGS or flag == chunk_flag), None)
 
 
 def unfit_horizons(policy_type: str, chunk_sizes, horizons, lerobot_args=()) -> str | None:
