@@ -485,6 +485,32 @@ def test_flags_after_dashes_are_read_in_either_spelling():
         ["--policy.horizon", "--policy.horizon", None]
 
 
+def test_a_policy_package_is_looked_for_by_its_import_name(tmp_path, monkeypatch):
+    """LeRobot asks for a package whose module is named otherwise by both names (wall_x:
+    `require_package("qwen-vl-utils", extra="wallx", import_name="qwen_vl_utils")`); train looked for a module named
+    after the distribution, which no import can find, so it refused wall_x with its extra installed. A LeRobot plugin
+    policy (registered as @PreTrainedConfig.register_subclass registers one) asks for PyYAML, imported as yaml."""
+    from lerobot.configs.policies import PreTrainedConfig
+
+    from vla_ladder.training.train import check_policy_packages
+
+    plugin = tmp_path / "vla_ladder_test_plugin"
+    plugin.mkdir()
+    (plugin / "__init__.py").write_text("")
+    (plugin / "configuration_probe.py").write_text("class ProbeConfig:\n    pass\n")
+    (plugin / "modeling_probe.py").write_text(
+        "from lerobot.utils.import_utils import require_package\n\n\nclass ProbePolicy:\n    def __init__(self):\n"
+        "        require_package('PyYAML', extra='probe', import_name='yaml')\n"
+        "        require_package('no-such-dist', extra='probe', import_name='no_such_module')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from vla_ladder_test_plugin.configuration_probe import ProbeConfig
+
+    monkeypatch.setitem(PreTrainedConfig.get_known_choices(), "probe", ProbeConfig)
+    with pytest.raises(ValueError, match=r"^--policy-type probe needs no-such-dist, which is not installed here "
+                                         r"\(pip install 'lerobot\[probe\]'\)$"):
+        check_policy_packages("probe")
+
+
 def test_best_is_success_then_grasp_then_reach():
     df = pd.DataFrame([
         {"batch_size": 64, "chunk_size": 8, "n_action_steps": 1, "success": 0.5, "grasp_any": 0.9, "reach": 0.1},

@@ -94,21 +94,23 @@ def flag_values(args) -> list[tuple[str, str]]:
 def check_policy_packages(policy_type: str) -> None:
     """ValueError in one line when a policy type needs a package that is not installed: LeRobot's policies ask for
     their extra's packages (`require_package("diffusers", extra="diffusion")`) only when the model is built, after the
-    dataset has loaded, in a 170-line traceback."""
-    import importlib.util
+    dataset has loaded, in a 170-line traceback. Each is looked for as LeRobot looks for it, by its import name where
+    that is another (wall_x's `require_package("qwen-vl-utils", ..., import_name="qwen_vl_utils")`)."""
     import inspect
     import re
     import sys
 
     from lerobot.policies.factory import get_policy_class
+    from lerobot.utils.import_utils import is_package_available
 
     try:
         module = sys.modules[get_policy_class(policy_type).__module__]
     except ImportError as e:
         raise ValueError(f"--policy-type {policy_type} cannot load here: {e}") from None
-    for package, extra in re.findall(r"require_package\(\s*[\"']([\w.-]+)[\"'],\s*extra=[\"']([\w-]+)[\"']",
-                                     inspect.getsource(module)):
-        if importlib.util.find_spec(package) is None:
+    asks = re.findall(r"require_package\(\s*[\"']([\w.-]+)[\"'],\s*extra=[\"']([\w-]+)[\"']"
+                      r"(?:,\s*import_name=[\"']([\w.]+)[\"'])?", inspect.getsource(module))
+    for package, extra, import_name in asks:
+        if not is_package_available(package, import_name or None):
             raise ValueError(f"--policy-type {policy_type} needs {package}, which is not installed here "
                              f"(pip install 'lerobot[{extra}]')")
 
