@@ -91,11 +91,11 @@ def test_presets_load_and_bad_configs_name_the_field(tmp_path, capsys):
             **_micro(), "policies": [{"name": "D", "type": "diffusion", "steps": 1}]},
         # TD-MPC was trained with n_action_steps = the chunk, which LeRobot refuses; VQ-BeT has no n_action_steps to
         # evaluate each horizon with.
-        "policies[0]: type: tdmpc's LeRobot config has no chunk_size, so the chunk sizes and execution horizons cannot "
-        "be swept (train it alone with `vla-ladder train`); allowed: act, diffusion,": {**_micro(), "policies": [
-            {"name": "T", "type": "tdmpc", "steps": 1}]},
-        "policies[0]: type: vqbet's LeRobot config has no chunk_size and no n_action_steps": {**_micro(), "policies": [
-            {"name": "V", "type": "vqbet", "steps": 1}]},
+        "policies[0]: type: tdmpc's LeRobot config has no chunk_size field to set, so the chunk sizes and execution "
+        "horizons cannot be swept (train it alone with `vla-ladder train`); allowed: act, diffusion,": {
+            **_micro(), "policies": [{"name": "T", "type": "tdmpc", "steps": 1}]},
+        "policies[0]: type: vqbet's LeRobot config has no chunk_size field and no n_action_steps field": {
+            **_micro(), "policies": [{"name": "V", "type": "vqbet", "steps": 1}]},
         # Flags `vla-ladder train` sets itself (diffusion's chunk is --policy.horizon): its train units refused them.
         **{f"policies[0]: lerobot_args: {flag} is set by `vla-ladder train`, which trains the study's models and "
            "refuses it": {**_micro(**{"grid.chunk_sizes": [8]}), "policies": [

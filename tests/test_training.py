@@ -259,7 +259,7 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     # size, every evaluation at a horizon was refused (test_a_grid_refuses_the_types_whose_chunk_it_cannot_sweep).
     assert main(["grid", "--train.policy-type", "vqbet", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
                  "--chunk-sizes", "8", "16"]) == 2
-    assert "vqbet's LeRobot config has no chunk_size" in capsys.readouterr().err and not (tmp_path / "g").exists()
+    assert "vqbet's LeRobot config has no chunk_size field" in capsys.readouterr().err and not (tmp_path / "g").exists()
     # The grid replaced --train.batch-size, --train.chunk-size and --train.n-action-steps by each model's, unsaid.
     assert main(["grid", "--train.policy-type", "act", "--train.dataset", str(data), "--out", str(tmp_path / "g"),
                  "--train.batch-size", "4", "--train.chunk-size", "10", "--train.n-action-steps", "3"]) == 2
@@ -272,7 +272,9 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
     assert "--batch_size=8" in capsys.readouterr().out
     # train took --chunk-size there and changed nothing; and gave TD-MPC n_action_steps 16, which LeRobot refuses.
     assert main(base + ["--policy-type", "vqbet", "--chunk-size", "8"]) == 2
-    assert "--chunk-size: vqbet has no action chunk to size" in capsys.readouterr().err
+    # (VQ-BeT's chunk is its own action_chunk_size, set after --: the message said it had none)
+    assert ("--chunk-size: vqbet's LeRobot config has no chunk_size field for it to set; leave --chunk-size out, and "
+            "set its own fields after --") in capsys.readouterr().err
     assert main(base + ["--policy-type", "tdmpc", "--print-command"]) == 0
     assert "n_action_steps" not in capsys.readouterr().out
     # So are those that set what train's own flags set: they won unsaid (a grid's b4_c4 trained with batch 2).
@@ -404,8 +406,13 @@ def test_a_grid_refuses_the_types_whose_chunk_it_cannot_sweep(data, tmp_path, ca
         has(t, "chunk_size") or t in ("diffusion", "multi_task_dit") and has(t, "horizon"))]
     assert {"act", "diffusion", "smolvla", "pi05"} <= set(sweepable_types())
     assert sweep_problem("act") is None and sweep_problem("diffusion") is None
-    for policy_type, says in (("tdmpc", "tdmpc's LeRobot config has no chunk_size,"),
-                              ("vqbet", "vqbet's LeRobot config has no chunk_size and no n_action_steps,")):
+    if "lingbot_va" in policy_types():  # its chunk_size and n_action_steps are read-only: "has no chunk_size" was false
+        assert isinstance(config_class("lingbot_va").chunk_size, property)
+        assert sweep_problem("lingbot_va").startswith("lingbot_va's LeRobot config has no chunk_size field and no "
+                                                      "n_action_steps field to set, so ")
+    for policy_type, says in (("tdmpc", "tdmpc's LeRobot config has no chunk_size field to set,"),
+                              ("vqbet", "vqbet's LeRobot config has no chunk_size field and no n_action_steps field to "
+                                        "set,")):
         assert main(["grid", "--train.policy-type", policy_type, "--train.dataset", str(data), "--out",
                      str(tmp_path / "g")]) == 2
         err = capsys.readouterr().err.strip()

@@ -152,8 +152,10 @@ def sweep_problem(policy_type: str) -> str | None:
         return None
     fields = {f.name for f in dataclasses.fields(config_class(policy_type))}
     missing = [f for f in (CHUNK_FIELD.get(policy_type, "chunk_size"), "n_action_steps") if f not in fields]
-    return (f"{policy_type}'s LeRobot config has no {' and no '.join(missing)}, so the chunk sizes and execution "
-            f"horizons cannot be swept (train it alone with `vla-ladder train`); allowed: "
+    # "field": a chunk of its own under another name (vqbet's action_chunk_size, fastwam's action_horizon) or a
+    # read-only one (lingbot_va's chunk_size and n_action_steps are properties) is not one the grid can set
+    return (f"{policy_type}'s LeRobot config has no {' field and no '.join(missing)} field to set, so the chunk sizes "
+            f"and execution horizons cannot be swept (train it alone with `vla-ladder train`); allowed: "
             f"{', '.join(sweepable_types())}")
 
 
@@ -294,9 +296,9 @@ class TrainConfig:
         auto_batch = None if self.condition is None else BATCH_FOR_REGIME.get(self.condition.regime, DEFAULT_BATCH)
         chunked = self.chunk_field() is not None
         if not chunked and self.chunk_size != DEFAULT_CHUNK:  # it changed nothing, and the run was labelled with it
-            raise ValueError(f"--chunk-size: {self.policy_type} has no action chunk to size (its config has no "
-                             f"{self._chunk_name()}); leave --chunk-size out, and set its own fields after --")
-        # Without a chunk, n_action_steps stays LeRobot's where the type has one (tdmpc's 1: it refuses more).
+            raise ValueError(f"--chunk-size: {self.policy_type}'s LeRobot config has no {self._chunk_name()} field "
+                             "for it to set; leave --chunk-size out, and set its own fields after --")
+        # Without a chunk field, n_action_steps stays LeRobot's where the type has one (tdmpc's 1: it refuses more).
         auto_steps = None
         if chunked and self.policy_type not in CHUNK_FIELD:
             auto_steps = self.chunk_size
