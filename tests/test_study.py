@@ -1,6 +1,7 @@
 """`vla-ladder study`: the micro preset end to end (record -> train -> evaluate -> report), kills and resumes,
 and configs refused before any work."""
 
+import importlib.util
 import json
 import os
 import shutil
@@ -299,6 +300,26 @@ def test_diffusion_trains_and_is_selected_only_on_the_horizons_it_executes(tmp_p
     chosen = study.best({})[("D", "sj")]
     assert [(r["chunk_size"], r["horizon"]) for r in chosen["candidates"]] == [(8, 4), (16, 4), (16, 8)]
 
+
+
+def test_a_policy_type_whose_packages_are_missing_is_refused_before_the_recording(tmp_path):
+    """A diffusion policy without diffusers (not installed here) was planned, its datasets recorded, and refused by
+    LeRobot at its train unit. The study looks for every untrained type's packages with its other sources, in one
+    line before any unit runs; on Ray the trainers' machines, not this one, must have them."""
+    from vla_ladder.experiments.study import Study, StudyCommand
+
+    pytest.importorskip("lerobot")
+    if importlib.util.find_spec("diffusers") is not None:
+        pytest.skip("diffusers is installed here")
+    path = tmp_path / "study.json"
+    data = _micro(**{"grid.chunk_sizes": [8], "grid.horizons": [4]})
+    path.write_text(json.dumps({**data, "policies": [*data["policies"], {"name": "D", "type": "diffusion",
+                                                                         "steps": 1}]}))
+    with pytest.raises(ValueError, match=r"^policies\[D\]: --policy-type diffusion needs diffusers, which is not "
+                                         r"installed here \(pip install 'lerobot\[diffusion\]'\)$"):
+        Study(StudyCommand(str(path), out=tmp_path / "s")).run()
+    assert not (tmp_path / "s").exists()
+    Study(StudyCommand(str(path), out=tmp_path / "r", ray=True)).check_sources()  # Ray: the trainers' packages
 
 def test_learning_curves_are_read_from_their_own_model_only(tmp_path):
     """curves/MODEL-STEP: the curve of model A-sj-b4c4 also took the points of A-sj-b4c4-x-sj-b4c4, whose name

@@ -342,10 +342,12 @@ class Study:
 
     # -- the whole study
     def check_sources(self) -> None:
-        """Read every expert and pretrained checkpoint a unit still to run will load, so a missing or unreadable one
-        is refused in one line now, not in a unit's traceback after hours of recording."""
+        """Read every expert and pretrained checkpoint a unit still to run will load, and look for the packages of
+        every policy type still to train (diffusion's diffusers, ...), so a missing or unreadable one is refused in
+        one line now, not in a unit's traceback after hours of recording. (On Ray the trainers' machines are not
+        this one: their packages are theirs.)"""
         from vla_ladder.policies import check_spec
-        from vla_ladder.training.train import NO_PRETRAINED, pretrained_config
+        from vla_ladder.training.train import NO_PRETRAINED, check_policy_packages, pretrained_config
         for d, unit in zip(self.cfg.datasets, self.record_units()):
             if not is_done(self.root, unit):
                 try:
@@ -355,6 +357,11 @@ class Study:
         train_units = iter(self.train_units())  # one per (batch, chunk) of each model, in models()' order
         for p, d, bcs in self.models():
             trained = all([is_done(self.root, next(train_units)) for _ in bcs])  # (a list: every unit is taken)
+            if not trained and not (self.cmd.ray or self.cmd.ray_address):
+                try:
+                    check_policy_packages(p.type)
+                except ValueError as e:
+                    raise ValueError(f"policies[{p.name}]: {e}") from None
             if p.pretrained not in NO_PRETRAINED and not trained:
                 try:
                     pretrained_config(p.pretrained, p.type)
