@@ -17,10 +17,11 @@ import sys
 from abc import ABC, abstractmethod
 from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 from urllib.parse import parse_qsl
 
-import torch
+if TYPE_CHECKING:  # (torch costs 1.2 s to import: the checks of a command line before any work need none of it)
+    import torch
 
 from vla_ladder.checks import ascii_digits
 
