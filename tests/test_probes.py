@@ -164,6 +164,23 @@ def test_a_condition_without_one_complete_scene_scores_nothing_instead_of_failin
     assert res["scenes"] == 0 and np.isnan(res["grasp_absent"]["value"])
 
 
+def test_a_paired_change_over_no_scenes_has_no_p_value():
+    """A condition none of whose scenes both variants played: its change, interval and McNemar p are all undefined.
+    The p was 1 (no discordant pairs), shown "p=1" beside "– [–, –]" as if the scenes had played alike; scenes
+    that did play alike still get 1."""
+    a = pd.concat([plays(lambda lay, r, j: lay.target), plays(lambda lay, r, j: "none", regime="medium_jitter",
+                                                               scenes=3)])
+    a = a[a["instruct"] == 0].drop(columns="instruct")
+    res = grounding.paired(a, a[a["regime"] == "small_jitter"])
+    empty = res["medium_jitter/canonical/5"]
+    assert empty["n"] == 0 and empty["left_out"] == 3
+    for change in empty["difference"].values():
+        assert change["n"] == 0 and np.isnan(change["value"]) and np.isnan(change["ci95"]).all()
+        assert np.isnan(change["mcnemar_p"])
+    alike = res["small_jitter/canonical/5"]["difference"]["success"]
+    assert alike["n"] == 12 and alike["value"] == 0 and alike["mcnemar_p"] == 1.0
+
+
 def test_instruction_swap_plays_of_other_scenes_are_refused():
     """Its plays pair on the episode index, as every paired probe's do: variants of other seeds (directories of
     two requests put together) were scored as scenes, 3 of them 'sensitive'; every other probe refused them."""

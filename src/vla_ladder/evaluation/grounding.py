@@ -271,11 +271,12 @@ def _matrix(table: pd.DataFrame) -> dict:
 # ---------------------------------------------------------------------- paired variants
 def paired_change(x: np.ndarray, y: np.ndarray) -> dict:
     """y - x of paired per-scene outcomes (bool arrays): its mean, Newcombe's paired score interval
-    (stats.paired_difference) and McNemar's exact p."""
+    (stats.paired_difference) and McNemar's exact p; over no scenes all three are undefined (NaN), where the p of
+    no discordant pairs would say 1, as if the scenes had been played alike."""
     d = y.astype(float) - x.astype(float)
     return {"value": float(d.mean()) if len(d) else float("nan"), "ci95": list(paired_difference(x, y)),
             "method": "newcombe paired score", "n": int(len(d)),
-            "mcnemar_p": mcnemar_exact(int((x & ~y).sum()), int((~x & y).sum()))}
+            "mcnemar_p": mcnemar_exact(int((x & ~y).sum()), int((~x & y).sum())) if len(d) else float("nan")}
 
 
 def transitions(before: list[str], after: list[str], outcomes: tuple[str, ...]) -> dict:
