@@ -17,7 +17,7 @@ from vla_ladder.policies.ppo import Agent, load_agent, save_agent
 from vla_ladder.ppo.config import TRAIN_SEED_MIN, Args
 from vla_ladder.ppo.envs import TrainEnvs, slot_conditions, train_seeds
 from vla_ladder.ppo.loss import compute_gae, ppo_loss
-from vla_ladder.ppo.train import cli_config, noise_seed, train
+from vla_ladder.ppo.train import cli_config, noise_seed, summary_writer, train
 from vla_ladder.task.layouts import sample_layout
 
 TINY = dict(sim_backend="physx_cpu", num_envs=1, total_timesteps=100, eval_freq=1, eval_episodes=1,
@@ -188,6 +188,23 @@ def test_a_resumed_run_draws_noise_no_other_run_draws():
     resumed = {(s, i): noise_seed(s, i) for s in range(20) for i in range(1, 20)}
     assert len(set(resumed.values())) == len(resumed) and not set(resumed.values()) & set(range(20))
     assert all(0 <= v < 2**32 for v in resumed.values()) and noise_seed(3, 7) == resumed[(3, 7)]
+
+
+def test_a_resumed_run_keeps_the_tensorboard_points_of_its_checkpoint(tmp_path):
+    """A run checkpointed at step 100 (its losses and evaluation logged at 100 first) and killed after logging 150
+    resumes at 100: the killed run's 150 goes, the checkpoint's 100 stays (purge_step=100 dropped it too)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    writer = summary_writer(tmp_path, 0)
+    for step in (50, 100, 150):
+        writer.add_scalar("eval/success", step / 200, step)
+    writer.close()
+    writer = summary_writer(tmp_path, 100)
+    writer.add_scalar("eval/success", 0.125, 150)
+    writer.close()
+    events = EventAccumulator(str(tmp_path / "tb"))
+    events.Reload()
+    assert [(e.step, e.value) for e in events.Scalars("eval/success")] == [(50, 0.25), (100, 0.5), (150, 0.125)]
 
 
 @pytest.mark.slow

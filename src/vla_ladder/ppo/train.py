@@ -45,6 +45,15 @@ def noise_seed(train_seed: int, iteration: int) -> int:
     return int(np.random.SeedSequence([train_seed, iteration]).generate_state(1)[0])
 
 
+def summary_writer(out: Path, global_step: int):
+    """TensorBoard's writer for the run in `out`, resumed at `global_step`: a killed run's points past the checkpoint
+    are purged (the resumed run logs them again), the checkpoint's own kept. Its losses and evaluation were logged at
+    global_step before it was saved; purge_step=global_step dropped them, and the curve lost its last evaluation."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(str(out / "tb"), purge_step=global_step + 1 if global_step else None)
+
+
 def evaluate(agent: Agent, envs: TrainEnvs, args: Args) -> dict:
     """Deterministic episodes on held-out seeds: eval_episodes per condition; rates in all, per condition and per
     instructed object (an expert that never grasps an object records no episode instructing it)."""
@@ -76,7 +85,6 @@ def evaluate(agent: Agent, envs: TrainEnvs, args: Args) -> dict:
 # ------------------------------------------------------------------------------------------ training
 def train(args: Args) -> dict:
     """Train (or resume) a PPO expert; returns the final training state."""
-    from torch.utils.tensorboard import SummaryWriter
     from tqdm.auto import tqdm
 
     out = args.out
@@ -113,7 +121,7 @@ def train(args: Args) -> dict:
     files.write_json(out / "config.json", {**asdict(args), "conditions": [c.key for c in args.conditions],
                                            "obs_dim": envs.obs_dim, "act_dim": envs.act_dim,
                                            "provenance": files.provenance(envs.object_set)})
-    writer = SummaryWriter(str(out / "tb"), purge_step=state["global_step"] or None)
+    writer = summary_writer(out, state["global_step"])
     evals = json.loads((out / "evals.json").read_text()) if args.resume and (out / "evals.json").exists() else []
     # evals.json is written just before its checkpoint: a run killed between the two has an evaluation the resumed
     # run makes again.
