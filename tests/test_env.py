@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from vla_ladder.conditions import REGIMES, Condition
-from vla_ladder.contract import EPISODE_STEPS, IMAGE_SHAPE, INFO_KEYS, METRICS
+from vla_ladder.contract import CAMERAS, EPISODE_STEPS, IMAGE_SHAPE, INFO_KEYS, METRICS
 from vla_ladder.task.layouts import sample_layout
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
 
@@ -189,6 +189,23 @@ def test_rendering_both_cameras(make_env):
     assert not torch.equal(imgs["hand_camera"], imgs["fixed_camera"])
     assert obs["extra"]["proprio"].shape == (1, 15)
     assert env.unwrapped.metadata["object_set"] == env.unwrapped.object_set == "standin"
+
+
+@pytest.mark.slow
+def test_cameras_are_the_contracts_and_another_is_refused(make_env):
+    """Both cameras render at the contract's size and vertical field of view, the wrist one on the hand's camera
+    link; a camera the contract does not describe is refused when the env is made. A field-of-view override passed
+    (only the size was checked), and a recording made with it would have claimed 58 and 45 degrees."""
+    sensors = make_env(obs_mode="rgb").unwrapped.scene.sensors
+    for cam in CAMERAS:
+        seen = sensors[cam.name].camera._render_cameras[0]
+        assert (seen.height, seen.width) == (cam.height, cam.width), cam.name
+        assert seen.fovy == pytest.approx(np.deg2rad(cam.fov_deg)), cam.name
+    assert sensors["hand_camera"].config.mount.name == "camera_link"
+    for override, message in (({"height": 128}, "hand_camera missing or not 256x256"),
+                              ({"fov": 1.0}, "hand_camera fov 57.2958 deg, contract 58")):
+        with pytest.raises(RuntimeError, match=message):
+            make_env(obs_mode="rgb", sensor_configs={"hand_camera": override})
 
 
 def test_an_env_picks_the_gpu_renderer_wherever_cuda_is(make_env):

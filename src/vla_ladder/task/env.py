@@ -205,6 +205,8 @@ class GraspObjectEnv(BaseEnv):
             cfg = sensors.get(cam.name)
             if cfg is None or (cfg.height, cfg.width) != (cam.height, cam.width):
                 problems.append(f"camera {cam.name} missing or not {cam.height}x{cam.width}")
+            elif not np.isclose(np.rad2deg(cfg.fov), cam.fov_deg):  # the fingerprint records it: a dataset would lie
+                problems.append(f"camera {cam.name} fov {np.rad2deg(cfg.fov):g} deg, contract {cam.fov_deg:g}")
         if problems:
             raise RuntimeError("GraspObject-v1 no longer matches vla_ladder.contract: " + "; ".join(problems))
 
