@@ -65,6 +65,34 @@ def test_state_observation_shapes_and_dtypes(make_env):
     assert fobs.shape == (1, 18 + sum(shapes.values())) and fobs.dtype == torch.float32
 
 
+def test_actions_move_the_tcp_as_the_contract_says(make_env):
+    """contract.ACTION_NAMES, stepped: +x translates the TCP along world x (the root frame), a component past 1 is
+    clipped, +1 about z turns the TCP the negative way (ManiSkill scales by rot_lower, -0.1 rad) and the rotation is
+    clipped to norm 1, the gripper closes at -1. A ManiSkill upgrade that changed a sign or a scale fails here."""
+    from scipy.spatial.transform import Rotation
+
+    env = make_env(obs_mode="state_dict", num_objects=1)
+    u = env.unwrapped
+
+    def one_step(action):
+        env.reset(seed=0)  # the scene is rebuilt: every call starts from the same state, bit for bit
+        before = u.agent.tcp_pose
+        obs = env.step(torch.tensor([action]))[0]
+        after = u.agent.tcp_pose
+        turn = Rotation.from_quat((after.q[0].double()[[1, 2, 3, 0]]).numpy()) * \
+            Rotation.from_quat((before.q[0].double()[[1, 2, 3, 0]]).numpy()).inv()
+        return (after.p - before.p)[0].numpy(), turn.as_rotvec(), obs["extra"]["proprio"][0, 14].item()
+
+    move, turn, width = one_step([1.0, 0, 0, 0, 0, 0, 1])
+    assert 0.02 < move[0] <= 0.1 and np.abs(move[1:]).max() < 0.1 * move[0] and np.abs(turn).max() < 0.01
+    assert width == pytest.approx(0.08, abs=1e-3), "+1 keeps the gripper open"
+    np.testing.assert_array_equal(one_step([5.0, 0, 0, 0, 0, 0, 1])[0], move)
+    move, turn, _ = one_step([0, 0, 0, 0, 0, 1.0, 1])
+    assert -0.1 <= turn[2] < -0.02 and np.abs(turn[:2]).max() < 0.1 * -turn[2] and np.abs(move).max() < 0.002
+    np.testing.assert_array_equal(one_step([0, 0, 0, 0, 0, 3.0, 1])[1], turn)
+    assert one_step([0, 0, 0, 0, 0, 0, -1.0])[2] < 0.06, "-1 closes the gripper"
+
+
 def _act(env, goal, grip):
     """P-control of the TCP towards `goal` with the gripper command `grip` (test driver, not an expert)."""
     tcp = env.unwrapped.agent.tcp_pose.p[0]

@@ -58,10 +58,13 @@ STATE_NAMES: tuple[str, ...] = (*(f"joint_pos_{i}" for i in range(7)), *(f"joint
 """The proprioceptive state: 7 arm joint positions, 7 joint velocities, the gripper's opening (m)."""
 STATE_DIM = len(STATE_NAMES)
 ACTION_NAMES: tuple[str, ...] = ("dx", "dy", "dz", "drx", "dry", "drz", "gripper")
-"""pd_ee_delta_pose, normalised to [-1, 1]: root-frame translation (x 0.1 m), then a rotation about the root
-axes as XYZ Euler angles (at most 0.1 rad a step, where they are nearly an axis-angle): ManiSkill 3.0.1 clips the
-three to norm 1 and scales them by the Panda's rot_lower, -0.1 rad, so +1 turns the TCP the negative way about
-its axis; then the gripper (-1 closed, +1 open)."""
+"""pd_ee_delta_pose, normalised to [-1, 1]: root-frame translation (each clipped to [-1, 1], x 0.1 m), then a
+rotation about the root axes as XYZ Euler angles (at most 0.1 rad a step, where they are nearly an axis-angle):
+ManiSkill 3.0.1 clips the three to norm 1 and scales them by the Panda's rot_lower, -0.1 rad, so +1 turns the TCP
+the negative way about its axis; then the gripper (-1 closed, +1 open). Both deltas place the arm's target relative
+to where the TCP is now, not to the last target: from rest a +1 moves the TCP 3.9 cm (0.039 rad) in its step, the
+PD arm lagging the target. physx_cpu solves IK for that target (a target out of reach holds the arm where it is);
+physx_cuda takes the six numbers as one damped least-squares Jacobian step, the rotation as a rotation vector."""
 ACTION_DIM = len(ACTION_NAMES)
 
 STATE_KEY = OBS_STATE
