@@ -266,6 +266,18 @@ def test_bad_input_lists_what_is_allowed(kwargs, allowed):
     assert allowed in str(e.value)
 
 
+def test_a_control_mode_other_than_the_contracts_is_refused():
+    """pd_ee_pose and pd_ee_target_delta_pose have 7-d actions too, so the action's shape let them through: their
+    actions mean other things (an absolute pose, a delta from the last target) under a contract that says
+    pd_ee_delta_pose."""
+    import gymnasium as gym
+
+    import vla_ladder.task.env  # noqa: F401
+    for mode in ("pd_ee_pose", "pd_ee_target_delta_pose"):
+        with pytest.raises(RuntimeError, match=f"control mode {mode}, contract pd_ee_delta_pose"):
+            gym.make("GraspObject-v1", control_mode=mode)
+
+
 def test_target_not_in_scene_rejected(make_env):
     env = make_env(obs_mode="state_dict", regime="small_jitter", num_objects=2)
     with pytest.raises(ValueError, match="allowed"):

@@ -198,6 +198,8 @@ class GraspObjectEnv(BaseEnv):
         problems = []
         if (self.sim_freq, self.control_freq) != (SIM_HZ, CONTROL_HZ):
             problems.append(f"rates {self.sim_freq}/{self.control_freq} Hz, contract {SIM_HZ}/{CONTROL_HZ}")
+        if self.control_mode != contract.CONTROL_MODE:  # pd_ee_pose and pd_ee_target_delta_pose are 7-d too
+            problems.append(f"control mode {self.control_mode}, contract {contract.CONTROL_MODE}")
         if self.single_action_space.shape != (contract.ACTION_DIM,):
             problems.append(f"action {self.single_action_space.shape}, contract ({contract.ACTION_DIM},)")
         sensors = getattr(self, "_sensor_configs", None)  # only set up when the scene renders
