@@ -96,6 +96,9 @@ def test_nmi_null_is_what_an_instruction_blind_policy_scores():
     assert nmi["permutation_p"] > 0.05
     assert nmi["ci95"][0] == 0.0 <= nmi["value"] < nmi["plug_in"] - 0.02
     assert nmi["method"] == "jackknife over scenes, bias-corrected"
+    # One scene: no jackknife, no interval, and the plain value is named so (it said "bias-corrected")
+    one = metrics(plays(lambda lay, r, j: lay.target, scenes=1))["nmi"]
+    assert one["method"].startswith("plug-in") and np.isnan(one["ci95"]).all() and one["value"] == one["plug_in"]
 
 
 def test_nmi_interval_holds_the_true_value_where_a_bootstrap_did_not():

@@ -92,6 +92,13 @@ def jackknife(stat: Callable[[np.ndarray], np.ndarray], clusters: int) -> tuple[
     return float(np.clip(value, 0, 1)), float(np.clip(value - z * se, 0, 1)), float(np.clip(value + z * se, 0, 1))
 
 
+def _nmi_interval(value: float, lo: float, hi: float, n: int) -> dict:
+    """The NMI's entry: the jackknife's, or, where it gave no interval (fewer than two scenes, an undefined
+    leave-one-out value), the plug-in value named as such."""
+    return _interval(value, lo, hi, NMI_METHOD if np.isfinite(lo) else "plug-in (no jackknife: too few scenes or an "
+                     "undefined leave-one-out value)", n)
+
+
 def pooled_rate(num: np.ndarray, den: np.ndarray) -> dict:
     """sum(num) / sum(den) over scenes (num[i] of den[i] correlated plays of scene i), with the Wilson interval of its
     effective number of plays: sum(den) divided by the design effect, the ratio of the rate's variance between scenes
@@ -253,7 +260,7 @@ def instruction_swap(plays: pd.DataFrame, resamples: int = RESAMPLES) -> dict:
             "instruction_sensitivity": wilson_rate(sensitive, n),
             "scene_accuracy": wilson_rate(accurate, n),
             "grounded_accuracy": pooled_rate(diag, grasped),
-            "nmi": {**_interval(*jackknife(nmi, n), NMI_METHOD, int(n * ranks)), "plug_in": nmi_value,
+            "nmi": {**_nmi_interval(*jackknife(nmi, n), int(n * ranks)), "plug_in": nmi_value,
                     "null_mean": float(null.mean()) if n else float("nan"),
                     "permutation_p": float((1 + (null >= nmi_value - 1e-12).sum()) / (1 + len(null))) if n
                     else float("nan")},
