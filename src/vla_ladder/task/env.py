@@ -2,8 +2,9 @@
 
 One task class in the ManiSkill style; every tensor is batched over parallel envs, so the same code
 runs one env on the CPU backend and thousands on physx_cuda. Layouts come from the simulator-free
-`layouts` module, seeded per episode: env i reset with seed s + i plays exactly the episode a single
-env plays with seed s + i, on either backend.
+`layouts` module, seeded per episode: env i reset with seed s + i starts exactly the episode a single
+env starts with seed s + i (layout, target, instruction), on either backend; what follows is the backend's
+physics (on physx_cpu a seed replays bit for bit; physx_cuda's solver and controller differ from the CPU's).
 """
 
 from __future__ import annotations
