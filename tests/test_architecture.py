@@ -198,3 +198,12 @@ def test_every_relative_link_in_the_readme_and_docs_resolves():
             if not dest.exists() or (heading and dest.suffix == ".md" and heading not in anchors(dest)):
                 dead.append(f"{page.relative_to(root)}: {target}")
     assert dead == [], f"dead links: {dead}"
+
+
+def test_the_readme_lists_every_benchmark_script():
+    """docs/benchmarks.md sends readers to the README's "Tests and benchmarks" table for what each script measures;
+    four scripts were missing from it."""
+    readme = (SRC.parents[1] / "README.md").read_text()
+    scripts = sorted(p.name for p in (SRC.parents[1] / "benchmarks").glob("*.py") if not p.name.startswith("_"))
+    assert scripts and [s for s in scripts if f"| `{s}" not in readme] == []
+
