@@ -329,6 +329,51 @@ def test_lerobot_eval_runs_grasp_object_from_the_installed_plugin(smolvla_run, t
     assert f"GraspObject-v1 episode seed=11 {record['instruction']!r}" in done.stdout + done.stderr
 
 
+def test_vla_ladder_eval_plays_what_lerobot_eval_plays(tmp_path_factory, tmp_path, monkeypatch):
+    """`vla-ladder eval --policy lerobot:RUN` and LeRobot's own eval loop (lerobot-eval's main, in this process, on
+    the installed env plugin) play a tiny ACT's episode alike: the same 50 actions bit for bit, the same outcome to
+    the last digit of the final distance. With the same torch thread count (lerobot-eval's default is every core):
+    another one rounds otherwise. The adapter fed the cameras as a channels-last view, on which the ResNet's
+    convolution rounded otherwise (3e-7 at the first step, 2e-3 by the 50th, 1 mm of final distance)."""
+    import pandas as pd
+    import vla_ladder.task.env as task_env
+    from lerobot.scripts import lerobot_eval
+    from vla_ladder.cli import main
+
+    run = H.trained(tmp_path_factory, "act")
+    played: list[torch.Tensor] = []
+    step = task_env.GraspObjectEnv.step  # (both paths step this env; the action is recorded, then played)
+    monkeypatch.setattr(task_env.GraspObjectEnv, "step",
+                        lambda self, action: played.append(torch.as_tensor(action).cpu().clone()) or step(self, action))
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)  # the player then acts on one thread
+
+    assert main(["eval", "--policy", f"lerobot:{run}?device=cpu", "--out", str(tmp_path / "ours"), "--episodes", "1",
+                 "--first-seed", "2", "--workers", "1", "--regimes", "small_jitter", "--num-objects", "2"]) == 0
+    ours, played = played, []
+    (row,) = pd.read_parquet(tmp_path / "ours" / "episodes.parquet").to_dict("records")
+
+    metrics, threads = tmp_path / "episodes.jsonl", torch.get_num_threads()
+    monkeypatch.setattr(sys, "argv", [
+        "lerobot-eval", "--env.type=grasp_object", "--env.condition=small_jitter/canonical/2",
+        f"--env.episode_metrics={metrics}", f"--policy.path={run / 'checkpoints' / 'last' / 'pretrained_model'}",
+        "--policy.device=cpu", "--eval.n_episodes=1", "--eval.batch_size=1", "--seed=2",
+        f"--output_dir={tmp_path / 'theirs'}"])
+    flags = torch.backends.cudnn.benchmark, torch.backends.cuda.matmul.allow_tf32  # (eval_main turns both on)
+    torch.set_num_threads(1)
+    try:
+        lerobot_eval.main()
+    finally:
+        torch.set_num_threads(threads)
+        torch.backends.cudnn.benchmark, torch.backends.cuda.matmul.allow_tf32 = flags
+    (record,) = [json.loads(line) for line in metrics.read_text().splitlines()]
+
+    assert len(ours) == len(played) == 50
+    torch.testing.assert_close(torch.cat(ours), torch.cat(played), atol=0, rtol=0)
+    assert record["seed"] == row["seed"] == 2 and record["instruction"] == row["instruction"]
+    assert {k: record[k] for k in ("success", "grasp_any", "reach", "held", "reach_dist")} == \
+        {k: row[k] for k in ("success", "grasp_any", "reach", "held", "reach_dist")}
+
+
 def test_one_policy_acts_on_cpu_envs_in_lockstep(smolvla_run, tmp_path):
     """`eval --num-envs 2` on physx_cpu: the camera observations of two env processes reach one LeRobot policy
     as one batch; the episodes (seeds, layouts, instructions) are those of one env at a time, and with the

@@ -2,7 +2,7 @@
 
 The checkpoint is loaded with the pre/post-processors LeRobot saved next to it (normalisation statistics,
 tokenizer, camera renames), so the policy sees observations exactly as in training: both 256x256 cameras
-as float CHW in [0, 1], the 15-d proprioceptive state and the instruction as `task`. The execution horizon is
+as contiguous float CHW in [0, 1], the 15-d proprioceptive state and the instruction as `task`. The execution horizon is
 the checkpoint's `n_action_steps`, which `?n_action_steps=H` (or the `n_action_steps` argument) overrides.
 
 Flow-matching policies (SmolVLA, pi0, pi0.5) turn noise into an action chunk. LeRobot's `select_action` draws
@@ -369,7 +369,10 @@ class LeRobotPolicy(Policy):
         out: dict[str, Any] = {}
         for cam in CAMERAS:
             rgb = obs["sensor_data"][cam.name]["rgb"]
-            out[cam.key] = torch.as_tensor(rgb).permute(0, 3, 1, 2).to(self.device, torch.float32) / 255.0
+            # Contiguous NCHW, as lerobot-eval's preprocess_observation makes it: the permuted view converted
+            # as it stands is channels-last, on which a CPU convolution rounds otherwise (ACT: 3e-7 on a chunk).
+            image = torch.as_tensor(rgb).permute(0, 3, 1, 2)
+            out[cam.key] = image.to(self.device, torch.float32, memory_format=torch.contiguous_format) / 255.0
         out[STATE_KEY] = torch.as_tensor(obs["extra"]["proprio"]).to(self.device, torch.float32)
         out["task"] = [self.instruction or str(t) for t in instructions]
         return out
