@@ -751,7 +751,7 @@ def test_an_empty_path_is_refused_not_read_as_the_current_directory(tmp_path, mo
                                                           "--train.policy-type?)"),
     # a positional's field name as a flag was "did you mean --runs?" for --runs; tyro's "name needs a value" hid
     # the unknown flag before a missing positional; int()'s own words named no flag's type
-    (["report", "--runs", "r", "--out", "r.html"], "RUNS is given without a flag, not as --runs;"),
+    (["report", "--runs", "r", "--out", "r.html"], "RUN... is given without a flag, not as --runs;"),
     (["compare", "--run-a", "a", "b"], "RUN_A is given without a flag, not as --run-a;"),
     (["probe", "--probe", "instruction-swap", "--policy", "scripted"], "unknown flag --probe; `vla-ladder probe"),
     (["eval", "--policy", "scripted", "--out", "r", "--episodes", "1.5"], "--episodes takes INT, got '1.5'"),
@@ -763,6 +763,47 @@ def test_a_flag_tyro_does_not_know_is_named_in_one_line(argv, says, tmp_path, mo
     tyro's box (9 lines or more for `--polcy`); each is one line naming the nearest flag where there is one."""
     monkeypatch.chdir(tmp_path)
     _one_line_error(capsys, main(argv), f"vla-ladder {argv[0]}: error: {says}")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["eval"], "--policy SPEC and --out DIR are required (SPEC: scripted, "),
+    (["probe", "paraphrase"], "--policy SPEC and --out DIR are required (SPEC: scripted, "),
+    (["diagnose"], "--policy SPEC and --out DIR are required (SPEC: e.g. lerobot:"),
+    (["probe"], "missing NAME, --policy, --out;"),
+    (["train"], "missing --policy-type, --dataset, --out;"),
+    (["experiment"], "missing NAME, --out, --policy;"),
+    (["experiment", "ladder", "--policy", "scripted"], "missing --out;"),
+])
+def test_a_command_names_every_required_flag_left_out_at_once(argv, says, tmp_path, monkeypatch, capsys):
+    """`eval` alone said "--out DIR is required", and given --out, "--policy SPEC is required"; `train` alone named
+    --policy-type and --dataset, and --out only once they were given: flags a grid or a study fills in (a default
+    of None) are named with tyro's missing ones, all in one line."""
+    monkeypatch.chdir(tmp_path)
+    _one_line_error(capsys, main(argv), f"vla-ladder {argv[0]}: error: {says}")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["compare", "experiment", "probe", "rebuild-provenance", "check-dataset", "study"])
+def test_a_missing_positional_is_named_as_the_usage_line_spells_it(command, capsys):
+    """`compare` alone said "missing RUN_A, RUN_B" under a usage line of "PATH PATH", `check-dataset` "missing
+    DATASET" under "DIR", `experiment` and `study` NAME and CONFIG under "STR": the words differ no more."""
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    usage = capsys.readouterr().out.splitlines()[0]
+    err = _one_line_error(capsys, main([command]), f"vla-ladder {command}: error: missing ")
+    named = err.split("missing ", 1)[1].split(";")[0].split(", ")
+    positionals = [n for n in named if not n.startswith("-")]
+    assert positionals and all(f" {n}" in usage for n in positionals), (usage, err)
+
+
+def test_render_refuses_an_unknown_object_set_before_the_simulator(tmp_path):
+    """`render --object-set foo` was refused by the env once built (5 s of imports on the 2-core machine); render's
+    config now makes eval's check, before the simulator loads."""
+    from vla_ladder.task.render import RenderConfig
+
+    with pytest.raises(ValueError, match="unknown object_set 'foo'; allowed: auto, ycb, standin"):
+        RenderConfig(seed=0, out=tmp_path / "r", object_set="foo")
     assert list(tmp_path.iterdir()) == []
 
 

@@ -288,7 +288,7 @@ def test_bad_input_fails_before_any_work(data, tmp_path, capsys):
                         (["--", "--policy.dim_model", "x"], "`dim_model`: Couldn't parse 'x' into an int"),  # (its
                         # value apart, as lerobot-train takes it: it was "expected one argument")
                         (["--", "--policy.dim_model=x"], "`dim_model`: Couldn't parse 'x' into an int"),
-                        (["--rename-map", "a"], "--rename-map: no type matching")):
+                        (["--rename-map", "a"], "--rename-map takes KEY NEW_KEY [KEY NEW_KEY ...], got 'a'")):
         assert main(base + ["--policy-type", "act", *extra]) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and len(err.splitlines()) == 1, err

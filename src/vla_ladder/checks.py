@@ -65,6 +65,16 @@ def check_count(value, name: str, least: int = 1):
     return value
 
 
+def check_given(*flags: tuple[str, object, str]) -> None:
+    """ValueError naming every flag of `flags` ((the flag and its metavar, its value, what the metavar is)) whose
+    value is None or empty (a spec, a path, a tuple of specs): flags required on the command line whose fields a
+    grid or a study fills in. All in one line (`eval` said --out alone, and only once given --out, --policy)."""
+    missing = [(flag, says) for flag, value, says in flags if not value]
+    if missing:
+        verb = "is" if len(missing) == 1 else "are"
+        raise ValueError(f"{' and '.join(f for f, _ in missing)} {verb} required ({'; '.join(s for _, s in missing)})")
+
+
 # ---------------------------------------------------------------------------------------------- seeds
 def check_seed(value, flag: str) -> int:
     """`value` as a seed, or ValueError naming `flag` and the allowed range."""

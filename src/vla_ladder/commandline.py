@@ -192,11 +192,20 @@ def _one_line_value_errors(cls: type | None = None, prog: str = "", argv: list[s
             if event.unrecognized_tokens:  # a misspelt required flag is both: its spelling is the news
                 raise ValueError(_unrecognized(list(event.unrecognized_tokens), cls, help_hint))
             names = [flag_of(a.arg) or a.arg.display_name() for a in event.missing_arguments]
-            names = [n if n.startswith("-") else n.upper().replace("-", "_") for n in names]  # positionals as usage
+            usage = _positionals(cls)  # positionals as the usage line spells them
+            names = [n if n.startswith("-") else usage.get("--" + n.replace("_", "-"), n.upper().replace("-", "_"))
+                     for n in names]
+            names += [f for f in _required_on_command_line(cls) if f not in names and _values_of(f, argv or []) is None]
             raise ValueError(f"missing {', '.join(names)}; {help_hint}")
 
     with hook(handle):
         yield
+
+
+def _required_on_command_line(cls: type | None) -> list[str]:
+    """The flags of `cls` required on the command line though their fields have a default (REQUIRED_ON_COMMAND_LINE:
+    a grid or a study fills them in): named with the flags tyro finds missing, so that one run names them all."""
+    return ["--" + name.replace("_", "-") for name in getattr(cls, "REQUIRED_ON_COMMAND_LINE", ())]
 
 
 def _unrecognized(tokens: list[str], cls: type | None, help_hint: str) -> str:

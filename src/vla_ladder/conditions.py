@@ -49,7 +49,7 @@ class Condition:
     """One evaluation or training condition of GraspObject-v1."""
 
     regime: str = "small_jitter"
-    """placement regime, a name in LADDER (the ladder's rungs, easiest first; a new one is one entry there)"""
+    """placement regime: small_jitter, medium_jitter, large_jitter or full_random (the ladder's rungs, easiest first)"""
     split: str = "canonical"
     """object-region split: canonical (object i in region i), pairings_id or pairings_ood (held-out pairs)"""
     num_objects: int = MAX_OBJECTS
@@ -129,7 +129,7 @@ class ConditionGrid:
     so they pair with the jitter regimes only (full_random x pairings_* is left out, not an error)."""
 
     regimes: tuple[str, ...] = (ALL,)
-    """placement regimes, or all"""
+    """placement regimes: small_jitter, medium_jitter, large_jitter, full_random, or all"""
     splits: tuple[str, ...] = ("canonical",)
     """object-region splits: canonical, pairings_id, pairings_ood"""
     num_objects: tuple[int, ...] = (MAX_OBJECTS,)

@@ -12,6 +12,7 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import pandas as pd
 import tyro
@@ -166,12 +167,12 @@ def format_table(result: dict, alpha: float = 0.05) -> str:
 class CompareConfig:
     """Test whether two evaluation runs of the same seeded episodes differ, metric by metric."""
 
-    run_a: tyro.conf.Positional[Path]
+    run_a: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_A")]
     """first run directory (from `vla-ladder eval --out`)"""
-    run_b: tyro.conf.Positional[Path]
+    run_b: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_B")]
     """second run directory, evaluated on the same seeds"""
     json: Path | None = None
-    """also write the comparison as JSON here"""
+    """also write the comparison as JSON here (the table is always printed)"""
     alpha: float = 0.05
     """significance level for the * marks"""
     conditions_in_both: bool = False

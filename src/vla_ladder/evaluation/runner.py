@@ -17,13 +17,13 @@ import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, ClassVar
 
 import numpy as np
 import tyro
 
 from vla_ladder import files
-from vla_ladder.checks import check_count, check_output_dir
+from vla_ladder.checks import check_count, check_given, check_output_dir
 from vla_ladder.conditions import MAX_OBJECTS, Condition, ConditionGrid
 from vla_ladder.contract import EPISODE_STEPS, METRICS, contract_changes, fingerprint
 from vla_ladder.evaluation.player import PHASES, EnvSettings, Job, play
@@ -49,12 +49,13 @@ PRESENTATION = {"instructions": "canonical", "appearance": "original", "instruct
 class EvalConfig:
     """Evaluate a policy on seeded episodes of every condition and write a run directory (`vla-ladder eval`)."""
 
-    policy: str | None = None
+    policy: Annotated[str | None, tyro.conf.arg(metavar="SPEC", help_behavior_hint="")] = None
     """policy spec: scripted, committed, nearest, layout-prior, random, ppo:PATH, lerobot:DIR[?n_action_steps=H&...]
     or remote:ws://HOST:PORT[?n_action_steps=H], or KIND[:ARG] of an installed policy plugin (required on the
     command line; the grid and the study set it per model)"""
-    out: Path | None = None
-    """run directory to write: episodes.parquet, summary.json, config.json, videos/ (required on the command line)"""
+    out: Annotated[Path | None, tyro.conf.arg(metavar="DIR", help_behavior_hint="")] = None
+    """run directory to write: episodes.parquet, summary.json, config.json, videos/ (required on the command line;
+    the grid and the study set it per model); rerunning the same request resumes in it"""
     grid: Annotated[ConditionGrid, tyro.conf.arg(name="")] = field(default_factory=ConditionGrid)
     """the conditions evaluated (every regime of the ladder, canonical, five objects by default)"""
     episodes: int = 100
@@ -68,13 +69,14 @@ class EvalConfig:
     """episodes played at once by one copy of the policy, acting on them as a batch (a GPU policy's batched
     inference): physx_cuda simulates them in one process, physx_cpu in num_envs processes in lockstep; any
     number gives the same layouts, targets and instructions, and the same outcomes where the policy rounds alike
-    in any batch (docs/evaluation.md says which do)"""
+    in any batch (docs/evaluation.md says which do); not with --workers > 1"""
     sim_backend: str = "physx_cpu"
-    """physx_cpu or physx_cuda"""
+    """physx_cpu or physx_cuda (needs a CUDA GPU)"""
     videos: int = 0
     """write MP4s of both cameras for the first K episodes of each condition"""
     object_set: str = "auto"
-    """ycb, standin, or auto (YCB when its meshes are on disk)"""
+    """ycb, standin, or auto (YCB when its meshes are on disk, else standin; $VLA_LADDER_OBJECT_SET overrides
+    auto)"""
     robot_mesh: str = "lite"
     """lite (decimated visual meshes, fast on a CPU renderer) or full (ManiSkill's); physics is the same"""
     overwrite: bool = False
@@ -83,7 +85,8 @@ class EvalConfig:
     """instruction wording: canonical ("grasp the <object>"), paraphrase-train or paraphrase-heldout (drawn per
     episode from its seed, task/paraphrases.json)"""
     appearance: str = "original"
-    """original, or swap: the instructed object and a distractor exchange colours (task/appearance.py; CPU)"""
+    """original, or swap: the instructed object and a distractor exchange colours (task/appearance.py; one env per
+    scene: --num-envs 1)"""
     instruct: int = 0
     """which present object the instruction names: 0 the layout's target, k its k-th distractor, in the same scene
     (the instruction-swap probe plays 0..num_objects-1)"""
@@ -103,6 +106,8 @@ class EvalConfig:
     alone: bool = False
     """take every distractor off the table, the instructed object staying where the seed put it (the
     distractor-removal probe; task/layouts.py Layout.alone): the layout's "removed" names what stood there"""
+
+    REQUIRED_ON_COMMAND_LINE: ClassVar[tuple[str, ...]] = ("policy", "out")
 
     def __post_init__(self):
         self.out = None if self.out is None else check_output_dir(self.out, "--out")  # a file, the root: now
@@ -408,8 +413,8 @@ def _evaluate(cfg: EvalConfig, policy: Policy | None, spec: str, overlap: int, w
 
 
 def run(cfg: EvalConfig) -> int:
-    if cfg.out is None:
-        raise ValueError("--out DIR is required: the run directory to write")
+    check_given(("--policy SPEC", cfg.policy, "SPEC: " + allowed_specs()),
+                ("--out DIR", cfg.out, "DIR: the run directory to write"))
     summary = run_evaluation(cfg)
     for key, c in summary["conditions"].items():
         print(f"{key}: n={c['n']} " + " ".join(f"{m}={c[m]:.3f}" for m in METRICS))

@@ -55,7 +55,7 @@ from typing import Annotated
 import tyro
 
 from vla_ladder import files
-from vla_ladder.checks import ascii_digits, check_count, check_output_dir
+from vla_ladder.checks import ascii_digits, check_count, check_given, check_output_dir
 from vla_ladder.conditions import REGIMES, Condition, ConditionGrid
 from vla_ladder.evaluation.displacement import FAR_CM, by_displacement
 from vla_ladder.evaluation.metrics import CONDITION_KEYS, condition_key
@@ -87,15 +87,15 @@ class DiagnoseConfig:
     """Diagnose a policy: the ladder and seven grounding probes on the same seeded scenes, beside the reference
     policies, with one page of answers (`vla-ladder diagnose --policy SPEC --out DIR`)."""
 
-    policy: tuple[str, ...] = ()
+    policy: Annotated[tuple[str, ...], tyro.conf.arg(metavar="SPEC [SPEC ...]", help_behavior_hint="(required)")] = ()
     """policy spec, or several side by side: lerobot:DIR[?n_action_steps=H], remote:URL, ppo:PATH, scripted, committed,
-    nearest, layout-prior, random, or a plugin's KIND[:ARG] (required)"""
-    out: Path | None = None
-    """diagnosis directory: policy/ (policies/<label>/ for several), references/, diagnosis.json, report.html
-    (required)"""
-    labels: tuple[str, ...] = ()
-    """names of the policies on the page and of their directories (default: from each spec, e.g. a checkpoint's run
-    directory)"""
+    nearest, layout-prior, random, or a plugin's KIND[:ARG]"""
+    out: Annotated[Path | None, tyro.conf.arg(metavar="DIR", help_behavior_hint="(required)")] = None
+    """diagnosis directory: policy/ (policies/<label>/ for several), references/, diagnosis.json, report.html;
+    rerunning the same request resumes in it"""
+    labels: Annotated[tuple[str, ...], tyro.conf.arg(
+        help_behavior_hint="(default: from each spec, e.g. a checkpoint's run directory)")] = ()
+    """names of the policies on the page and of their directories, one per --policy (two or more)"""
     condition: str = "small_jitter/canonical/5"
     """the condition the policy was trained in (regime/split/objects): the probes play it (those that need two
     objects play two where it has one, absent-object four where it has five) and the ladder moves its objects
@@ -111,9 +111,11 @@ class DiagnoseConfig:
     first_seed: int = 0
     """episode j of every condition and probe plays seed first_seed + j"""
     videos: int = 2
-    """filmed episodes of the policy per ladder regime and probe variant (the references are never filmed)"""
+    """write MP4s of both cameras for the policy's first K episodes of each ladder regime and probe variant (the
+    references are never filmed)"""
     workers: int = 0
-    """worker processes (0: one per core, capped by memory); any number plays the same episodes"""
+    """worker processes playing episodes on the CPU backend, each with its own copy of the policy (0: one per
+    core, capped by memory); any number gives the same episodes"""
     num_envs: int = 1
     """episodes one copy of the policy acts on at once (batched inference; see `vla-ladder eval --num-envs`)"""
     overwrite: bool = False
@@ -121,11 +123,9 @@ class DiagnoseConfig:
 
     def __post_init__(self):
         self.policy = (self.policy,) if isinstance(self.policy, str) else tuple(self.policy or ())
-        if not self.policy:
-            raise ValueError("--policy SPEC is required, e.g. lerobot:runs/smolvla/checkpoints/last/pretrained_model "
-                             "(several side by side: --policy SPEC SPEC ...)")
-        if self.out is None:
-            raise ValueError("--out DIR is required: the diagnosis directory to write")
+        check_given(("--policy SPEC", self.policy, "SPEC: e.g. lerobot:runs/smolvla/checkpoints/last/pretrained_model; "
+                     "several side by side: --policy SPEC SPEC ..."),
+                    ("--out DIR", self.out, "DIR: the diagnosis directory to write"))
         self.out = check_output_dir(self.out, "--out")  # a file, the root: now
         for name in ("episodes", "probe_episodes"):  # named here: the probes' own check said --episodes
             check_count(getattr(self, name), f"--{name.replace('_', '-')}")

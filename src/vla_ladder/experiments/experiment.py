@@ -18,6 +18,7 @@ import re
 from dataclasses import MISSING, asdict, dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import Annotated, ClassVar
 
 import tyro
 
@@ -216,26 +217,31 @@ def build_outputs(cfg: ExperimentConfig, runs: list[tuple[PolicyEntry, Run]], ou
 class ExperimentCommand:
     """Run one of the paper's experiments end to end: evaluate every policy, then the table, figure and report."""
 
-    name: tyro.conf.Positional[str]
+    name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
     """experiment: ladder, pairings, data_scaling, object_count, or a path to a JSON config"""
     out: Path
-    """output directory"""
-    policy: tuple[str, ...] = ()
-    """SPEC or label=NAME,spec=SPEC[,regime=R,size=S], one per policy (at least one)"""
-    episodes: int | None = None
-    """episodes per condition (default: the config's)"""
-    first_seed: int | None = None
-    """first episode seed (default: the config's)"""
+    """output directory: runs/, table.md, table.tex, the figure, results.json, report.html"""
+    policy: Annotated[tuple[str, ...], tyro.conf.arg(metavar="SPEC [SPEC ...]", help_behavior_hint="(required)")] = ()
+    """the policies, one value each: a spec (as `vla-ladder eval --policy`) or label=NAME,spec=SPEC[,regime=R,size=S]"""
+    episodes: Annotated[int | None, tyro.conf.arg(metavar="INT", help_behavior_hint=(
+        "(default: the experiment's; 100 in the paper's four)"))] = None
+    """episodes per condition"""
+    first_seed: Annotated[int | None, tyro.conf.arg(metavar="INT", help_behavior_hint=(
+        "(default: the experiment's; 0 in the paper's four)"))] = None
+    """episode j of every condition plays seed first_seed + j, so every policy meets the same layouts"""
     videos: int = 0
-    """record videos of the first N episodes per condition"""
+    """write MP4s of both cameras for the first K episodes of each condition (the report's rollouts)"""
     workers: int = 0
-    """worker processes playing episodes on the CPU backend (0: one per core, capped by memory)"""
+    """worker processes playing episodes on the CPU backend, each with its own copy of the policy (0: one per
+    core, capped by memory); any number gives the same episodes"""
     num_envs: int = 1
     """episodes one copy of the policy acts on at once (batched inference; see `vla-ladder eval --num-envs`)"""
     sim_backend: str = "physx_cpu"
-    """physx_cpu or physx_cuda"""
+    """physx_cpu or physx_cuda (needs a CUDA GPU)"""
     report: bool = True
     """write report.html"""
+
+    REQUIRED_ON_COMMAND_LINE: ClassVar[tuple[str, ...]] = ("policy",)
 
     def __post_init__(self):
         self.out = check_output_dir(self.out, "--out")  # a file, the root: now

@@ -41,7 +41,7 @@ import json
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, ClassVar
 
 import pandas as pd
 import tyro
@@ -55,7 +55,7 @@ from vla_ladder.evaluation.runner import EvalConfig, run_evaluation
 from vla_ladder.policies import Policy, allowed_specs, check_spec, parse_spec
 from vla_ladder.task.appearance import SWAPS, SWAPS_VERSION
 from vla_ladder.task.instructions import INSTRUCTION_SETS, paraphrase_version
-from vla_ladder.checks import check_output_dir
+from vla_ladder.checks import check_given, check_output_dir
 
 PROBE_FILE = "probe.json"
 CONFIG_FILE = "probe_config.json"
@@ -203,11 +203,12 @@ class ProbeConfig:
     """Probe instruction grounding on the same seeded scenes (`vla-ladder probe NAME --policy SPEC --out DIR`)."""
 
     name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME", help=f"the probe: {', '.join(PROBES)}")]
-    policy: str | None = None
+    policy: Annotated[str | None, tyro.conf.arg(metavar="SPEC", help_behavior_hint="(required)")] = None
     """policy spec, as `vla-ladder eval --policy`: scripted, committed, nearest, layout-prior, random, ppo:PATH,
-    lerobot:DIR[?...], remote:ws://HOST:PORT or a plugin's KIND[:ARG] (required on the command line)"""
-    out: Path | None = None
-    """probe directory: one run directory per variant, probe.json, the figure, report.html (required)"""
+    lerobot:DIR[?...], remote:ws://HOST:PORT or a plugin's KIND[:ARG]"""
+    out: Annotated[Path | None, tyro.conf.arg(metavar="DIR", help_behavior_hint="(required)")] = None
+    """probe directory: one run directory per variant, probe.json, the figure, report.html; rerunning the same
+    request resumes in it"""
     grid: Annotated[ProbeGrid, tyro.conf.arg(name="")] = field(
         default_factory=lambda: ProbeGrid(("small_jitter", "full_random")))
     """the conditions probed (by default the two ends of the ladder, canonical, five objects; absent-object:
@@ -217,18 +218,20 @@ class ProbeConfig:
     first_seed: int = 0
     """scene j of every condition plays seed first_seed + j, the seeds `vla-ladder eval` uses"""
     workers: int = 0
-    """worker processes on the CPU backend (0: one per core); any number gives the same episodes"""
+    """worker processes playing episodes on the CPU backend, each with its own copy of the policy (0: one per
+    core, capped by memory); any number gives the same episodes"""
     num_envs: int = 1
     """episodes played at once by one copy of the policy (physx_cuda: in one process; physx_cpu: in num_envs
     processes in lockstep; not with --workers > 1; appearance-swap needs 1)"""
     sim_backend: str = "physx_cpu"
-    """physx_cpu or physx_cuda"""
+    """physx_cpu or physx_cuda (needs a CUDA GPU)"""
     object_set: str = "auto"
-    """ycb, standin, or auto (YCB when its meshes are on disk)"""
+    """ycb, standin, or auto (YCB when its meshes are on disk, else standin; $VLA_LADDER_OBJECT_SET overrides
+    auto)"""
     robot_mesh: str = "lite"
-    """lite or full robot visual meshes (physics is the same)"""
+    """lite (decimated visual meshes, fast on a CPU renderer) or full (ManiSkill's); physics is the same"""
     videos: int = 0
-    """film the first K scenes of each condition in every variant"""
+    """write MP4s of both cameras for the first K scenes of each condition, in every variant"""
     resamples: int = grounding.RESAMPLES
     """instruction-swap only: shuffles of its permutation null (its NMI's p-value)"""
     report: bool = True
@@ -237,6 +240,8 @@ class ProbeConfig:
     """replace a probe directory that holds another request (the same request is always resumed)"""
     switch_steps: tuple[int, ...] = SWITCH_STEPS
     """instruction-switch only: the control steps (1-49) at which the instruction switches, one variant each"""
+
+    REQUIRED_ON_COMMAND_LINE: ClassVar[tuple[str, ...]] = ("policy", "out")
 
     def __post_init__(self):
         if self.name not in PROBES:
@@ -329,10 +334,8 @@ def save_probe(out: Path, data: dict) -> None:
 
 def run_probe(cfg: ProbeConfig, policy: Policy | None = None, progress: bool = True) -> dict:
     """Play every variant (resuming), then write probe.json, the figure and (cfg.report) report.html."""
-    if cfg.out is None:
-        raise ValueError("--out DIR is required: the probe directory to write")
-    if policy is None and not cfg.policy:
-        raise ValueError("--policy SPEC is required; allowed: " + allowed_specs())
+    check_given(("--policy SPEC", cfg.policy or policy is not None, "SPEC: " + allowed_specs()),
+                ("--out DIR", cfg.out, "DIR: the probe directory to write"))
     if policy is None:
         check_spec(cfg.policy)  # a missing checkpoint or server fails before the probe directory is written
     with files.writing(cfg.out, "probe"):  # a second one with --overwrite would remove this one's variants

@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
@@ -37,7 +38,7 @@ from vla_ladder.machine import check_workers, cores
 class StudyCommand:
     """Record, train, evaluate and report a learned policy along the ladder (resumable)."""
 
-    config: tyro.conf.Positional[str]
+    config: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="CONFIG")]
     """a preset (micro, cpu-mini, gpu-session, gpu-scratch, paper) or a study JSON file"""
     out: Path
     """study directory (a re-run with the same config resumes in it)"""

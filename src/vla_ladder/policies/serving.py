@@ -39,10 +39,11 @@ import signal
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 import torch
+import tyro
 
 from vla_ladder.checks import SEED_LIMIT, check_count, check_port_free, is_loopback, refuse_past_max_clients
 from vla_ladder.contract import ACTION_DIM, CAMERAS, STATE_DIM, STATE_KEY
@@ -57,15 +58,17 @@ log = logging.getLogger(__name__)
 class ServePolicyConfig:
     """Serve a LeRobot checkpoint to remote clients (`vla-ladder serve-policy`; `eval --policy remote:URL`)."""
 
-    policy: str = ""
+    policy: Annotated[str, tyro.conf.arg(metavar="SPEC", help_behavior_hint="(required)")] = ""
     """lerobot:CHECKPOINT[?device=D&n_action_steps=H&use_amp=B&noise_seed=K&instruction=TEXT]: the checkpoint to
     serve; its n_action_steps is the default horizon clients run (they may ask for another)"""
     host: str = "127.0.0.1"
     """address to listen on; anything but loopback needs --api-key"""
     port: int = 8000
     """port; 0 picks a free one (the URL is printed once listening)"""
-    api_key: str | None = None  # read from the environment in __post_init__, so that --help never prints it
-    """secret clients send as `Authorization: Api-Key KEY` (default: $VLA_LADDER_API_KEY); required off loopback"""
+    # read from the environment in __post_init__, so that --help never prints it
+    api_key: Annotated[str | None, tyro.conf.arg(metavar="STR", help_behavior_hint="(default: $VLA_LADDER_API_KEY)")] \
+        = None
+    """secret clients send as `Authorization: Api-Key KEY`; required off loopback"""
     max_batch: int = 16
     """most requests one forward pass answers (those that arrived while the model ran: eval --workers N sends N,
     eval --num-envs N up to N on one connection), and most one connection may have in flight"""

@@ -39,7 +39,7 @@ class Args:
     train_seed: int = 1
     """seed of the experiment (network init, action sampling, training episode seeds)"""
     cuda: bool = True
-    """run the networks on CUDA when available (always the case with physx_cuda)"""
+    """run the networks on CUDA when available (with physx_cuda they always do, --no-cuda or not)"""
     progress: bool = True
     """show a progress bar"""
     torch_threads: int = 1
@@ -52,7 +52,7 @@ class Args:
     through AsyncVectorEnv, one process each). Without a CUDA GPU the default is refused, never silently swapped:
     pass --sim-backend physx_cpu with a --num-envs and --total-timesteps a CPU can run"""
     num_envs: int = 1024
-    """the number of parallel environments"""
+    """parallel environments (physx_cpu: one process each, at most one per core)"""
     max_episode_steps: int = EPISODE_STEPS
     """episode length in control steps (20 Hz)"""
     grid: Annotated[ConditionGrid, tyro.conf.arg(name="")] = field(

@@ -17,6 +17,7 @@ import shutil
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import pandas as pd
@@ -122,9 +123,9 @@ def _derived_state(states: list[dict], episodes: int, sources: list) -> dict:
 class RebuildProvenanceConfig:
     """Give a dataset that LeRobot's editing tools made from recordings its vla-ladder provenance back."""
 
-    dataset: tyro.conf.Positional[Path]
+    dataset: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DATASET")]
     """the edited LeRobotDataset (lerobot-edit-dataset's output)"""
-    sources: tuple[Path, ...]
+    sources: Annotated[tuple[Path, ...], tyro.conf.arg(metavar="DIR [DIR ...]")]
     """the recordings it was made from (for an in-place edit: DATASET_old)"""
 
     def __post_init__(self):

@@ -42,37 +42,42 @@ class RecordConfig:
     """dataset directory (created, or resumed when it exists)"""
     episodes: int
     """successful episodes the dataset should hold"""
-    server: tuple[str, ...] = ()
+    server: Annotated[tuple[str, ...], tyro.conf.arg(metavar="URL [URL ...]", help_behavior_hint="(default: none)")] \
+        = ()
     """ws://HOST:PORT of running `vla-ladder serve`s to draw from; the dataset records the condition and expert
-    they serve (all must serve the same). Without it, a local server is started with the options below."""
+    they serve (all must serve the same; --regime, --split, --num-objects given too must match it). Without it,
+    local servers are started with the options below."""
     condition: Annotated[Condition, tyro.conf.arg(name="")] = field(default_factory=Condition)
     """condition of the local server (with --server, the servers' condition; a different one given here is an
     error)"""
     policy: str = "scripted"
-    """expert spec of the local server: scripted, ppo:PATH, ... (with --server, the servers' expert)"""
+    """the local servers' expert: scripted, ppo:PATH or a policy plugin's KIND[:ARG] (with --server, the servers'
+    expert)"""
     workers: int = 0
     """local servers, each simulating in its own process (0: one per core, capped by memory)"""
     num_envs: int = 1
     """parallel envs of each local server (more than one needs a GPU)"""
     robot_mesh: str = "lite"
-    """how the local servers render the robot: lite (decimated visual meshes) or full (ManiSkill's)"""
+    """the local servers' robot meshes: lite (decimated visual meshes, fast on a CPU renderer) or full (ManiSkill's);
+    physics is the same"""
     rebuild_scenes: bool = True
     """local servers rebuild the CPU scene every episode, so that every recorded episode replays bit for bit from
     its seed and actions (~2% of a demo's simulation); --no-rebuild-scenes reuses it (replays may drift by mm)"""
     instructions: str = "canonical"
     """how the local servers word instructions: canonical, paraphrase-train (record these to evaluate on held-out
     paraphrases) or paraphrase-heldout"""
-    first_seed: int | None = None
-    """first episode seed; later ones follow and never repeat, across servers and resumes (default: the dataset's
-    own when resuming it, else 1000000, far from the evaluation seeds 0... so that no evaluated scene is a
-    demonstration's)"""
+    first_seed: Annotated[int | None, tyro.conf.arg(
+        metavar="INT", help_behavior_hint="(default: 1000000, or the dataset's own when resuming it)")] = None
+    """first episode seed; later ones follow and never repeat, across servers and resumes (1000000 is far from the
+    evaluation seeds 0..., so that no evaluated scene is a demonstration's)"""
     video: bool = True
     """store camera frames as MP4 video (LeRobot's default); --no-video stores PNG images"""
     vcodec: str = DEFAULT_VCODEC
     """video codec of the cameras: libsvtav1 (AV1, LeRobot's default) or h264 (a quarter less of the writer's CPU
     time, half the bytes, ~2 dB lower PSNR; docs/recording.md); fixed for the dataset's life"""
-    token: str | None = None  # read from the environment in __post_init__, so that --help never prints it
-    """server token (default: $VLA_LADDER_TOKEN)"""
+    # read from the environment in __post_init__, so that --help never prints it
+    token: Annotated[str | None, tyro.conf.arg(metavar="STR", help_behavior_hint="(default: $VLA_LADDER_TOKEN)")] = None
+    """the token the servers require (`vla-ladder serve --token`)"""
     commit_every: int = 50
     """commit to the dataset every N saved episodes (each commit starts new video files; within a batch LeRobot
     rewrites its file for every episode, so thousands cost more than they save: docs/recording.md)"""
@@ -83,8 +88,8 @@ class RecordConfig:
     under 1.9%, 95% Wilson bound): the expert cannot do this condition, or is no expert; 0: never"""
     writers: int = 0
     """dataset writers, each a process of its own drawing blocks of seeds from its share of the servers into shards
-    that are merged into --out, in seed order, at the end: the dataset one writer records (LeRobot's writer costs 0.9
-    CPU s a demo on 2 idle cores, 3.3 on 16); 0: one per two servers"""
+    that are merged into --out, in seed order, at the end: the dataset one writer records (LeRobot's writer takes
+    ~0.4 CPU s a demo on 2 idle cores, docs/recording.md); 0: one per two servers"""
     encoder_threads: int = 0
     """threads of each camera's video encoder (SVT-AV1's lp); 0: the encoder's choice (on 2 cores one thread was up
     to 17% faster with one writer, no faster with two; see docs/recording.md)"""

@@ -46,7 +46,8 @@ class ServeConfig:
     condition: Annotated[Condition, tyro.conf.arg(name="")] = field(default_factory=Condition)
     """the condition every episode is played in"""
     policy: str = "scripted"
-    """expert spec for load_policy: scripted, ppo:PATH, ..."""
+    """the expert, a policy spec: scripted, ppo:PATH or a policy plugin's KIND[:ARG] (`record` takes only an
+    expert's episodes)"""
     rng_seed: int = 0
     """seeds the server's global torch/numpy RNGs (stochastic experts); episode seeds always come from clients"""
     num_envs: int = 1
@@ -55,8 +56,9 @@ class ServeConfig:
     """address to bind; anything but loopback needs --token"""
     port: int = 8765
     """port; 0 picks a free one (the URL is printed once listening)"""
-    token: str | None = None  # read from the environment in __post_init__, so that --help never prints it
-    """shared secret every client must send in its hello; required off loopback (default: $VLA_LADDER_TOKEN)"""
+    # read from the environment in __post_init__, so that --help never prints it
+    token: Annotated[str | None, tyro.conf.arg(metavar="STR", help_behavior_hint="(default: $VLA_LADDER_TOKEN)")] = None
+    """shared secret every client must send in its hello; required off loopback"""
     max_outstanding: int = 0
     """episodes one client may have requested but not yet received (0: 4 x num_envs, at least 8)"""
     max_clients: int = 8

@@ -18,6 +18,7 @@ from collections import Counter
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
@@ -455,8 +456,9 @@ def displacement_curves(runs: list[Run], trained_in: str) -> dict[str, dict]:
 class ReportConfig:
     """Write one self-contained HTML page of evaluation runs (`vla-ladder report RUN_DIR... --out report.html`)."""
 
-    runs: tyro.conf.Positional[tuple[Path, ...]]
-    """run directories from `vla-ladder eval --out`"""
+    runs: Annotated[tuple[Path, ...], tyro.conf.Positional, tyro.conf.arg(metavar="RUN...",
+                                                                           help_behavior_hint="(required)")]
+    """run directories from `vla-ladder eval --out`, one or more"""
     out: Path
     """HTML file to write"""
     title: str = "vla-ladder evaluation report"

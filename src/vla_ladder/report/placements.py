@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Annotated, Sequence
 
 import numpy as np
+import tyro
 
 from vla_ladder.checks import SEED_LIMIT, check_output_file
 from vla_ladder.files import atomic_path
@@ -71,21 +72,22 @@ class PlacementsConfig:
     """Sample layouts of the placement ladder (no simulator): print them, write JSON, draw the paper's Figure 1."""
 
     n: int
-    """layouts per regime"""
+    """layouts per regime, 1-100000"""
     regimes: tuple[str, ...] = ("all",)
-    """regimes, or all"""
+    """placement regimes: small_jitter, medium_jitter, large_jitter, full_random, or all"""
     split: str = "canonical"
-    """object-region split: canonical, pairings_id, pairings_ood"""
+    """object-region split: canonical (object i in region i), pairings_id or pairings_ood (held-out pairs)"""
     num_objects: int = 5
-    """objects per scene, 1-5 (target included)"""
-    target: str | None = None
-    """instructed object (default: uniform)"""
+    """objects on the table, 1-5 (the instructed one and its distractors)"""
+    target: Annotated[str | None, tyro.conf.arg(metavar="OBJECT", help_behavior_hint="(default: each seed's own)")] \
+        = None
+    """instruct this object in every layout: apple, orange, rubiks_cube, mug or large_marker"""
     first_seed: int = 0
-    """episode j uses seed first_seed + j"""
+    """layout j of every regime uses seed first_seed + j (the layout `vla-ladder eval` plays with that seed)"""
     json: Path | None = None
-    """write the layouts here (JSON)"""
+    """write the layouts here (JSON); without --json and --plot they are printed"""
     plot: Path | None = None
-    """write the placement figure here (PNG/PDF/SVG)"""
+    """write the placement figure here (its suffix says the format: png, pdf, svg, ...)"""
 
     def __post_init__(self):
         self.regimes = parse_regimes(self.regimes)

@@ -8,6 +8,7 @@ from pathlib import Path
 from vla_ladder.checks import check_output_dir
 from vla_ladder.conditions import Condition, parse_regimes
 from vla_ladder.contract import CAMERA_NAMES, ENV_ID
+from vla_ladder.task.object_sets import resolve_object_set
 
 
 def render_first_frames(condition: Condition, seed: int, out: str | Path, object_set: str = "auto",
@@ -49,22 +50,24 @@ class RenderConfig:
     """Render both cameras of an episode's first frame, as PNG, with its layout as JSON."""
 
     seed: int
-    """the episode seed"""
+    """the episode's seed (the scene `vla-ladder eval` plays with it)"""
     out: Path
-    """output directory"""
+    """output directory: <regime>_seed<seed>_<camera>.png for both cameras and <regime>_seed<seed>.json, per regime"""
     regimes: tuple[str, ...] = ("all",)
-    """regimes, or all"""
+    """placement regimes: small_jitter, medium_jitter, large_jitter, full_random, or all"""
     split: str = "canonical"
-    """object-region split"""
+    """object-region split: canonical (object i in region i), pairings_id or pairings_ood (held-out pairs)"""
     num_objects: int = 5
-    """objects on the table, 1-5"""
+    """objects on the table, 1-5 (the instructed one and its distractors)"""
     object_set: str = "auto"
-    """auto, ycb or standin"""
+    """ycb, standin, or auto (YCB when its meshes are on disk, else standin; $VLA_LADDER_OBJECT_SET overrides
+    auto)"""
 
     def __post_init__(self):
         self.conditions = [Condition(r, self.split, self.num_objects) for r in parse_regimes(self.regimes)]
         if self.seed < 0:
             raise ValueError(f"--seed must be >= 0, got {self.seed}")
+        resolve_object_set(self.object_set)  # an unknown set, or ycb without its meshes: said before the simulator
         check_output_dir(self.out, "--out")  # now, not after the simulator is built
 
 

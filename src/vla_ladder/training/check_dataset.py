@@ -1,4 +1,4 @@
-"""`vla-ladder check-dataset DIR`: what no LeRobot validator checks and this project's claims rest on.
+"""`vla-ladder check-dataset DATASET`: what no LeRobot validator checks and this project's claims rest on.
 
 A pairings experiment means something only if its training data never showed a held-out object-region pair; a
 ladder rung only if its data hold the layouts their seeds say. Before training on a recorded dataset, this
@@ -67,10 +67,10 @@ COVERAGE_SEEDS = 2000
 class CheckDatasetConfig:
     """Check a recorded dataset: balance, coverage, leakage, seeds, layouts, frames, actions (exit 1 on a violation)."""
 
-    dataset: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DIR")]
+    dataset: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DATASET")]
     """dataset directory written by `vla-ladder record`"""
-    out: Path | None = None
-    """write the JSON summary here (default: print it)"""
+    out: Annotated[Path | None, tyro.conf.arg(metavar="PATH", help_behavior_hint="(default: print it)")] = None
+    """write the JSON summary here"""
     balance_alpha: float = 0.001
     """a chi-square p-value below this flags unbalanced instructions"""
     min_expected: float = 5.0

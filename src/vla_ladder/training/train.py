@@ -21,6 +21,9 @@ import time
 from urllib.error import URLError
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Annotated, ClassVar
+
+import tyro
 
 from vla_ladder import files
 from vla_ladder.checks import TORCH_DEVICE, check_output_dir, check_seed, check_torch_device
@@ -241,18 +244,23 @@ class TrainConfig:
     """LeRobot policy type: smolvla, pi05, act, diffusion, ... (every type LeRobot registers)"""
     dataset: Path
     """local LeRobotDataset v3 directory"""
-    out: Path | None = None
-    """run directory, new or empty (required on the command line; the grid sets one per model)"""
-    pretrained: str | None = "default"
-    """local checkpoint dir or hub id to fine-tune; none trains from scratch (default: lerobot/smolvla_base for
-    smolvla, lerobot/pi05_base for pi05, else none)"""
-    batch_size: int | None = None
-    """default: the paper's, from the dataset's recorded regime (128 full random, else 64)"""
+    out: Annotated[Path | None, tyro.conf.arg(metavar="DIR", help_behavior_hint="")] = None
+    """run directory, new or empty, or holding this run to resume (required on the command line; the grid sets one
+    per model)"""
+    pretrained: Annotated[str | None, tyro.conf.arg(metavar="STR", help_behavior_hint=(
+        "(default: lerobot/smolvla_base for smolvla, lerobot/pi05_base for pi05, else none)"))] = "default"
+    """local checkpoint dir or hub id to fine-tune; none trains from scratch"""
+    batch_size: Annotated[int | None, tyro.conf.arg(metavar="INT", help_behavior_hint=(
+        "(default: the paper's for the dataset's recorded regime: 128 full_random, else 64)"))] = None
+    """training batch size (per GPU under accelerate launch); a dataset that is not a vla-ladder recording needs
+    it"""
     chunk_size: int = DEFAULT_CHUNK
     """action chunk length (policy types with an action chunk: act, smolvla, pi05, diffusion's horizon, ...)"""
-    n_action_steps: int | None = None
-    """execution horizon stored with the checkpoint (default: the chunk size, or LeRobot's default for policies
-    with observation history such as diffusion); evaluation can override it"""
+    n_action_steps: Annotated[int | None, tyro.conf.arg(metavar="INT", help_behavior_hint=(
+        "(default: the chunk size, or LeRobot's default for policies with observation history such as diffusion)"))] \
+        = None
+    """execution horizon stored with the checkpoint, at most the chunk size (diffusion: chunk size - n_obs_steps + 1);
+    evaluation can override it"""
     steps: int = 30_000
     """training steps"""
     save_freq: int = 20_000
@@ -260,20 +268,24 @@ class TrainConfig:
     log_freq: int = 200
     """log every N steps"""
     num_workers: int = 4
-    """data-loader worker processes"""
+    """data-loader worker processes (0: load data in the training process)"""
     train_seed: int = DEFAULT_TRAIN_SEED
     """seed of the training run (initialisation, data order, augmentation)"""
-    device: str | None = None
-    """cuda, cpu, mps (default: LeRobot picks)"""
+    device: Annotated[str | None, tyro.conf.arg(metavar="STR", help_behavior_hint="(default: LeRobot picks)")] = None
+    """cpu, cuda, cuda:N or mps"""
     wandb: bool = False
     """log to Weights & Biases"""
-    rename_map: dict[str, str] | None = None
-    """dataset key -> checkpoint key, e.g. observation.images.hand_camera observation.images.camera2 (default:
-    the fixed camera -> the checkpoint's first image slot)"""
+    rename_map: Annotated[dict[str, str] | None, tyro.conf.arg(
+        metavar="KEY NEW_KEY [KEY NEW_KEY ...]", help_behavior_hint=(
+            "(default: fine-tuning, the fixed and hand cameras -> the checkpoint's first and second image slots; "
+            "from scratch, none)"))] = None
+    """dataset key -> checkpoint key, e.g. observation.images.hand_camera observation.images.camera2"""
     print_command: bool = False
     """print the equivalent lerobot-train command and exit"""
-    lerobot_args: tuple[str, ...] = ()
+    lerobot_args: Annotated[tuple[str, ...], tyro.conf.arg(help_behavior_hint="(default: none)")] = ()
     """raw lerobot-train flags appended last (they win); on the command line, everything after --"""
+
+    REQUIRED_ON_COMMAND_LINE: ClassVar[tuple[str, ...]] = ("out",)
 
     def __post_init__(self):
         allowed = policy_types()
