@@ -756,6 +756,7 @@ def test_an_empty_path_is_refused_not_read_as_the_current_directory(tmp_path, mo
     (["probe", "--probe", "instruction-swap", "--policy", "scripted"], "unknown flag --probe; `vla-ladder probe"),
     (["eval", "--policy", "scripted", "--out", "r", "--episodes", "1.5"], "--episodes takes INT, got '1.5'"),
     (["eval", "--policy", "scripted", "--out", "r", "--first-seed=x"], "--first-seed takes INT, got 'x'"),
+    (["eval", "--policy", "scripted", "--out", "r", "--switch-at", "1.5"], "--switch-at takes INT, got '1.5'"),
     (["eval", "--policy", "scripted", "--out", "r", "--noise-std", "1"], "unknown flag --noise-std; `vla-ladder"),
 ])
 def test_a_flag_tyro_does_not_know_is_named_in_one_line(argv, says, tmp_path, monkeypatch, capsys):

@@ -171,6 +171,8 @@ def _one_line_value_errors(cls: type | None = None, prog: str = "", argv: list[s
             metavar = getattr(getattr(event.argument, "lowered", None), "metavar", None)
             given = _values_of(flag, argv or [])
             if flag.startswith("--") and metavar and given is not None:  # int('1.5')'s words name no flag's type
+                # tyro's `{None}|INT` of an optional field: the flag takes the INT ("None" too, which it read)
+                metavar = metavar.removeprefix("{None}|").removeprefix("{").removesuffix("}")
                 raise ValueError(f"{flag} takes {metavar}, got {given!r}")
             # tyro's own failures go on with a list of the types it tried: their first line says it
             message = next((line.strip() for line in str(event.message).splitlines() if line.strip()), "bad value")
