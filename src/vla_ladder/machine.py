@@ -59,10 +59,12 @@ def limit_threads(threads: int) -> None:
 
 
 def auto_writers(servers: int, requested: int = 0) -> int:
-    """`requested`, or (0) one dataset writer per two simulation servers: on 2 idle cores a writer takes 0.5 s a
-    demo (0.9 CPU s) and a server rendering on the CPU 1.3 s (benchmarks/results/record_speed_cpu.json), so one
-    writer keeps up with about 2.5 servers; on the 16-core GPU machine a writer cost 3.3 CPU s a demo and a server
-    0.9 s, so one per two servers is the margin for both."""
+    """`requested`, or (0) one dataset writer per two simulation servers: on 2 idle cores a writer takes 0.24 s a
+    demo (0.40 CPU s) and a server rendering on the CPU 1.2 s (benchmarks/results/record_speed_cpu.json), so one
+    writer keeps up with several servers; on the 16-core GPU machine a writer cost 0.88 CPU s a demo and a server,
+    rendering on the GPU, 0.7-0.85 s (H200, 2026-11-27; docs/benchmarks.md), about one writer per server, so one per
+    two servers is the margin for both. (The rule was set when a writer cost 0.9 and 3.3 CPU s, before the writer's
+    image statistics and encoder settings were made cheaper.)"""
     return requested if requested > 0 else max(1, servers // 2)
 
 
