@@ -152,6 +152,54 @@ def test_a_leaky_dataset_built_on_purpose_is_caught(recorded, tmp_path, capsys):
     assert any(line.startswith("replay: episode 1 ") and line.endswith("must replay bit for bit") for line in lines)
 
 
+def _retask(root: Path, instructions: dict[int, str]) -> None:
+    """Give episodes other instructions in every file LeRobot reads them from (tasks.parquet, each frame's
+    task_index, meta/episodes' tasks), and stats.json the quantiles of the new task indices."""
+    from vla_ladder.recording.stats import write_exact_quantiles
+
+    episodes_path = sorted((root / "meta/episodes").glob("*/*.parquet"))[0]
+    episodes = pd.read_parquet(episodes_path)
+    tasks = [instructions.get(int(e), list(t)[0]) for e, t in zip(episodes["episode_index"], episodes["tasks"])]
+    table = list(dict.fromkeys(tasks))
+    pd.DataFrame({"task_index": range(len(table))}, index=pd.Index(table, name="task")).to_parquet(
+        root / "meta/tasks.parquet")
+    episodes["tasks"] = [[t] for t in tasks]
+    episodes.to_parquet(episodes_path, index=False)
+    data_path = sorted((root / "data").glob("*/*.parquet"))[0]
+    data = pd.read_parquet(data_path)
+    data["task_index"] = [table.index(tasks[int(e)]) for e in data["episode_index"]]
+    data.to_parquet(data_path, index=False)
+    write_exact_quantiles(root)
+
+
+@pytest.mark.slow
+def test_a_probe_counterfactual_recorded_as_training_data_is_caught(recorded, tmp_path, capsys):
+    """A recording holds each seed's own episode. Another object on the table instructed (the expert grasped one
+    object, the label names another), a colour swap or a held-out paraphrase are what probes play: written
+    consistently into every file (quantiles included), only the seed's layout tells them apart."""
+    copy = tmp_path / "counterfactual"
+    shutil.copytree(recorded, copy)
+    path, prov = _provenance(copy)
+    condition = Condition("small_jitter", "pairings_id", 2)
+    seeds = [int(s) for s in prov["seed"]]
+    own = sample_layout(condition, seeds[0])
+    changed = [own.instructed(own.objects[1]).to_dict(),  # the distractor named, the scene unchanged
+               sample_layout(condition, seeds[1], instructions="paraphrase-heldout").to_dict(),
+               sample_layout(condition, seeds[2], appearance="swap").to_dict()]  # (orange and apple swap colours)
+    for ep, layout in enumerate(changed):
+        prov.loc[ep, ["layout", "target", "instruction"]] = [json.dumps(layout), layout["target"],
+                                                             layout["instruction"]]
+    prov.to_parquet(path, index=False)
+    _retask(copy, {0: changed[0]["instruction"], 1: changed[1]["instruction"]})
+    rc, summary, lines = check(copy, tmp_path, capsys, "--replay", "0")
+    assert rc == 1 and len(lines) == 3 and all(line.startswith("layouts: ") for line in lines)
+    assert (f"target {changed[0]['target']!r} but the seed gives {own.target!r}" in lines[0]
+            and f"instruction {changed[0]['instruction']!r} but the seed gives {own.instruction!r}" in lines[0])
+    assert "instructions 'paraphrase-heldout' but the seed gives None" in lines[1]
+    assert "colour_swap ['orange', 'apple'] but the seed gives None" in lines[2]
+    assert summary["checks"]["layouts"] == {"checked": 3, "mismatched": 3}
+
+
 @pytest.mark.slow
 def test_replay_tolerates_the_drift_of_a_reused_scene_but_not_altered_actions(recorded, tmp_path):
     """An episode that does not promise a bit-exact replay (recorded with --no-rebuild-scenes, or before

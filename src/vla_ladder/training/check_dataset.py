@@ -7,7 +7,9 @@ command checks, from LeRobot's files and the provenance the recorder writes (vla
 - structure: LeRobot v3 features of the contract, one provenance row per episode;
 - seeds: no seed recorded twice (a duplicate is a replayed scene counted twice);
 - layouts: every episode's seed regenerates its recorded layout (objects, positions, yaw, regions, target,
-  wording) in the recording's condition, and LeRobot's task is its instruction;
+  wording) in the recording's condition and instruction set, and LeRobot's task is its instruction: a recording
+  holds no probe's counterfactual (another object instructed, a colour or position swap, a held-out wording), so
+  the layout is compared with what the seed gives, not with what the layout's own options make of it;
 - frames: every episode has contract.EPISODE_STEPS frames, numbered 0..T-1, as many as its provenance says;
 - actions: finite and inside the normalised action box [-1, 1]; states finite;
 - quantiles: stats.json's q01...q99 of every numeric feature are those over all frames (pi0.5 normalises state and
@@ -48,7 +50,7 @@ from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.contract import ACTION_KEY, EPISODE_STEPS, STATE_KEY, contract_changes
 from vla_ladder.recordings import (STATS_FILE, exact_quantiles, read_provenance, read_recording,
                                   read_recording_state)
-from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, condition_of, layout_from_dict
+from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, condition_of, sample_layout
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
 from vla_ladder.task.replay import Replayer
 from vla_ladder.training.dataset import check_features, read_info
@@ -106,8 +108,6 @@ def occupancy(layout: dict) -> list[tuple[str, int]]:
 @lru_cache(maxsize=None)
 def pair_probabilities(condition: Condition) -> np.ndarray:
     """(objects, regions) expected occupancy per episode under `condition`, from COVERAGE_SEEDS sampled layouts."""
-    from vla_ladder.task.layouts import sample_layout
-
     counts = np.zeros((NUM_OBJECTS, len(REGION_CENTERS)))
     for seed in range(COVERAGE_SEEDS):
         for name, region in occupancy(sample_layout(condition, seed).to_dict()):
@@ -182,12 +182,11 @@ class Checker:
             elif int(layout["seed"]) != int(row["seed"]):
                 problems.append(f"its layout is of seed {layout['seed']}")
             else:
-                try:
-                    again = layout_from_dict(layout).to_dict()
-                    problems += [f"{k} {layout.get(k)!r} but the seed gives {again.get(k)!r}"
-                                 for k in sorted(set(again) | set(layout)) if not _same(layout.get(k), again.get(k))]
-                except (ValueError, KeyError) as e:
-                    problems.append(f"cannot regenerate its layout: {e}")
+                # What the seed gives in the recording's condition and instruction set; not layout_from_dict, which
+                # would take another instructed object, a swap or another wording from the layout itself.
+                again = sample_layout(condition, int(row["seed"]), instructions=self.recording.instructions).to_dict()
+                problems += [f"{k} {layout.get(k)!r} but the seed gives {again.get(k)!r}"
+                             for k in sorted(set(again) | set(layout)) if not _same(layout.get(k), again.get(k))]
             if row["target"] != layout["target"] or row["instruction"] != layout["instruction"]:
                 problems.append(f"provenance target/instruction {row['target']!r}/{row['instruction']!r} differ "
                                 f"from its layout's {layout['target']!r}/{layout['instruction']!r}")
