@@ -62,6 +62,7 @@ def test_a_recorded_dataset_passes(recorded, tmp_path, capsys):
     assert all(-1 <= v <= 1 for v in checks["actions"]["min"] + checks["actions"]["max"])
     assert checks["quantiles"]["differing"] == 0 and "action" in checks["quantiles"]["features"]
     assert checks["quantiles"]["checked"] >= 10  # q01..q99 of the action and the state at least
+    assert checks["stats"]["checked"] == 10 and checks["stats"]["differing"] == 0  # mean...count of both
     # `record` rebuilds every scene, so each episode's seed and actions give back its states to the last bit.
     replay = checks["replay"]
     assert replay["replayed"] == replay["bit_exact"] == 3 and replay["max_state_diff"] == 0.0
@@ -94,6 +95,23 @@ def test_quantiles_that_are_not_those_of_every_frame_are_flagged(recorded, tmp_p
     assert rc == 1 and f"they are of its first {2 * EPISODE_STEPS} frames" in lines[0]
     assert "rerun its `record`" in lines[0]
     assert summary["checks"]["quantiles"]["differing"] == 1
+
+
+@pytest.mark.slow
+def test_a_mean_std_min_or_max_that_is_not_that_of_every_frame_is_flagged(recorded, tmp_path, capsys):
+    """SmolVLA and ACT normalise state and action with stats.json's mean/std, diffusion with min/max: an edited
+    stats.json, or one of other frames, changes what the model sees as much as a wrong quantile does."""
+    edited = tmp_path / "edited"
+    shutil.copytree(recorded, edited)
+    stats = json.loads((edited / "meta/stats.json").read_text())
+    stats["action"]["mean"][0] += 0.01
+    stats["observation.state"]["std"][3] *= 1.5
+    write_json(edited / "meta/stats.json", stats)
+    rc, summary, lines = check(edited, tmp_path, capsys, "--replay", "0")
+    assert rc == 1 and lines == summary["violations"] and len(lines) == 1
+    assert lines[0].startswith("stats: 2 of stats.json's mean/std/min/max/count of observation.state and action are "
+                               f"not those of the {3 * EPISODE_STEPS} frames (the furthest, observation.state std, ")
+    assert summary["checks"]["stats"]["differing"] == 2 and summary["checks"]["quantiles"]["differing"] == 0
 
 
 @pytest.mark.slow

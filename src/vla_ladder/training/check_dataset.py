@@ -14,6 +14,8 @@ command checks, from LeRobot's files and the provenance the recorder writes (vla
 - actions: finite and inside the normalised action box [-1, 1]; states finite;
 - quantiles: stats.json's q01...q99 of every numeric feature are those over all frames (pi0.5 normalises state and
   action with q01/q99), not LeRobot's average of per-episode quantiles or those of a recording's first frames;
+- stats: stats.json's mean, std, min, max and count of the state and the action are those of all frames (SmolVLA
+  and ACT normalise them with mean/std, diffusion with min/max): not an edited file, or one of other frames;
 - balance: every object instructed about equally often (chi-square against uniform, when at least five
   episodes per object are expected);
 - coverage: every object-region pair the recording's condition produces (expected >= --min-expected times)
@@ -61,6 +63,11 @@ REPLAY_DRIFT_TOLERANCE = 0.25
 replay: scene reuse drifted 0.0002-0.022 in four episodes; shifting actions by one frame moved them 1.3-2.8"""
 QUANTILE_TOLERANCE = 1e-6
 """largest |stats.json - exact| quantile accepted (both are float64 over the same frames; JSON keeps 17 digits)"""
+STATS_TOLERANCE = 1e-4
+"""largest |stats.json - exact| mean, std, min or max of the state or action accepted, relative to max(1, |exact|):
+LeRobot computes each episode's in float32 and pools them (up to 2e-6 off on four recordings)"""
+NORMALISED = (STATE_KEY, ACTION_KEY)
+"""the features whose stats.json entries a policy normalises with"""
 COVERAGE_SEEDS = 2000
 """layouts sampled to estimate how often the recording's condition puts each object in each region"""
 
@@ -135,7 +142,7 @@ class Checker:
 
     def run(self) -> dict:
         for check in (self.structure, self.seeds, self.layouts_regenerate, self.frames, self.actions, self.quantiles,
-                      self.balance, self.coverage, self.leakage, self.replay):
+                      self.stats, self.balance, self.coverage, self.leakage, self.replay):
             check()
         return {"dataset": str(self.root), "recording": self.recording.to_dict(), "episodes": int(len(self.prov)),
                 "frames": int(self.info.get("total_frames", 0)), "ok": not self.violations,
@@ -227,8 +234,7 @@ class Checker:
 
     def actions(self) -> None:
         data = self._frames
-        action = np.stack(data[ACTION_KEY].to_numpy()) if len(data) else np.zeros((0, 7))
-        state = np.stack(data[STATE_KEY].to_numpy()) if len(data) else np.zeros((0, 15))
+        action, state = self._values[ACTION_KEY], self._values[STATE_KEY]
         outside = ~np.isfinite(action) | (np.abs(action) > 1 + ACTION_TOLERANCE)
         for ep, g in data[outside.any(axis=1)].groupby("episode_index"):
             a = np.stack(g[ACTION_KEY].to_numpy())
@@ -265,6 +271,35 @@ class Checker:
                                    f"furthest, {name}, by {diff:.3g}; {why})")
         self.summary["quantiles"] = {"checked": sum(len(qs) for qs in exact.values()), "differing": len(worst),
                                      "features": sorted(exact), "state_quantile_frames": over}
+
+    def stats(self) -> None:
+        try:
+            saved = json.loads((self.root / STATS_FILE).read_text())
+        except (OSError, ValueError) as e:
+            self.flag("stats", f"cannot read {STATS_FILE}: {e}")
+            return
+        worst = {}
+        for key in NORMALISED:
+            x = self._values[key]
+            if not len(x):
+                continue
+            exact = {"mean": x.mean(axis=0), "std": x.std(axis=0), "min": x.min(axis=0), "max": x.max(axis=0),
+                     "count": np.array([len(x)])}
+            for stat, values in exact.items():
+                recorded = np.asarray(saved.get(key, {}).get(stat, np.nan), dtype=float)
+                diff = (float(np.max(np.abs(recorded - values) / np.maximum(1, np.abs(values))))
+                        if recorded.shape == values.shape else np.inf)
+                if not diff <= STATS_TOLERANCE:  # (nan too)
+                    worst[f"{key} {stat}"] = diff
+        if worst:
+            name, diff = max(worst.items(), key=lambda kv: kv[1])
+            self.flag("stats", f"{len(worst)} of stats.json's mean/std/min/max/count of {' and '.join(NORMALISED)} "
+                               f"are not those of the {len(self._frames)} frames (the furthest, {name}, off by "
+                               f"{diff:.3g} relative): an edited stats.json, or one of other frames? "
+                               "`lerobot-edit-dataset --operation.type recompute_stats`, then "
+                               "stats.write_exact_quantiles, write it again (docs/datasets.md)")
+        self.summary["stats"] = {"checked": 5 * len(NORMALISED), "differing": len(worst),
+                                 "features": list(NORMALISED), "tolerance": STATS_TOLERANCE}
 
     def balance(self) -> None:
         from scipy.stats import chisquare
@@ -382,6 +417,13 @@ class Checker:
         names = dict(zip(table["task_index"], table.index))
         return {int(e): [names.get(int(i)) for i in sorted(g.unique())]
                 for e, g in self._frames.groupby("episode_index")["task_index"]}
+
+    @cached_property
+    def _values(self) -> dict[str, np.ndarray]:
+        """Every frame's action and state, (frames, dim) float64."""
+        data = self._frames
+        return {key: np.stack(data[key].to_numpy()).astype(np.float64) if len(data) else np.zeros((0, dim))
+                for key, dim in ((ACTION_KEY, 7), (STATE_KEY, 15))}
 
     @cached_property
     def _frames(self) -> pd.DataFrame:
