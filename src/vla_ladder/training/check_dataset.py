@@ -22,6 +22,9 @@ command checks, from LeRobot's files and the provenance the recorder writes (vla
   occurs at least once;
 - leakage: a canonical or pairings_id dataset holds no held-out object-region pair (layouts.HELD_OUT_REGIONS),
   for any object on the table, instructed or not;
+- blind: an instruction-blind copy (training/blind.py) names only contract.BLIND_INSTRUCTION wherever LeRobot reads
+  a task (tasks.parquet, each frame's task_index, meta/episodes), carries no text feature, and holds its source's
+  frames and videos: the blind twin must differ from the sighted one by the instruction alone;
 - replay: --replay episodes, spread over the dataset, re-simulated from their seed and recorded actions
   (task/replay.py): one recorded on a rebuilt physx_cpu scene (provenance `replayable`, `record`'s default) must
   give back its recorded states and held object to the bit; any other may drift (PhysX solver caches of a reused
@@ -34,7 +37,9 @@ violations) goes to --out or stdout.
 
 from __future__ import annotations
 
+import filecmp
 import json
+import os
 import sys
 from collections import Counter
 from dataclasses import dataclass
@@ -49,12 +54,13 @@ import tyro
 from vla_ladder import files
 from vla_ladder.checks import check_output_file
 from vla_ladder.conditions import REGIMES, Condition
-from vla_ladder.contract import ACTION_KEY, EPISODE_STEPS, STATE_KEY, contract_changes
-from vla_ladder.recordings import (STATS_FILE, exact_quantiles, read_provenance, read_recording,
-                                  read_recording_state)
+from vla_ladder.contract import ACTION_KEY, BLIND_INSTRUCTION, EPISODE_STEPS, STATE_KEY, contract_changes
+from vla_ladder.recordings import (STATS_FILE, exact_quantiles, frames, numeric_features, read_provenance,
+                                  read_recording, read_recording_state)
 from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, condition_of, sample_layout
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
 from vla_ladder.task.replay import Replayer
+from vla_ladder.training.blind import STAMP as BLIND_STAMP
 from vla_ladder.training.dataset import check_features, read_info
 
 ACTION_TOLERANCE = 1e-5
@@ -134,6 +140,9 @@ class Checker:
                              "check-dataset checks datasets written by `vla-ladder record`")
         self.prov = read_provenance(self.root)
         self.layouts = [json.loads(s) for s in self.prov["layout"]] if len(self.prov) else []
+        stamp = self.root / BLIND_STAMP
+        self.blind_stamp: dict | None = json.loads(stamp.read_text()) if stamp.is_file() else None
+        """an instruction-blind copy's stamp (its source): its tasks are BLIND_INSTRUCTION, not the instructions"""
         self.violations: list[str] = []
         self.summary: dict = {}
 
@@ -142,7 +151,7 @@ class Checker:
 
     def run(self) -> dict:
         for check in (self.structure, self.seeds, self.layouts_regenerate, self.frames, self.actions, self.quantiles,
-                      self.stats, self.balance, self.coverage, self.leakage, self.replay):
+                      self.stats, self.balance, self.coverage, self.leakage, self.blind, self.replay):
             check()
         return {"dataset": str(self.root), "recording": self.recording.to_dict(), "episodes": int(len(self.prov)),
                 "frames": int(self.info.get("total_frames", 0)), "ok": not self.violations,
@@ -179,7 +188,7 @@ class Checker:
         condition = self.recording.condition
         tasks = self._episode_tasks()
         trained_on = self._frame_tasks()
-        bad = 0
+        bad = shown = 0
         for (_, row), layout in zip(self.prov.iterrows(), self.layouts):
             ep = f"episode {row['episode_index']} (seed {row['seed']})"
             recorded_condition = condition_of(layout)
@@ -197,18 +206,27 @@ class Checker:
             if row["target"] != layout["target"] or row["instruction"] != layout["instruction"]:
                 problems.append(f"provenance target/instruction {row['target']!r}/{row['instruction']!r} differ "
                                 f"from its layout's {layout['target']!r}/{layout['instruction']!r}")
+            told = layout["instruction"] if self.blind_stamp is None else BLIND_INSTRUCTION
+            what = f"the instruction {told!r}" if self.blind_stamp is None else f"the blind copy's {told!r}"
+            task_problems = []
             task = tasks.get(int(row["episode_index"]))
-            if task is not None and task != [layout["instruction"]]:
-                problems.append(f"LeRobot task {task} is not the instruction {layout['instruction']!r}")
+            if task is not None and task != [told]:
+                task_problems.append(f"LeRobot task {task} is not {what}")
             # What training reads: each frame's task_index, looked up in meta/tasks.parquet.
             frame_tasks = trained_on.get(int(row["episode_index"]))
-            if frame_tasks is not None and frame_tasks != [layout["instruction"]]:
-                problems.append(f"its frames' task_index gives {frame_tasks}, not the instruction "
-                                f"{layout['instruction']!r} (what training reads)")
+            if frame_tasks is not None and frame_tasks != [told]:
+                task_problems.append(f"its frames' task_index gives {frame_tasks}, not {what} (what training reads)")
+            if self.blind_stamp is not None and task_problems:  # an instruction shown to the blind twin
+                shown += 1
+                self.flag("blind", f"{ep}: " + "; ".join(task_problems))
+            else:
+                problems += task_problems
             if problems:
                 bad += 1
                 self.flag("layouts", f"{ep}: " + "; ".join(problems))
         self.summary["layouts"] = {"checked": len(self.layouts), "mismatched": bad}
+        if self.blind_stamp is not None:
+            self.summary["blind"] = {"episodes_showing_a_task": shown}
 
     def frames(self) -> None:
         data = self._frames
@@ -348,6 +366,51 @@ class Checker:
         self.summary["leakage"] = {"checked": True, "episodes_with_held_out_pairs": leaks,
                                    "held_out": {o: sorted(HELD_OUT_REGIONS[i]) for i, o in enumerate(OBJECT_NAMES)}}
 
+    def blind(self) -> None:
+        """An instruction-blind copy: only BLIND_INSTRUCTION where LeRobot reads a task (each episode's are checked
+        with its layout), and its source's frames and videos."""
+        out = self.summary.setdefault("blind", {})
+        out["blind_copy"] = self.blind_stamp is not None
+        if self.blind_stamp is None:
+            return
+        table = self._tasks_table()
+        names = [] if table is None else list(table.index)
+        if names != [BLIND_INSTRUCTION]:
+            self.flag("blind", f"meta/tasks.parquet holds {names}; a blind copy's holds only {BLIND_INSTRUCTION!r}")
+        text = [k for k, f in self.info.get("features", {}).items() if f.get("dtype") in ("string", "language")]
+        if text:
+            self.flag("blind", f"features {text} carry text with every frame; a blind copy has none")
+        source = Path(self.blind_stamp.get("source", ""))
+        out.update(source=str(source), tasks=names)
+        if not (source / "meta" / "info.json").is_file():
+            out["note"] = f"its source {source} is gone: its frames and videos not compared"
+            return
+        theirs = read_info(source)
+        if theirs.get("total_episodes") != self.info.get("total_episodes"):
+            self.flag("blind", f"its source {source} has {theirs.get('total_episodes')} episodes, the copy "
+                               f"{self.info.get('total_episodes')}: make the copy again")
+            return
+        keys = [k for k in numeric_features(self.info) if k != "task_index"]
+        try:
+            mine, source_frames = frames(self.root, keys), frames(source, keys)
+        except (OSError, ValueError, KeyError) as e:  # (pyarrow's errors are ValueErrors and OSErrors)
+            self.flag("blind", f"cannot compare its frames with its source's ({source}): {e}")
+            return
+        differ = [k for k in keys if not np.array_equal(mine[k], source_frames.get(k))]
+        if differ:
+            self.flag("blind", f"its frames' {', '.join(differ)} are not its source's ({source}): the blind twin must "
+                               "train on the same frames")
+        videos = {p.relative_to(self.root) for p in (self.root / "videos").rglob("*") if p.is_file()}
+        source_videos = {p.relative_to(source) for p in (source / "videos").rglob("*") if p.is_file()}
+        not_shared = sorted(map(str, (videos ^ source_videos) | {v for v in videos & source_videos
+                                                                 if not _same_file(self.root / v, source / v)}))
+        if not_shared:
+            self.flag("blind", f"{len(not_shared)} video file(s) differ from or are missing in its source's "
+                               f"({not_shared[0]}{', ...' if len(not_shared) > 1 else ''}): the blind twin must see "
+                               "the same pictures")
+        out.update(frames_compared=len(mine[keys[0]]) if keys else 0, videos_compared=len(videos | source_videos),
+                   videos_differing=len(not_shared), features_differing=differ)
+
     def replay(self) -> None:
         picks = _spread(len(self.prov), self.cfg.replay)
         out: dict = {"replayed": 0, "bit_exact": 0, "max_state_diff": None, "episodes": []}
@@ -407,13 +470,16 @@ class Checker:
         meta = self._episodes_meta()
         return {int(e): list(t) for e, t in zip(meta["episode_index"], meta["tasks"])}
 
+    def _tasks_table(self) -> pd.DataFrame | None:
+        path = self.root / "meta" / "tasks.parquet"
+        return pd.read_parquet(path) if path.is_file() else None
+
     def _frame_tasks(self) -> dict[int, list]:
         """Per episode, the distinct tasks its frames' task_index names in meta/tasks.parquet (None for an index
         the table lacks): LeRobotDataset.__getitem__ reads these, not meta/episodes' `tasks`."""
-        path = self.root / "meta" / "tasks.parquet"
-        if not path.is_file() or not len(self._frames):
+        table = self._tasks_table()
+        if table is None or not len(self._frames):
             return {}
-        table = pd.read_parquet(path)
         names = dict(zip(table["task_index"], table.index))
         return {int(e): [names.get(int(i)) for i in sorted(g.unique())]
                 for e, g in self._frames.groupby("episode_index")["task_index"]}
@@ -444,6 +510,11 @@ def _same(a, b) -> bool:
     if isinstance(a, float) or isinstance(b, float):
         return isinstance(a, (int, float)) and isinstance(b, (int, float)) and abs(a - b) <= 2e-5
     return a == b
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """The same file (a hard link, as blind copies make) or one with the same bytes."""
+    return os.path.samefile(a, b) or filecmp.cmp(a, b, shallow=False)
 
 
 def _true(value) -> bool:
