@@ -57,8 +57,13 @@ def test_a_recorded_dataset_passes(recorded, tmp_path, capsys):
     checks = summary["checks"]
     assert checks["frames"]["per_episode"] == [EPISODE_STEPS] and checks["layouts"] == {"checked": 3, "mismatched": 0}
     assert np.array(checks["coverage"]["counts"]).sum() == 6  # two objects in each of three episodes
+    assert checks["coverage"]["episodes"] == 3 and checks["coverage"]["pairs_missing"] == 0
+    assert checks["coverage"]["pairs_expected"] == 0  # (no pair is expected 5 times in 3 episodes)
     assert checks["leakage"]["checked"] and checks["leakage"]["episodes_with_held_out_pairs"] == 0
+    assert checks["leakage"]["episodes"] == 3
     assert sum(checks["balance"]["counts"].values()) == 3 and checks["balance"]["p_value"] is None
+    assert checks["actions"]["frames"] == 3 * EPISODE_STEPS and checks["actions"]["frames_outside"] == 0
+    assert checks["actions"]["frames_non_finite_state"] == 0
     assert all(-1 <= v <= 1 for v in checks["actions"]["min"] + checks["actions"]["max"])
     assert checks["quantiles"]["differing"] == 0 and "action" in checks["quantiles"]["features"]
     assert checks["quantiles"]["checked"] >= 10  # q01..q99 of the action and the state at least
@@ -163,6 +168,7 @@ def test_a_leaky_dataset_built_on_purpose_is_caught(recorded, tmp_path, capsys):
             f"{EPISODE_STEPS}") in lines
     assert f"structure: the recording state counts 99 episodes but info.json has {saved}" in lines
     assert summary["checks"]["leakage"]["episodes_with_held_out_pairs"] == 1
+    assert summary["checks"]["actions"]["frames_outside"] == 1
     replayed = {e["episode_index"]: e for e in summary["checks"]["replay"]["episodes"]}
     assert 2 not in replayed  # its missing frame is the frames check's to report
     # Frame 1 now holds action 0 again; the state it leads to, frame 2's, is the first to differ.
@@ -254,6 +260,7 @@ def test_balance_and_coverage_flag_what_a_condition_should_produce(recorded, tmp
     # Three episodes cannot show every pair pairings_id/2 produces; with a low enough bar the gaps are reported.
     assert checker.violations and all(v.startswith("coverage: ") and "never in region" in v
                                       for v in checker.violations)
+    assert checker.summary["coverage"]["pairs_missing"] == len(checker.violations)
     checker = Checker(CheckDatasetConfig(recorded))
     checker.prov = pd.DataFrame({"target": ["apple"] * 20 + ["mug"] * 5})
     checker.balance()

@@ -261,7 +261,9 @@ class Checker:
                                  f"{np.nanmax(a):.3g})")
         for ep, g in data[~np.isfinite(state).all(axis=1)].groupby("episode_index"):
             self.flag("actions", f"episode {ep}: {len(g)} frames with a non-finite state")
-        self.summary["actions"] = {"min": action.min(axis=0).tolist() if len(action) else [],
+        self.summary["actions"] = {"frames": len(action), "frames_outside": int(outside.any(axis=1).sum()),
+                                   "frames_non_finite_state": int((~np.isfinite(state).all(axis=1)).sum()),
+                                   "min": action.min(axis=0).tolist() if len(action) else [],
                                    "max": action.max(axis=0).tolist() if len(action) else []}
 
     def quantiles(self) -> None:
@@ -342,10 +344,13 @@ class Checker:
             for name, region in occupancy(layout):
                 counts[OBJECT_NAMES.index(name), region] += 1
         expected = pair_probabilities(self.recording.condition) * len(self.layouts)
-        for o, r in zip(*np.nonzero((counts == 0) & (expected >= self.cfg.min_expected))):
+        missing = list(zip(*np.nonzero((counts == 0) & (expected >= self.cfg.min_expected))))
+        for o, r in missing:
             self.flag("coverage", f"{OBJECT_NAMES[o]} never in region {r} although {self.recording.condition} puts it "
                                   f"there {expected[o, r]:.1f} times in {len(self.layouts)} episodes on average")
-        self.summary["coverage"] = {"rows": list(OBJECT_NAMES), "columns": list(range(len(REGION_CENTERS))),
+        self.summary["coverage"] = {"episodes": len(self.layouts), "pairs_expected": int(
+                                        (expected >= self.cfg.min_expected).sum()), "pairs_missing": len(missing),
+                                    "rows": list(OBJECT_NAMES), "columns": list(range(len(REGION_CENTERS))),
                                     "counts": counts.tolist(), "expected": np.round(expected, 2).tolist()}
 
     def leakage(self) -> None:
@@ -363,7 +368,8 @@ class Checker:
                 leaks += 1
                 self.flag("leakage", f"episode {row.episode_index} (seed {row.seed}) holds held-out pairs: "
                                      + ", ".join(held_out))
-        self.summary["leakage"] = {"checked": True, "episodes_with_held_out_pairs": leaks,
+        self.summary["leakage"] = {"checked": True, "episodes": len(self.layouts),
+                                   "episodes_with_held_out_pairs": leaks,
                                    "held_out": {o: sorted(HELD_OUT_REGIONS[i]) for i, o in enumerate(OBJECT_NAMES)}}
 
     def blind(self) -> None:
