@@ -56,6 +56,8 @@ def test_a_recorded_dataset_passes(recorded, tmp_path, capsys):
     assert summary["episodes"] == 3 and summary["frames"] == 3 * EPISODE_STEPS
     checks = summary["checks"]
     assert checks["frames"]["per_episode"] == [EPISODE_STEPS] and checks["layouts"] == {"checked": 3, "mismatched": 0}
+    # Each episode's first state is its seed's start (layouts.initial_qpos) to the bit.
+    assert checks["start"] == {"checked": 3, "differing": 0, "not_checked_gpu": 0, "max_diff": 0.0}
     assert np.array(checks["coverage"]["counts"]).sum() == 6  # two objects in each of three episodes
     assert checks["coverage"]["episodes"] == 3 and checks["coverage"]["pairs_missing"] == 0
     assert checks["coverage"]["pairs_expected"] == 0  # (no pair is expected 5 times in 3 episodes)
@@ -222,6 +224,27 @@ def test_a_probe_counterfactual_recorded_as_training_data_is_caught(recorded, tm
     assert "instructions 'paraphrase-heldout' but the seed gives None" in lines[1]
     assert "colour_swap ['orange', 'apple'] but the seed gives None" in lines[2]
     assert summary["checks"]["layouts"] == {"checked": 3, "mismatched": 3}
+
+
+@pytest.mark.slow
+def test_provenance_shifted_against_the_frames_is_caught_without_a_replay(recorded, tmp_path, capsys):
+    """Episodes 1 and 2 carry each other's provenance (the bookkeeping slip of a merge), their tasks following it
+    as they would where the two had the same instruction: every layout is its seed's, so only the frames tell;
+    each episode's first state is compared with its seed's start, for every episode, without a simulator."""
+    copy = tmp_path / "shifted"
+    shutil.copytree(recorded, copy)
+    path, prov = _provenance(copy)
+    columns = [c for c in prov.columns if c not in ("episode_index", "num_frames")]
+    prov.loc[[1, 2], columns] = prov.loc[[2, 1], columns].to_numpy()
+    prov.to_parquet(path, index=False)
+    _retask(copy, {1: prov.loc[1, "instruction"], 2: prov.loc[2, "instruction"]})
+    rc, summary, lines = check(copy, tmp_path, capsys, "--replay", "0")
+    s1, s2 = int(prov.loc[1, "seed"]), int(prov.loc[2, "seed"])
+    assert rc == 1 and len(lines) == 2 and summary["checks"]["start"]["differing"] == 2
+    assert lines[0].startswith(f"start: episode 1 (seed {s1}): its first state's arm joints differ from the seed's "
+                               "start by up to ")
+    assert lines[0].endswith(f"its frames were not played from its seed (they start as seed {s2} does)")
+    assert lines[1].startswith(f"start: episode 2 (seed {s2}): ") and lines[1].endswith(f"as seed {s1} does)")
 
 
 @pytest.mark.slow

@@ -32,7 +32,8 @@ from vla_ladder.contract import CAMERAS, CONTROL_HZ, EPISODE_STEPS, REACH_THRESH
 from vla_ladder.task import appearance, assets, object_sets, robot
 from vla_ladder.task.appearance import check_appearance
 from vla_ladder.task.instructions import check_instruction_set
-from vla_ladder.task.layouts import WORKSPACE_CENTER, Layout, sample_layout
+from vla_ladder.task.layouts import (REST_QPOS, ROBOT_INIT_QPOS_NOISE, WORKSPACE_CENTER, Layout, initial_qpos,
+                                     sample_layout)
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES, object_index
 
 LIFT_HEIGHT = 0.05
@@ -41,7 +42,6 @@ ROBOT_BASE = (-0.615, 0.0, 0.0)
 # well inside ManiSkill's 5 m spacing between parallel sub-scenes.
 PARK_XY = np.array([[-0.6 + 0.3 * i, 1.8] for i in range(NUM_OBJECTS)])
 HAND_CAMERA, FIXED_CAMERA = CAMERAS
-REST_QPOS = np.array([0.0, np.pi / 8, 0, -np.pi * 5 / 8, 0, np.pi * 3 / 4, np.pi / 4, 0.04, 0.04])
 
 
 def auto_render_backend(needs_render: bool, cuda: bool) -> str:
@@ -135,7 +135,7 @@ class GraspObjectEnv(BaseEnv):
     def __init__(self, *args, regime: str = "small_jitter", split: str = "canonical", num_objects: int = 5,
                  target: str | None = None, object_set: str = "auto", robot_mesh: str = "lite",
                  instructions: str = "canonical", appearance: str = "original",
-                 robot_init_qpos_noise: float = 0.02, robot_uids=None, render_backend: str = "auto",
+                 robot_init_qpos_noise: float = ROBOT_INIT_QPOS_NOISE, robot_uids=None, render_backend: str = "auto",
                  obs_mode: str | None = None,
                  render_mode: str | None = None, sensor_configs: dict | None = None,
                  reconfiguration_freq: int | None = None, **kwargs):
@@ -396,8 +396,7 @@ class GraspObjectEnv(BaseEnv):
                 off = centers[k]
                 pos[row, k, :2] = xy - np.array([c * off[0] - s * off[1], s * off[0] + c * off[1]])
                 quat[row, k] = [np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]
-            noise = np.random.default_rng([seed, 7]).normal(0, self.robot_init_qpos_noise, 7)
-            qpos[row, :7] += noise.astype(np.float32)
+            qpos[row] = initial_qpos(seed, self.robot_init_qpos_noise)
         with torch.device(self.device):
             for k, obj in enumerate(self.objs):
                 obj.set_pose(Pose.create_from_pq(torch.from_numpy(pos[:, k]), torch.from_numpy(quat[:, k])))

@@ -39,6 +39,10 @@ HELD_OUT_REGIONS: tuple[frozenset[int], ...] = tuple(
     frozenset(range(NUM_OBJECTS)) - TRAIN_REGIONS[i] for i in range(NUM_OBJECTS))
 MIN_GAP = 0.01  # free space kept between object footprints
 MAX_TRIES = 2000
+REST_QPOS = np.array([0.0, np.pi / 8, 0, -np.pi * 5 / 8, 0, np.pi * 3 / 4, np.pi / 4, 0.04, 0.04])
+"""the Panda's rest joint positions (7 arm joints, then the two fingers), around which every episode starts"""
+ROBOT_INIT_QPOS_NOISE = 0.02
+"""GraspObject-v1's default standard deviation (rad) of the arm's start around REST_QPOS"""
 _POSITION_STREAM = 0x5A4B0  # the random stream of a position swap's partner order (Layout.position_partners)
 _SWITCH_STREAM = 0x5A4B1  # the random stream of an instruction switch's new target (Layout.switch_partner)
 _ORDER_STREAM = 0x5A4B2  # the random stream of the order full random places its objects in (sample_layout)
@@ -389,6 +393,15 @@ def sample_layout(condition: Condition, seed: int = 0, target: str | None = None
 def sample_layouts(condition: Condition, seeds=(0,), target: str | None = None, instructions: str = CANONICAL,
                    appearance: str = "original") -> list[Layout]:
     return [sample_layout(condition, int(s), target, instructions, appearance) for s in seeds]
+
+
+def initial_qpos(seed: int, noise: float = ROBOT_INIT_QPOS_NOISE) -> np.ndarray:
+    """(9,) float32 joint positions episode `seed` starts from: REST_QPOS, the arm's seven with Gaussian noise on a
+    random stream of the seed's own. The env's reset sets them; check-dataset compares each recorded episode's first
+    state with them, tying its frames to its seed without a simulator."""
+    qpos = REST_QPOS.astype(np.float32)
+    qpos[:7] += np.random.default_rng([int(seed), 7]).normal(0, noise, 7).astype(np.float32)
+    return qpos
 
 
 def condition_of(data: dict) -> Condition:

@@ -10,6 +10,9 @@ command checks, from LeRobot's files and the provenance the recorder writes (vla
   wording) in the recording's condition and instruction set, and LeRobot's task is its instruction: a recording
   holds no probe's counterfactual (another object instructed, a colour or position swap, a held-out wording), so
   the layout is compared with what the seed gives, not with what the layout's own options make of it;
+- start: every episode's first state holds its seed's start (layouts.initial_qpos: the arm's joints, drawn from the
+  seed), so each episode's frames were played from its seed, for every episode and without a simulator (the replay
+  re-simulates a few); episodes simulated on physx_cuda are counted, not compared;
 - frames: every episode has contract.EPISODE_STEPS frames, numbered 0..T-1, as many as its provenance says;
 - actions: finite and inside the normalised action box [-1, 1]; states finite;
 - quantiles: stats.json's q01...q99 of every numeric feature are those over all frames (pi0.5 normalises state and
@@ -57,7 +60,7 @@ from vla_ladder.conditions import REGIMES, Condition
 from vla_ladder.contract import ACTION_KEY, BLIND_INSTRUCTION, EPISODE_STEPS, STATE_KEY, contract_changes
 from vla_ladder.recordings import (STATS_FILE, exact_quantiles, frames, numeric_features, read_provenance,
                                   read_recording, read_recording_state)
-from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, condition_of, sample_layout
+from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, condition_of, initial_qpos, sample_layout
 from vla_ladder.task.objects import NUM_OBJECTS, OBJECT_NAMES
 from vla_ladder.task.replay import Replayer
 from vla_ladder.training.blind import STAMP as BLIND_STAMP
@@ -69,6 +72,9 @@ REPLAY_DRIFT_TOLERANCE = 0.25
 replay: scene reuse drifted 0.0002-0.022 in four episodes; shifting actions by one frame moved them 1.3-2.8"""
 QUANTILE_TOLERANCE = 1e-6
 """largest |stats.json - exact| quantile accepted (both are float64 over the same frames; JSON keeps 17 digits)"""
+START_TOLERANCE = 1e-4
+"""largest |first state - the seed's start| arm joint position (rad) accepted: equal to the bit on physx_cpu, while
+two seeds' starts differ by 0.04-0.07 rad (at most) in the three episodes of the tests' recording"""
 STATS_TOLERANCE = 1e-4
 """largest |stats.json - exact| mean, std, min or max of the state or action accepted, relative to max(1, |exact|):
 LeRobot computes each episode's in float32 and pools them (up to 2e-6 off on four recordings)"""
@@ -150,8 +156,8 @@ class Checker:
         self.violations.append(f"{check}: {message}")
 
     def run(self) -> dict:
-        for check in (self.structure, self.seeds, self.layouts_regenerate, self.frames, self.actions, self.quantiles,
-                      self.stats, self.balance, self.coverage, self.leakage, self.blind, self.replay):
+        for check in (self.structure, self.seeds, self.layouts_regenerate, self.start, self.frames, self.actions,
+                      self.quantiles, self.stats, self.balance, self.coverage, self.leakage, self.blind, self.replay):
             check()
         return {"dataset": str(self.root), "recording": self.recording.to_dict(), "episodes": int(len(self.prov)),
                 "frames": int(self.info.get("total_frames", 0)), "ok": not self.violations,
@@ -227,6 +233,34 @@ class Checker:
         self.summary["layouts"] = {"checked": len(self.layouts), "mismatched": bad}
         if self.blind_stamp is not None:
             self.summary["blind"] = {"episodes_showing_a_task": shown}
+
+    def start(self) -> None:
+        data = self._frames
+        first = data[data["frame_index"] == 0].drop_duplicates("episode_index").set_index("episode_index")
+        out: dict = {"checked": 0, "differing": 0, "not_checked_gpu": 0, "max_diff": None}
+        self.summary["start"] = out
+        diffs, starts = [], None
+        for row in self.prov.itertuples(index=False):
+            ep = int(row.episode_index)
+            if ep not in first.index:
+                continue  # the frames check says what is missing
+            backend = getattr(row, "sim_backend", None)  # absent (NaN) in older recordings, all physx_cpu
+            if isinstance(backend, str) and backend != "physx_cpu":
+                out["not_checked_gpu"] += 1  # (not measured there: counted, not compared)
+                continue
+            arm = np.asarray(first.at[ep, STATE_KEY], dtype=np.float64)[:7]
+            diff = float(np.max(np.abs(arm - initial_qpos(int(row.seed))[:7])))
+            diffs.append(diff)
+            if not diff <= START_TOLERANCE:
+                out["differing"] += 1
+                if starts is None:  # which recorded seed's start it is, if any: provenance shifted against frames
+                    starts = {int(s): initial_qpos(int(s))[:7] for s in self.prov["seed"]}
+                like = [s for s, q in starts.items() if np.max(np.abs(arm - q)) <= START_TOLERANCE]
+                self.flag("start", f"episode {ep} (seed {row.seed}): its first state's arm joints differ from the "
+                                   f"seed's start by up to {diff:.3g} rad: its frames were not played from its seed"
+                                   + (f" (they start as seed {like[0]} does)" if like else ""))
+        out["checked"] = len(diffs)
+        out["max_diff"] = max(diffs, default=None)
 
     def frames(self) -> None:
         data = self._frames
