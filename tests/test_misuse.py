@@ -808,6 +808,15 @@ def test_render_refuses_an_unknown_object_set_before_the_simulator(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+
+def test_help_text_flows_as_paragraphs_not_as_the_source_lines():
+    """tyro kept the break at the end of every continuation line of an indented field docstring, so each flag's help
+    broke where the source line did: `(0: one per` / `core, capped by memory)`."""
+    out = subprocess.run([sys.executable, "-m", "vla_ladder.cli", "eval", "--help"], capture_output=True, text=True,
+                         env={**os.environ, "COLUMNS": "300"}, check=True).stdout
+    workers = next(line for line in out.splitlines() if "--workers" in line)
+    assert "(0: one per core, capped by memory); any number gives the same episodes" in workers
+
 def test_every_command_names_the_sim_backends_alike(tmp_path, capsys):
     """eval, train-expert and the LeRobot env check the backend with one function (three copies said it three ways:
     `sim backend`, and the allowed ones in two orders)."""

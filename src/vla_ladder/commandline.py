@@ -19,8 +19,30 @@ def parse_config(cls: type[T], argv: list[str], prog: str, description: str | No
 
     check_no_repeated_flags(argv, cls)
     check_no_empty_paths(cls, argv)
+    _reflow_field_docstrings()
     with _one_line_value_errors(cls, prog, argv):
         return tyro.cli(cls, args=argv, prog=prog, description=description, default=default)
+
+
+def _reflow_field_docstrings() -> None:
+    """Hand tyro each field docstring as paragraphs of one line. tyro joins a docstring's lines only where a line
+    starts with a letter, and looks before it dedents: every continuation line of an indented field docstring
+    starts with a space, so --help broke each help where the source line ended (`(0: one per` / `core, capped by
+    memory)`). (tyro's docstring reader is private: where it is not found, the help stays as tyro draws it.)"""
+    import inspect
+    import re
+
+    from tyro import _docstrings
+
+    parse = getattr(_docstrings, "parse_docstring_from_object", None)
+    if parse is None or getattr(parse, "reflowed", False):
+        return
+
+    def reflowed(obj) -> dict[str, str]:
+        return {name: re.sub(r"(?<!\n)\n(?!\n)", " ", inspect.cleandoc(text)) for name, text in parse(obj).items()}
+
+    reflowed.reflowed = True
+    _docstrings.parse_docstring_from_object = reflowed
 
 
 def unchecked(cls: type[T], values: dict) -> T:
