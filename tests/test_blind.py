@@ -31,6 +31,11 @@ def test_blind_copy_hides_the_instruction_and_shares_the_videos(tmp_path_factory
     assert (dst / video.relative_to(src)).stat().st_ino == video.stat().st_ino  # a hard link, not a copy
     assert {p: p.read_bytes() for p in (src / "meta").rglob("*.parquet")} == before  # the source is untouched
     assert json.loads((dst / "meta" / "info.json").read_text())["total_tasks"] == 1
+    # Its card says what it is (it was the source's, hard-linked, listing the instructions its frames do not hold),
+    # and the source's card is untouched.
+    card, source_card = (dst / "README.md").read_text(), (src / "README.md").read_text()
+    assert card.startswith("# Instruction-blind copy") and card.endswith(source_card)
+    assert not source_card.startswith("# Instruction-blind copy")
     assert blind_copy(src, tmp_path / "blind") == dst  # made once, then reused
 
 

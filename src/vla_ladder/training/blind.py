@@ -67,6 +67,14 @@ def blind_copy(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
                 stats["task_index"] = {k: v if k == "count" else np.zeros_like(v).tolist()
                                        for k, v in stats["task_index"].items()}
                 stats_path.write_text(json.dumps(stats, indent=4))
+        card = tmp / "README.md"  # (a hard link to the source's card: replaced, not written through)
+        if card.is_file():
+            text = card.read_text()
+            card.unlink()
+            card.write_text(f"# Instruction-blind copy\n\nEvery frame's task here is \"{BLIND_INSTRUCTION}\": "
+                            f"vla-ladder's instruction-blind copy of {src.resolve()}, for the blind twin (the policy "
+                            "that sees everything but the instruction). The card below is the source's: the "
+                            "instructions it lists are not in this copy's frames.\n\n" + text)
         info["total_tasks"] = 1
         (tmp / "meta" / "info.json").write_text(json.dumps(info, indent=4))
         (tmp / STAMP).write_text(json.dumps(stamp))
