@@ -15,6 +15,11 @@ import sys
 from vla_ladder.checks import check_seed_args, os_error_message
 from vla_ladder.commandline import parse_config
 
+ABOUT = ("Does a vision-language-action policy follow its instruction, or the place its object usually stands? "
+         "GraspObject-v1\nand the placement ladder: record, train, evaluate, probe and diagnose (docs/ in the "
+         "repository).")
+"""what `vla-ladder --help` says of the project (the module docstring is the developers')"""
+
 # name -> ("module:ConfigClass", one-line help). The module defines run(config) -> int.
 COMMANDS: dict[str, tuple[str, str]] = {
     "placements": ("vla_ladder.report.placements:PlacementsConfig",
@@ -54,7 +59,7 @@ RUNNERS = {"serve": "vla_ladder.recording.serve"}
 def usage() -> str:
     width = max(map(len, COMMANDS))
     lines = ["usage: vla-ladder COMMAND [OPTIONS]   (vla-ladder COMMAND --help for its options)", "",
-             __doc__.splitlines()[0], "", "commands:"]
+             ABOUT, "", "commands:"]
     lines += [f"  {name:<{width}}  {help_}" for name, (_, help_) in COMMANDS.items()]
     return "\n".join(lines)
 
