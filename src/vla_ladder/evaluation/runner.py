@@ -17,7 +17,7 @@ import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Annotated, ClassVar
+from typing import Annotated
 
 import numpy as np
 import tyro
@@ -106,8 +106,6 @@ class EvalConfig:
     alone: bool = False
     """take every distractor off the table, the instructed object staying where the seed put it (the
     distractor-removal probe; task/layouts.py Layout.alone): the layout's "removed" names what stood there"""
-
-    REQUIRED_ON_COMMAND_LINE: ClassVar[tuple[str, ...]] = ("policy", "out")
 
     def __post_init__(self):
         self.out = None if self.out is None else check_output_dir(self.out, "--out")  # a file, the root: now
