@@ -212,9 +212,9 @@ def checked_config(path: str | Path, n_action_steps: int | None = None, device: 
     steps = steps if n_action_steps is None else n_action_steps
     kind = saved.get("type")
     if kind in HORIZON_CHUNKS and all(isinstance(v, int) for v in (horizon, n_obs, steps)) and \
-            not 1 <= steps <= executable_steps(kind, horizon, n_obs):
-        raise ValueError(f"n_action_steps must be from 1 to {executable_steps(kind, horizon, n_obs)} for this "
-                         f"{kind} checkpoint (horizon {horizon} - n_obs_steps {n_obs} + 1), got {steps}")
+            not 1 <= steps <= (most := executable_steps(kind, horizon, n_obs)):
+        raise ValueError(f"n_action_steps must be from 1 to {most} for this {kind} checkpoint (horizon {horizon} - "
+                         f"n_obs_steps {n_obs} + 1), got {steps}")
     overrides = [] if n_action_steps is None else [f"--n_action_steps={int(n_action_steps)}"]
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     check_torch_device(device, f"device={device}", "use ?device=cpu, or leave device out (cuda when there is one, "

@@ -126,6 +126,16 @@ def config_class(policy_type: str):
     return PreTrainedConfig.get_choice_class(policy_type)
 
 
+def config_fields(policy_type: str) -> set[str]:
+    """The field names of LeRobot's config class of a registered policy type."""
+    return {f.name for f in dataclasses.fields(config_class(policy_type))}
+
+
+def chunk_name(policy_type: str) -> str:
+    """The name of the policy config's chunk field (chunk_size, or CHUNK_FIELD's), whether or not its config has it."""
+    return CHUNK_FIELD.get(policy_type, "chunk_size")
+
+
 def config_default(policy_type: str, name: str):
     """The default of field `name` of LeRobot's config for `policy_type`, read from the dataclass: making one runs
     its __post_init__, which picks a device and logs about it."""
@@ -136,15 +146,15 @@ def config_default(policy_type: str, name: str):
 def chunk_field(policy_type: str) -> str | None:
     """The policy config's field that --chunk-size sets (chunk_size, or CHUNK_FIELD's), None where it has none
     (vqbet, tdmpc, ...: --chunk-size changes nothing there)."""
-    name = CHUNK_FIELD.get(policy_type, "chunk_size")
-    return name if name in {f.name for f in dataclasses.fields(config_class(policy_type))} else None
+    name = chunk_name(policy_type)
+    return name if name in config_fields(policy_type) else None
 
 
 def sweepable_types() -> list[str]:
     """The policy types a grid or study can train per chunk size and evaluate per execution horizon: their config
     has the chunk field that --chunk-size sets and n_action_steps, which `lerobot:CKPT?n_action_steps=H` sets."""
     return [t for t in policy_types() if chunk_field(t) is not None
-            and "n_action_steps" in {f.name for f in dataclasses.fields(config_class(t))}]
+            and "n_action_steps" in config_fields(t)]
 
 
 def sweep_problem(policy_type: str) -> str | None:
@@ -153,8 +163,8 @@ def sweep_problem(policy_type: str) -> str | None:
     which LeRobot refuses, and VQ-BeT's config has no n_action_steps, so every evaluation at a horizon was refused."""
     if policy_type in sweepable_types():
         return None
-    fields = {f.name for f in dataclasses.fields(config_class(policy_type))}
-    missing = [f for f in (CHUNK_FIELD.get(policy_type, "chunk_size"), "n_action_steps") if f not in fields]
+    fields = config_fields(policy_type)
+    missing = [f for f in (chunk_name(policy_type), "n_action_steps") if f not in fields]
     # "field": a chunk of its own under another name (vqbet's action_chunk_size, fastwam's action_horizon) or a
     # read-only one (lingbot_va's chunk_size and n_action_steps are properties) is not one the grid can set
     return (f"{policy_type}'s LeRobot config has no {' field and no '.join(missing)} field to set, so the chunk sizes "
@@ -188,8 +198,7 @@ def chunk_multiple(policy_type: str, lerobot_args=()) -> int:
     whose config has `down_dims`) the factor it down-samples the chunk by, 2 ** len(down_dims), which LeRobot's
     config checks (DiffusionConfig.__post_init__; 8 by default). down_dims: LeRobot's default, or
     --policy.down_dims in `lerobot_args`."""
-    fields = {f.name for f in dataclasses.fields(config_class(policy_type))}
-    if policy_type not in CHUNK_FIELD or "down_dims" not in fields:
+    if policy_type not in CHUNK_FIELD or "down_dims" not in config_fields(policy_type):
         return 1
     value = _policy_flag(lerobot_args, "down_dims")
     stages = len(config_default(policy_type, "down_dims")) if value is None else len(re.findall(r"[0-9]+", value))
@@ -213,7 +222,7 @@ def own_flag(policy_type: str, lerobot_args) -> str | None:
     """The first flag of `lerobot_args` that `train` sets itself (OWN_FLAGS, and the chunk field of this type:
     --policy.chunk_size, diffusion's --policy.horizon), None where there is none: given after --, they would move the
     run away from what vla-ladder keeps and resumes, so train refuses them, and a study config before any work."""
-    chunk_flag = f"--policy.{CHUNK_FIELD.get(policy_type, 'chunk_size')}"
+    chunk_flag = f"--policy.{chunk_name(policy_type)}"
     return next((flag for flag, _ in flag_values(lerobot_args) if flag in OWN_FLAGS or flag == chunk_flag), None)
 
 
@@ -308,8 +317,8 @@ class TrainConfig:
         auto_batch = None if self.condition is None else BATCH_FOR_REGIME.get(self.condition.regime, DEFAULT_BATCH)
         chunked = self.chunk_field() is not None
         if not chunked and self.chunk_size != DEFAULT_CHUNK:  # it changed nothing, and the run was labelled with it
-            raise ValueError(f"--chunk-size: {self.policy_type}'s LeRobot config has no {self._chunk_name()} field "
-                             "for it to set; leave --chunk-size out, and set its own fields after --")
+            raise ValueError(f"--chunk-size: {self.policy_type}'s LeRobot config has no {chunk_name(self.policy_type)} "
+                             "field for it to set; leave --chunk-size out, and set its own fields after --")
         # Without a chunk field, n_action_steps stays LeRobot's where the type has one (tdmpc's 1: it refuses more).
         auto_steps = None
         if chunked and self.policy_type not in CHUNK_FIELD:
@@ -354,16 +363,10 @@ class TrainConfig:
         # `out` is checked by train(), not here: a grid or study builds configs for runs that already exist.
 
     # ------------------------------------------------------------------ lerobot-train flags
-    def _config_class(self):
-        return config_class(self.policy_type)
-
     def max_action_steps(self, chunk_size: int | None = None) -> int:
         """max_action_steps of this policy type for `chunk_size` (default: this run's), with its --policy flags."""
         return max_action_steps(self.policy_type, self.chunk_size if chunk_size is None else chunk_size,
                                 self.lerobot_args)
-
-    def _chunk_name(self) -> str:
-        return CHUNK_FIELD.get(self.policy_type, "chunk_size")
 
     def chunk_field(self) -> str | None:
         """chunk_field of this policy type."""
@@ -371,7 +374,7 @@ class TrainConfig:
 
     def policy_flags(self) -> list[str]:
         """--policy.* flags, without the leading "policy." (the form PreTrainedConfig overrides take)."""
-        names = {f.name for f in dataclasses.fields(self._config_class())}
+        names = config_fields(self.policy_type)
         flags = {"push_to_hub": "false"}
         if field := self.chunk_field():
             flags[field] = str(self.chunk_size)
