@@ -57,7 +57,8 @@ import tyro
 from vla_ladder import files
 from vla_ladder.checks import check_output_file
 from vla_ladder.conditions import REGIMES, Condition
-from vla_ladder.contract import ACTION_KEY, BLIND_INSTRUCTION, EPISODE_STEPS, STATE_KEY, contract_changes
+from vla_ladder.contract import (ACTION_DIM, ACTION_KEY, BLIND_INSTRUCTION, EPISODE_STEPS, STATE_DIM, STATE_KEY,
+                                  contract_changes)
 from vla_ladder.recordings import (STATS_FILE, exact_quantiles, frames, numeric_features, read_provenance,
                                   read_recording, read_recording_state)
 from vla_ladder.task.layouts import HELD_OUT_REGIONS, REGION_CENTERS, condition_of, initial_qpos, sample_layout
@@ -529,7 +530,7 @@ class Checker:
         """Every frame's action and state, (frames, dim) float64."""
         data = self._frames
         return {key: np.stack(data[key].to_numpy()).astype(np.float64) if len(data) else np.zeros((0, dim))
-                for key, dim in ((ACTION_KEY, 7), (STATE_KEY, 15))}
+                for key, dim in ((ACTION_KEY, ACTION_DIM), (STATE_KEY, STATE_DIM))}
 
     @cached_property
     def _frames(self) -> pd.DataFrame:
